@@ -1,0 +1,192 @@
+"""Kinematic chain and forward kinematics (Wang et al. 2011 §5; Azad et al. 2007 §III).
+
+A body is a tree of rigid links. Link ``i`` hangs from link ``parents[i]`` through a fixed
+offset ``joint_origin[i]`` (parent frame -> joint frame) followed by a 1-DOF joint motion
+about / along ``joint_axis[i]`` (given in the joint frame). The root link is placed in the
+world by six free DOFs, so the pose vector is
+
+    q = (t_x, t_y, t_z,  w_x, w_y, w_z,  theta_1, ..., theta_J)
+
+with ``t`` the root translation (m), ``w`` the root rotation vector (rad, world frame,
+``R = exp([w]_x)``) and ``theta_j`` the chain's 1-DOF joints in chain order (rad or m).
+
+Forward kinematics composes, for every link in topological order,
+
+    T_i = T_{parents[i]} @ joint_origin[i] @ M_i(theta),   M = Rot(a, theta) | Trans(a theta) | I
+
+and the root link ``T_0 = [exp(w), t] @ joint_origin[0]``. Rotations are composed as 3x3
+matrices plus translations (no 4x4 products, no gathers in the loop; see PERF-NOTES); the
+loop over links is unrolled at trace time from the chain's static topology.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+FIXED, REVOLUTE, PRISMATIC = 0, 1, 2
+ROOT_DOFS = 6  # q[0:3] root translation, q[3:6] root rotation vector
+
+
+class KinematicChain(eqx.Module):
+    """A tree of links with 1-DOF joints; link 0 is the root, links in topological order.
+
+    Array fields (see docs/ARCHITECTURE.md) follow the dtype the chain was built with; the
+    static tuples ``topology`` hold the same (parent, joint type, dof index) per link as
+    Python ints so that ``fk`` unrolls the tree at trace time.
+    """
+
+    parents: Int[Array, " n_links"]
+    joint_origin: Float[Array, "n_links 4 4"]
+    joint_axis: Float[Array, "n_links 3"]
+    joint_type: Int[Array, " n_links"]
+    dof_index: Int[Array, " n_links"]
+    lower: Float[Array, " n_dof"]
+    upper: Float[Array, " n_dof"]
+    link_names: tuple[str, ...] = eqx.field(static=True)
+    dof_names: tuple[str, ...] = eqx.field(static=True)
+    topology: tuple[tuple[int, int, int], ...] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        parents,
+        joint_origin,
+        joint_axis,
+        joint_type,
+        dof_index,
+        lower,
+        upper,
+        link_names,
+        dof_names,
+    ):
+        """Build a chain from array-likes; validates the tree (parents before children)."""
+        parents_np = np.asarray(parents, dtype=np.int64).reshape(-1)
+        types_np = np.asarray(joint_type, dtype=np.int64).reshape(-1)
+        dofs_np = np.asarray(dof_index, dtype=np.int64).reshape(-1)
+        n = parents_np.shape[0]
+        link_names = tuple(str(s) for s in link_names)
+        dof_names = tuple(str(s) for s in dof_names)
+        if n == 0 or parents_np[0] != -1:
+            raise ValueError("KinematicChain: link 0 must be the root (parents[0] == -1)")
+        for i in range(1, n):
+            if not 0 <= parents_np[i] < i:
+                raise ValueError(
+                    f"KinematicChain: link {i} ({link_names[i]!r}) has parent {parents_np[i]}; "
+                    "expected a link index < i (topological order)"
+                )
+        if len(link_names) != n or types_np.shape[0] != n or dofs_np.shape[0] != n:
+            raise ValueError(f"KinematicChain: expected {n} link names, joint types, dof indices")
+        n_dof = len(dof_names)
+        moving = dofs_np[types_np != FIXED]
+        if sorted(moving.tolist()) != list(range(ROOT_DOFS, n_dof)):
+            raise ValueError(
+                f"KinematicChain: dof_index of moving joints must cover {ROOT_DOFS}..{n_dof - 1} "
+                f"once each, got {sorted(moving.tolist())}"
+            )
+        if np.any(dofs_np[types_np == FIXED] != -1):
+            raise ValueError("KinematicChain: fixed joints must have dof_index -1")
+        self.parents = jnp.asarray(parents_np, dtype=jnp.int32)
+        self.joint_origin = jnp.asarray(joint_origin)
+        self.joint_axis = jnp.asarray(joint_axis)
+        self.joint_type = jnp.asarray(types_np, dtype=jnp.int32)
+        self.dof_index = jnp.asarray(dofs_np, dtype=jnp.int32)
+        self.lower = jnp.asarray(lower)
+        self.upper = jnp.asarray(upper)
+        self.link_names = link_names
+        self.dof_names = dof_names
+        self.topology = tuple(
+            (int(p), int(t), int(d)) for p, t, d in zip(parents_np, types_np, dofs_np)
+        )
+
+    @property
+    def n_links(self) -> int:
+        return len(self.link_names)
+
+    @property
+    def n_dof(self) -> int:
+        return len(self.dof_names)
+
+    def link_index(self, name: str) -> int:
+        """Index of the link called ``name`` (ValueError naming the known links otherwise)."""
+        try:
+            return self.link_names.index(name)
+        except ValueError:
+            raise ValueError(f"unknown link {name!r}; links are {self.link_names}") from None
+
+
+def _skew(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
+    )
+
+
+def so3_exp(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+    """Rotation matrix ``exp([w]_x)`` of a rotation vector ``w`` (rad), Rodrigues' formula.
+
+    NaN-free values and gradients at ``w = 0``: the "safe where" substitutes a dummy angle
+    before the division and a Taylor branch is used below a per-dtype threshold (as jaxlie).
+    """
+    theta2 = jnp.sum(w * w, axis=-1)
+    small = theta2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
+    theta2_safe = jnp.where(small, jnp.ones_like(theta2), theta2)
+    theta_safe = jnp.sqrt(theta2_safe)
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta_safe) / theta_safe)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta_safe)) / theta2_safe)
+    k = _skew(w)
+    eye = jnp.eye(3, dtype=w.dtype)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def _mm(a: Array, b: Array) -> Array:
+    """3x3 @ 3x3 as broadcast multiply-add (fuses under vmap; no batched dot)."""
+    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+
+
+def _mv(a: Array, v: Array) -> Array:
+    return (a * v[..., None, :]).sum(-1)
+
+
+def fk(chain: KinematicChain, q: Float[Array, " n_dof"]) -> Float[Array, "n_links 4 4"]:
+    """World transforms ``T_i`` (4x4, metres) of every link for the pose vector ``q``.
+
+    ``q`` follows the layout in the module docstring; the result follows ``q.dtype``.
+    Batch with ``jax.vmap(fk, in_axes=(None, 0))``.
+    """
+    if q.shape != (chain.n_dof,):
+        raise ValueError(f"fk: q has shape {q.shape}, expected ({chain.n_dof},)")
+    dt = q.dtype
+    origin = chain.joint_origin.astype(dt)
+    o_rot, o_t = origin[:, :3, :3], origin[:, :3, 3]
+    axis = chain.joint_axis.astype(dt)
+    topo = chain.topology
+    types = np.array([t for _, t, _ in topo])
+    theta = q[np.array([max(d, 0) for _, _, d in topo])] * (types != FIXED)
+
+    # Local joint motions for all links at once (vectorised over links, outside the loop):
+    # revolute Rot(a, theta) = I + sin K + (1 - cos) K^2 with K = [a]_x, so
+    # origin_R @ Rot = origin_R + sin (origin_R K) + (1 - cos)(origin_R K^2).
+    k = _skew(axis)
+    ok, okk = _mm(o_rot, k), _mm(o_rot, _mm(k, k))
+    rev = (types == REVOLUTE)[:, None, None]
+    s = jnp.where(rev, jnp.sin(theta)[:, None, None], 0.0)
+    c1 = jnp.where(rev, (1.0 - jnp.cos(theta))[:, None, None], 0.0)
+    local_r = o_rot + s * ok + c1 * okk
+    pri = (types == PRISMATIC)[:, None]
+    local_t = o_t + _mv(o_rot, jnp.where(pri, theta[:, None] * axis, 0.0))
+
+    root_r = so3_exp(q[3:6])
+    rots = [_mm(root_r, local_r[0])]
+    trans = [_mv(root_r, local_t[0]) + q[0:3]]
+    for i in range(1, len(topo)):
+        p = topo[i][0]
+        rots.append(_mm(rots[p], local_r[i]))
+        trans.append(_mv(rots[p], local_t[i]) + trans[p])
+    r = jnp.stack(rots)
+    t = jnp.stack(trans)
+    top = jnp.concatenate([r, t[:, :, None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dt), (len(topo), 1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
