@@ -1,0 +1,106 @@
+"""Exact EDT vs OpenCV (DIST_L2, DIST_MASK_PRECISE) and SciPy's distance_transform_edt."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from jaxmocap.distance import edt, edt_to_zero, empty_distance, id_map_distances
+
+TOL = 1e-3  # pixels
+
+
+def _cv2_to_nearest_true(masks: np.ndarray) -> np.ndarray:
+    """Reference: OpenCV measures distance to the nearest zero pixel, so feed it ~mask."""
+    return np.stack([cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2,
+                                           cv2.DIST_MASK_PRECISE) for m in masks])
+
+
+def _scipy_to_nearest_true(masks: np.ndarray) -> np.ndarray:
+    return np.stack([ndimage.distance_transform_edt(~m) for m in masks])
+
+
+def _random_stack(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Sparse, dense, single-pixel, corner-pixel, blob and full masks in one stack."""
+    sparse = rng.random((h, w)) < 0.01
+    sparse[rng.integers(h), rng.integers(w)] = True
+    dense = rng.random((h, w)) < 0.6
+    single = np.zeros((h, w), bool)
+    single[rng.integers(h), rng.integers(w)] = True
+    corner = np.zeros((h, w), bool)
+    corner[h - 1, 0] = True
+    yy, xx = np.mgrid[:h, :w]
+    blob = (yy - h / 3) ** 2 + (xx - w / 2) ** 2 < (min(h, w) / 4) ** 2
+    full = np.ones((h, w), bool)
+    row = np.zeros((h, w), bool)
+    row[h // 2] = True
+    return np.stack([sparse, dense, single, corner, blob, full, row, ~blob])
+
+
+@pytest.mark.parametrize("shape", [(23, 37), (40, 40), (61, 17)])
+def test_edt_matches_opencv_and_scipy(rng, shape):
+    masks = _random_stack(rng, *shape)
+    got = np.asarray(edt(jnp.asarray(masks)))
+    assert got.dtype == np.float64  # default float dtype (tests run with x64)
+    np.testing.assert_allclose(got, _cv2_to_nearest_true(masks), atol=TOL, rtol=0)
+    np.testing.assert_allclose(got, _scipy_to_nearest_true(masks), atol=TOL, rtol=0)
+    # OpenCV / SciPy convention: distance to the nearest False pixel
+    got0 = np.asarray(edt_to_zero(jnp.asarray(masks)))
+    ref0 = np.stack([cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2,
+                                           cv2.DIST_MASK_PRECISE) for m in masks[:-3]])
+    np.testing.assert_allclose(got0[:-3], ref0, atol=TOL, rtol=0)  # (skip the full mask)
+
+
+def test_empty_and_full_masks():
+    h, w = 9, 14
+    masks = jnp.stack([jnp.zeros((h, w), bool), jnp.ones((h, w), bool)])
+    d = np.asarray(edt(masks))
+    assert np.all(np.isfinite(d))
+    np.testing.assert_array_equal(d[0], empty_distance(h, w))
+    assert empty_distance(h, w) > np.hypot(h - 1, w - 1)  # larger than any true distance
+    np.testing.assert_array_equal(d[1], 0.0)
+    # the OpenCV convention: a mask with no False pixel is the empty case
+    np.testing.assert_array_equal(np.asarray(edt_to_zero(masks))[1], h + w)
+
+
+def test_dtype_follows_request(rng):
+    masks = jnp.asarray(rng.random((2, 12, 10)) < 0.1)
+    d32 = edt(masks, dtype=jnp.float32)
+    assert d32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(d32), np.asarray(edt(masks)), atol=1e-5)
+
+
+def test_jit_vmap(rng):
+    masks = rng.random((3, 2, 12, 10)) < 0.1  # (batch, n, h, w)
+    ref = np.stack([_scipy_to_nearest_true(b) for b in masks])
+    mj = jnp.asarray(masks)
+    np.testing.assert_allclose(np.asarray(jax.vmap(edt)(mj)), ref, atol=TOL)
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(edt))(mj)), ref, atol=TOL)
+
+
+def test_id_map_distances(rng):
+    h, w, n_ids = 20, 26, 5
+    id_map = rng.integers(0, n_ids - 1, size=(h, w))  # id 4 is absent
+    id_map[:, :10] = 0
+    d = np.asarray(jax.jit(id_map_distances, static_argnums=1)(jnp.asarray(id_map), n_ids))
+    assert d.shape == (n_ids, h, w)
+    for k in range(n_ids - 1):
+        ref = ndimage.distance_transform_edt(id_map != k)
+        np.testing.assert_allclose(d[k], ref, atol=TOL)
+    np.testing.assert_array_equal(d[n_ids - 1], h + w)
+    # brute-force definition of Wang's d_xy(r, k) at a few pixels
+    for y, x, k in [(0, 0, 1), (13, 25, 2), (7, 3, 3)]:
+        vs, us = np.nonzero(id_map == k)
+        assert abs(d[k, y, x] - np.min(np.hypot(us - x, vs - y))) < TOL
+
+
+def test_input_validation():
+    # wrong rank: a ValueError (or the jaxtyping shape check, when enabled) names the shape
+    with pytest.raises((ValueError, TypeError), match="n h w|\\(n, h, w\\)"):
+        edt(jnp.zeros((4, 4), bool))
+    with pytest.raises(ValueError, match="exceeds"):
+        edt(jnp.zeros((1, 1, 4200), bool))
+    with pytest.raises((ValueError, TypeError), match="h w|\\(h, w\\)"):
+        id_map_distances(jnp.zeros((2, 4, 4), jnp.int32), 3)
