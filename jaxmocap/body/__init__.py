@@ -6,6 +6,7 @@ pytorch-kinematics, converted once to JAX arrays. See ``chain`` for the pose-vec
 
 from .chain import FIXED, PRISMATIC, REVOLUTE, ROOT_DOFS, KinematicChain, fk, so3_exp
 from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, KIND_NAMES, SPHERE, Geometry
+from .mjcf import load_mjcf
 from .model import (
     KEYPOINT_NAMES,
     STEREO_JOINTS,
@@ -30,5 +31,5 @@ __all__ = [
     "KEYPOINT_NAMES", "STEREO_JOINTS", "BodyModel", "make_body_model", "keypoints",
     "keypoints_from_transforms", "geom_world_poses", "keypoint_index", "dof_index",
     "stereo_dofs", "expand_q", "clip_to_limits", "rest_pose", "default_body",
-    "load_urdf",
+    "load_urdf", "load_mjcf",
 ]  # fmt: skip

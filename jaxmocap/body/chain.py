@@ -97,7 +97,7 @@ class KinematicChain(eqx.Module):
         self.link_names = link_names
         self.dof_names = dof_names
         self.topology = tuple(
-            (int(p), int(t), int(d)) for p, t, d in zip(parents_np, types_np, dofs_np)
+            (int(p), int(t), int(d)) for p, t, d in zip(parents_np, types_np, dofs_np, strict=True)
         )
 
     @property

@@ -5,6 +5,7 @@ sees so that the descriptions humans-as-robots use load faithfully:
 
 * a ``spherical``/``ball`` joint becomes three revolute joints ``<name>_x``, ``_y``, ``_z``
   (rotation ``Rx @ Ry @ Rz``) with massless links ``<child>__x``, ``<child>__y`` between;
+* a moving joint without ``<axis>`` gets the URDF default x written out (pk assumes z);
 * trailing NUL bytes (pybullet_data's ``humanoid.urdf``) are stripped;
 * visuals / collisions are removed from its copy: its parser rejects tags it does not know
   (``<ellipsoid>``), drops ``<capsule>`` silently, keeps one visual per link and has no colour.
@@ -134,6 +135,9 @@ def prepare_urdf(text: str, where: str = "<urdf>") -> tuple[ET.Element, str]:
     if robot.tag != "robot":
         raise ValueError(f"{where}: root element is <{robot.tag}>, expected <robot>")
     _expand_spherical(robot, where)
+    for joint in robot.findall("joint"):  # URDF's default axis is x; pytorch-kinematics uses z
+        if joint.find("axis") is None and joint.get("type") != "fixed":
+            ET.SubElement(joint, "axis", xyz="1 0 0")
     pk_robot = ET.fromstring(ET.tostring(robot))
     for link in pk_robot.findall("link"):
         for tag in ("visual", "collision", "inertial"):
@@ -212,14 +216,14 @@ def _geom_kind_size(g: ET.Element, where: str) -> tuple[int, np.ndarray]:
 # ----------------------------------------------------------------------------- chain
 def chain_from_pk(
     pk_chain,
-    origins: dict[str, np.ndarray] | None = None,
+    origins: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
     base: np.ndarray | None = None,
     scale: float = 1.0,
 ) -> KinematicChain:
     """Our KinematicChain from a pytorch-kinematics Chain (depth-first, pk's joint order).
 
-    ``origins`` maps child link names to float64 joint origins to use instead of pk's float32
-    ones (checked to agree within 1e-5); ``base`` is the root link's fixed 4x4 offset;
+    ``origins`` maps child link names to float64 (joint origin, unit axis) to use instead of
+    pk's float32 ones (checked to agree within 1e-5); ``base`` is the root link's fixed 4x4 offset;
     ``scale`` multiplies all translations (unit conversion).
     """
     joint_names = list(pk_chain.get_joint_parameter_names())
@@ -237,16 +241,21 @@ def chain_from_pk(
         for off in (frame.link.offset, j.offset):
             if off is not None and parent >= 0:
                 m = m @ off.get_matrix().detach().cpu().double().numpy()[0]
+        axis = j.axis.detach().cpu().double().numpy()
         if origins is not None and parent >= 0:
-            mine = origins[frame.link.name]
-            if not np.allclose(mine, m, atol=1e-5):
-                raise RuntimeError(f"joint origin of {frame.link.name!r} disagrees with pk")
-            m = mine.copy()
+            mine, my_axis = origins[frame.link.name]
+            my_axis = np.asarray(my_axis, float) / np.linalg.norm(my_axis)
+            if not (
+                np.allclose(mine, m, atol=1e-5)
+                and (j.joint_type == "fixed" or np.allclose(my_axis, axis, atol=1e-5))
+            ):
+                raise RuntimeError(f"joint of {frame.link.name!r}: our parse disagrees with pk's")
+            m, axis = mine.copy(), my_axis
         if parent < 0:
             m = np.eye(4) if base is None else np.asarray(base, float)
         m[:3, 3] *= scale
         origin_list.append(m)
-        axes.append(j.axis.detach().cpu().double().numpy())
+        axes.append(axis)
         types.append(_PK_TYPES[j.joint_type] if parent >= 0 else FIXED)
         if types[-1] == FIXED:
             dofs.append(-1)
@@ -291,7 +300,10 @@ def load_urdf(
     robot, pk_text = prepare_urdf(read_urdf_text(path), where)
     origins = {}
     for joint in robot.findall("joint"):
-        origins[joint.find("child").get("link")] = _origin(joint, f"{where} joint")
+        w = f"{where} joint {joint.get('name')!r}"
+        axis = joint.find("axis")
+        axis = _floats(None if axis is None else axis.get("xyz"), 3, (1, 0, 0), f"{w} <axis>")
+        origins[joint.find("child").get("link")] = (_origin(joint, w), axis)
     pk_chain = pk.build_chain_from_urdf(pk_text)
     base = homogeneous(up_axis_rotation(up), (0.0, 0.0, 0.0))
     chain = chain_from_pk(pk_chain, origins=origins, base=base, scale=scale)
