@@ -54,7 +54,7 @@ def quadratic_coefficients(model: ColorModel, W: Float[Array, "3 3"]) -> Float[A
     """Rows ``A00, A11, A22, 2A01, 2A02, 2A12, b0, b1, b2, c`` of ``d_k^2`` in ``x = I - 127.5``."""
     P = precision(model.cov)  # (k, 3, 3)
     A = jnp.einsum("ji,kjl,lm->kim", W, P, W)
-    m = model.mean - CENTRE * W.sum(axis=1)  # mu_k - W (127.5, 127.5, 127.5)
+    m = model.mean - CENTRE * W.sum(axis=1)[None, :]  # mu_k - W (127.5, 127.5, 127.5)
     Pm = jnp.einsum("kij,kj->ki", P, m)
     b = -2.0 * Pm @ W  # (W^T P m)_i = sum_j W_ji (P m)_j
     c = jnp.einsum("ki,ki->k", m, Pm)
