@@ -137,7 +137,7 @@ def so3_exp(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
     a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta_safe) / theta_safe)
     b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta_safe)) / theta2_safe)
     k = _skew(w)
-    eye = jnp.eye(3, dtype=w.dtype)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=w.dtype), k.shape)
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 

@@ -13,11 +13,14 @@ along the geom's z axis. ``size`` per kind (metres):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+ArrayLike = Sequence | np.ndarray  # numbers (plain, so that beartype checks it cheaply)
 SPHERE, CAPSULE, CYLINDER, BOX, ELLIPSOID = 0, 1, 2, 3, 4
 KIND_NAMES = ("sphere", "capsule", "cylinder", "box", "ellipsoid")
 DEFAULT_RGBA = (0.7, 0.7, 0.7, 1.0)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, make_geometry
+from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, ArrayLike, make_geometry
 from .model import BodyModel, make_body_model
 from .urdf import chain_from_pk, homogeneous
 
@@ -39,7 +39,7 @@ _MJ_FREE, _MJ_BALL, _MJ_SLIDE, _MJ_HINGE = 0, 1, 2, 3
 _MJ_DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)
 
 
-def quat_matrix(q: Sequence[float]) -> np.ndarray:
+def quat_matrix(q: ArrayLike) -> np.ndarray:
     """Rotation matrix of a unit quaternion ``(w, x, y, z)`` (MuJoCo's order)."""
     w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
     return np.array(
@@ -101,7 +101,7 @@ def _xyz_rpy(t: np.ndarray) -> dict[str, str]:
     }
 
 
-def flatten_to_urdf(m) -> tuple[str, dict[str, np.ndarray], str]:
+def flatten_to_urdf(m) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]], str]:
     """(URDF text, {child link: (origin, axis)} in float64, root link name) of an MjModel."""
     top = [b for b in range(1, m.nbody) if m.body_parentid[b] == 0]
     free_root = None
@@ -130,7 +130,7 @@ def flatten_to_urdf(m) -> tuple[str, dict[str, np.ndarray], str]:
             if m.body_jntnum[b] != 1:
                 raise ValueError(f"body {_body_name(m, b)!r}: a free joint must be its only joint")
             continue
-        name, parent = _body_name(m, b), _body_name(m, m.body_parentid[b])
+        name, parent = _body_name(m, b), _body_name(m, int(m.body_parentid[b]))
         joints = []  # (name, urdf type, axis, anchor, limits)
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             jt, jname, pos = int(m.jnt_type[j]), m.joint(j).name or f"joint{j}", m.jnt_pos[j]
@@ -182,7 +182,7 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
         if gt not in _MJ_GEOM:
             raise ValueError(f"{where}: geom {name!r} has MuJoCo type {gt}; supported: sphere, "
                              "capsule, ellipsoid, cylinder, box (planes are skipped)")  # fmt: skip
-        link = _body_name(m, m.geom_bodyid[g])
+        link = _body_name(m, int(m.geom_bodyid[g]))
         if link not in link_names:  # world geoms when the free body is the root
             continue
         kind = _MJ_GEOM[gt]
@@ -203,7 +203,7 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
 def load_mjcf(
     path: str | os.PathLike,
     *,
-    keypoints: dict[str, tuple[str, Sequence[float]]] | None = None,
+    keypoints: dict[str, tuple[str, ArrayLike]] | None = None,
 ) -> BodyModel:
     """Load an MJCF body (see module docstring); links are named after MuJoCo bodies."""
     import pytorch_kinematics as pk

@@ -18,7 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .chain import ROOT_DOFS, KinematicChain, fk
-from .geometry import Geometry
+from .geometry import ArrayLike, Geometry
 
 KEYPOINT_NAMES = (
     "pelvis", "chest", "neck", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
@@ -65,7 +65,7 @@ class BodyModel(eqx.Module):
 def make_body_model(
     chain: KinematicChain,
     geometry: Geometry,
-    keypoints: dict[str, tuple[str, Sequence[float]]] | None = None,
+    keypoints: dict[str, tuple[str, ArrayLike]] | None = None,
 ) -> BodyModel:
     """BodyModel with keypoints given as ``{name: (link name, offset xyz in the link frame)}``."""
     keypoints = keypoints or {}

@@ -22,13 +22,21 @@ from __future__ import annotations
 import math
 import os
 import xml.etree.ElementTree as ET
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .chain import FIXED, PRISMATIC, REVOLUTE, ROOT_DOFS, KinematicChain
-from .geometry import BOX, CAPSULE, CYLINDER, DEFAULT_RGBA, ELLIPSOID, SPHERE, make_geometry
+from .geometry import (
+    BOX,
+    CAPSULE,
+    CYLINDER,
+    DEFAULT_RGBA,
+    ELLIPSOID,
+    SPHERE,
+    ArrayLike,
+    make_geometry,
+)
 from .model import ROOT_DOF_NAMES, BodyModel, make_body_model
 
 _PK_TYPES = {"fixed": FIXED, "revolute": REVOLUTE, "prismatic": PRISMATIC}
@@ -36,7 +44,7 @@ UP_AXES = ("z", "y")
 
 
 # ----------------------------------------------------------------------------- transforms
-def rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
+def rpy_matrix(rpy: ArrayLike) -> np.ndarray:
     """URDF roll-pitch-yaw (fixed axes x, y, z): ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), \
@@ -50,7 +58,7 @@ def rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
     )
 
 
-def homogeneous(rot: np.ndarray, pos: Sequence[float]) -> np.ndarray:
+def homogeneous(rot: ArrayLike, pos: ArrayLike) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3] = rot
     m[:3, 3] = pos
@@ -66,7 +74,7 @@ def up_axis_rotation(up: str) -> np.ndarray:
     raise ValueError(f"up axis must be one of {UP_AXES}, got {up!r}")
 
 
-def _floats(text: str | None, n: int, default: Sequence[float], where: str) -> np.ndarray:
+def _floats(text: str | None, n: int, default: ArrayLike, where: str) -> np.ndarray:
     if text is None:
         return np.asarray(default, float)
     vals = text.split()
@@ -284,7 +292,7 @@ def chain_from_pk(
 def load_urdf(
     path: str | os.PathLike,
     *,
-    keypoints: dict[str, tuple[str, Sequence[float]]] | None = None,
+    keypoints: dict[str, tuple[str, ArrayLike]] | None = None,
     scale: float = 1.0,
     up: str = "z",
 ) -> BodyModel:
