@@ -106,7 +106,7 @@ def test_segment_external_foreground(rng):
 def test_edge_map_peaks_on_silhouette_boundary():
     fg = np.zeros((H, W), np.uint8)
     cv2.ellipse(fg, (30, 24), (16, 11), 20, 0, 360, 1, -1)
-    g = np.asarray(S.edge_map(jnp.asarray(fg.astype(bool))))
+    g = np.asarray(jax.jit(S.edge_map)(jnp.asarray(fg.astype(bool))))
     assert g.dtype == np.float32 and g.min() >= 0.0 and g.max() == pytest.approx(1.0)
     # oracle for the distance to the silhouette boundary: OpenCV distance transforms of the
     # mask and its complement (the boundary lies between a pixel with d_in=1 and d_out=1)
