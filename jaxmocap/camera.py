@@ -140,7 +140,7 @@ def to_camera(cam: Camera, X: Float[ArrayIn, "*n 3"]) -> Float[Array, "*n 3"]:
     return jnp.einsum("ij,...j->...i", cam.R, X) + _vec(cam.t, X)
 
 
-def camera_center(cam: Camera) -> Float[Array, "3"]:
+def camera_center(cam: Camera) -> Float[Array, 3]:
     """Camera centre C in world coordinates (metres): ``C = -R^T t``."""
     return -cam.R.T @ cam.t
 
@@ -154,6 +154,24 @@ def distort_normalized(cam: Camera, xy: Float[ArrayIn, "*n 2"]) -> Float[Array, 
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return jnp.stack([xd, yd], axis=-1)
+
+
+def _distortion_and_jacobian(dist: Array, x: Array, y: Array):
+    """Distorted (x_d, y_d) and the symmetric Jacobian d(x_d, y_d)/d(x, y) as (jxx, jxy, jyy).
+
+    ``dist`` (..., 5) broadcasts against x, y by its leading axes (same rank as x minus zero
+    or with trailing singleton axes added by the caller).
+    """
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # dL / d(r^2)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    jxx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+    jxy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+    jyy = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    return xd, yd, jxx, jxy, jyy
 
 
 def _normalized_to_pixels(cam: Camera, xy: Array) -> Array:
@@ -205,14 +223,8 @@ def undistort_normalized(cam: Camera, uv: Float[ArrayIn, "*n 2"]) -> Float[Array
 
     def newton(_, xy):
         x, y = xy
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # dL / d(r^2)
-        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - x0
-        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - y0
-        jxx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-        jxy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-        jyy = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+        xd, yd, jxx, jxy, jyy = _distortion_and_jacobian(cam.dist, x, y)
+        fx, fy = xd - x0, yd - y0
         det = jxx * jyy - jxy * jxy
         return x - (jyy * fx - jxy * fy) / det, y - (jxx * fy - jxy * fx) / det
 
@@ -322,11 +334,50 @@ def _dlt(xy: Array, R: Array, t: Array, w: Array) -> Array:
     return h[:3] / h[3]
 
 
+def _solve_sym3(A: Array, b: Array) -> Array:
+    """Solve batched symmetric positive-definite 3x3 systems A (n, 3, 3) x = b (n, 3) by
+    the adjugate (elementwise, cheap to compile and differentiate)."""
+    c0 = jnp.cross(A[:, 1], A[:, 2])
+    c1 = jnp.cross(A[:, 2], A[:, 0])
+    c2 = jnp.cross(A[:, 0], A[:, 1])
+    adj = jnp.stack([c0, c1, c2], axis=-1)  # adj(A) for symmetric A (columns = cofactors)
+    det = jnp.sum(A[:, 0] * c0, axis=-1)
+    return jnp.einsum("nij,nj->ni", adj, b) / det[:, None]
+
+
+def _project_views_and_jacobian(cams: Camera, X: Array) -> tuple[Array, Array]:
+    """Pixels (v, n, 2) of points X (n, 3) in stacked cameras and d(uv)/dX (v, n, 2, 3)."""
+    xc = jnp.einsum("vij,nj->vni", cams.R, X) + cams.t[:, None, :]
+    z = xc[..., 2]
+    a, b = xc[..., 0] / z, xc[..., 1] / z
+    xd, yd, jxx, jxy, jyy = _distortion_and_jacobian(cams.dist[:, None, :], a, b)
+    fx, s, cx = cams.K[:, 0, 0:1], cams.K[:, 0, 1:2], cams.K[:, 0, 2:3]
+    fy, cy = cams.K[:, 1, 1:2], cams.K[:, 1, 2:3]
+    uv = jnp.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=-1)
+    d_ab = jnp.stack(
+        [  # d(u, v) / d(a, b): (v, n, 2, 2)
+            jnp.stack([fx * jxx + s * jxy, fx * jxy + s * jyy], axis=-1),
+            jnp.stack([fy * jxy, fy * jyy], axis=-1),
+        ],
+        axis=-2,
+    )
+    zero = jnp.zeros_like(z)
+    d_xc = jnp.stack(
+        [  # d(a, b) / d(x_cam): (v, n, 2, 3)
+            jnp.stack([1 / z, zero, -a / z], axis=-1),
+            jnp.stack([zero, 1 / z, -b / z], axis=-1),
+        ],
+        axis=-2,
+    )
+    J = jnp.einsum("vnck,vnkl,vlj->vncj", d_ab, d_xc, cams.R)
+    return uv, J
+
+
 def triangulate(
     cams: Camera,
     uv: Float[ArrayIn, "n_views *n 2"],
     refine: bool = True,
-    weights: Float[ArrayIn, "n_views *n"] | None = None,
+    weights: Float[ArrayIn, n_views * n] | None = None,  # noqa: F821 (jaxtyping shape)
     n_iter: int = TRIANGULATE_GN_ITERS,
 ) -> Float[Array, "*n 3"]:
     """Triangulate points seen in several views (metres).
@@ -362,18 +413,18 @@ def triangulate(
     if refine:
         sw = jnp.sqrt(w)
 
-        def residual(Xp, uvp, swp):
-            return ((jax.vmap(project, (0, None))(cams, Xp) - uvp) * swp[:, None]).ravel()
-
         def gn_step(_, X):
-            def one(Xp, uvp, swp):
-                r = residual(Xp, uvp, swp)
-                J = jax.jacfwd(residual)(Xp, uvp, swp)
-                JtJ = J.T @ J
-                damp = 1e-9 * jnp.trace(JtJ) * jnp.eye(3, dtype=JtJ.dtype)
-                return Xp - jnp.linalg.solve(JtJ + damp, J.T @ r)
-
-            return jax.vmap(one, in_axes=(0, 1, 1))(X, flat, sw)
+            uv_hat, J = _project_views_and_jacobian(cams, X)
+            r = (uv_hat - flat) * sw[..., None]  # (v, n, 2)
+            J = J * sw[..., None, None]  # (v, n, 2, 3)
+            JtJ = jnp.einsum("vnci,vncj->nij", J, J)
+            Jtr = jnp.einsum("vnci,vnc->ni", J, r)
+            damp = (
+                1e-9
+                * jnp.trace(JtJ, axis1=1, axis2=2)[:, None, None]
+                * jnp.eye(3, dtype=X.dtype)[None]
+            )
+            return X - _solve_sym3(JtJ + damp, Jtr)
 
         X = jax.lax.fori_loop(0, n_iter, gn_step, X)
 
@@ -468,7 +519,9 @@ def _shape_text(shape) -> str:
 
 def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
     if not isinstance(entry, dict):
-        raise CameraFileError(f"{path}: cameras[{i}]: expected an object, got {type(entry).__name__}")
+        raise CameraFileError(
+            f"{path}: cameras[{i}]: expected an object, got {type(entry).__name__}"
+        )
     name = entry.get("name")
     if not isinstance(name, str) or not name:
         raise CameraFileError(f"{path}: cameras[{i}]: field 'name': expected a non-empty string")
@@ -490,7 +543,9 @@ def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
             f"{path}: camera {name!r}: field 'K': expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]"
         )
     if "dist" not in entry:
-        raise CameraFileError(f"{path}: camera {name!r}: field 'dist': missing (expected 5 numbers)")
+        raise CameraFileError(
+            f"{path}: camera {name!r}: field 'dist': missing (expected 5 numbers)"
+        )
     n_dist = np.shape(entry["dist"]) if isinstance(entry["dist"], list) else None
     dist = _field_array(path, name, entry, "dist", (4,) if n_dist == (4,) else (5,))
     dist = np.concatenate([dist, np.zeros(5 - dist.size)])
