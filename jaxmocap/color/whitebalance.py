@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from .model import ColorModel
 
-REGULARISATION = 1e-4  # lambda, per unit of ||W - W_0||_F^2 against colours scaled to 0..1
+REGULARISATION = 1e-5  # lambda, per unit of ||W - W_0||_F^2 against colours scaled to 0..1
 MIN_PIXELS = 20  # a colour needs this many labelled pixels to enter the fit (not in the paper)
 _SCALE = 255.0
 
@@ -137,4 +137,7 @@ def white_balance_from_scribbles(
     means = jnp.asarray(sums / np.maximum(counts, 1)[:, None], dtype)
     weights = jnp.asarray(counts >= min_pixels, dtype)
     prior = jnp.eye(3, dtype=dtype) if W_prior is None else jnp.asarray(W_prior, dtype)
-    return fit_white_balance(means, model.mean, weights, prior, reg)
+    return _fit_white_balance_jit(means, model.mean, weights, prior, jnp.asarray(reg, dtype))
+
+
+_fit_white_balance_jit = jax.jit(fit_white_balance, static_argnames="max_steps")
