@@ -32,8 +32,6 @@ Malformed files raise :class:`CameraFileError` naming the file, the camera, the 
 what was expected. ``save_cameras`` writes atomically (temporary file + ``os.replace``).
 """
 
-from __future__ import annotations
-
 import json
 import math
 import os
@@ -140,7 +138,7 @@ def to_camera(cam: Camera, X: Float[ArrayIn, "*n 3"]) -> Float[Array, "*n 3"]:
     return jnp.einsum("ij,...j->...i", cam.R, X) + _vec(cam.t, X)
 
 
-def camera_center(cam: Camera) -> Float[Array, 3]:
+def camera_center(cam: Camera) -> Float[Array, "3"]:
     """Camera centre C in world coordinates (metres): ``C = -R^T t``."""
     return -cam.R.T @ cam.t
 
@@ -377,7 +375,7 @@ def triangulate(
     cams: Camera,
     uv: Float[ArrayIn, "n_views *n 2"],
     refine: bool = True,
-    weights: Float[ArrayIn, n_views * n] | None = None,  # noqa: F821 (jaxtyping shape)
+    weights: Float[ArrayIn, "n_views *n"] | None = None,  # noqa: F821
     n_iter: int = TRIANGULATE_GN_ITERS,
 ) -> Float[Array, "*n 3"]:
     """Triangulate points seen in several views (metres).
