@@ -100,17 +100,18 @@ def _edt(masks: Bool[Array, "n h w"], dtype: jnp.dtype) -> Float[Array, "n h w"]
 
 def _check_masks(masks, name: str) -> None:
     if masks.ndim != 3:
-        raise ValueError(f"{name}: expected a stack of masks with shape (n, h, w), got shape "
-                         f"{masks.shape}")
+        raise ValueError(
+            f"{name}: expected a stack of masks with shape (n, h, w), got shape {masks.shape}"
+        )
     _, h, w = masks.shape
     if h + w > _MAX_SIDE_SUM:
-        raise ValueError(f"{name}: h + w = {h + w} exceeds {_MAX_SIDE_SUM}; squared distances "
-                         "would no longer be exact in float32")
+        raise ValueError(
+            f"{name}: h + w = {h + w} exceeds {_MAX_SIDE_SUM}; squared distances "
+            "would no longer be exact in float32"
+        )
 
 
-def edt(
-    masks: Bool[Array, "n h w"], dtype: DTypeLike | None = None
-) -> Float[Array, "n h w"]:
+def edt(masks: Bool[Array, "n h w"], dtype: DTypeLike | None = None) -> Float[Array, "n h w"]:
     """Exact Euclidean distance (pixels) from every pixel to the nearest True pixel of its mask.
 
     Args:

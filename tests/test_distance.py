@@ -14,8 +14,12 @@ TOL = 1e-3  # pixels
 
 def _cv2_to_nearest_true(masks: np.ndarray) -> np.ndarray:
     """Reference: OpenCV measures distance to the nearest zero pixel, so feed it ~mask."""
-    return np.stack([cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2,
-                                           cv2.DIST_MASK_PRECISE) for m in masks])
+    return np.stack(
+        [
+            cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            for m in masks
+        ]
+    )
 
 
 def _scipy_to_nearest_true(masks: np.ndarray) -> np.ndarray:
@@ -48,8 +52,12 @@ def test_edt_matches_opencv_and_scipy(rng, shape):
     np.testing.assert_allclose(got, _scipy_to_nearest_true(masks), atol=TOL, rtol=0)
     # OpenCV / SciPy convention: distance to the nearest False pixel
     got0 = np.asarray(edt_to_zero(jnp.asarray(masks)))
-    ref0 = np.stack([cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2,
-                                           cv2.DIST_MASK_PRECISE) for m in masks[:-3]])
+    ref0 = np.stack(
+        [
+            cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            for m in masks[:-3]
+        ]
+    )
     np.testing.assert_allclose(got0[:-3], ref0, atol=TOL, rtol=0)  # (skip the full mask)
 
 

@@ -1,0 +1,101 @@
+"""Resampling and weight bookkeeping for the particle filter (Azad et al. §II).
+
+"For resampling the particle set, N particles from the last generation are picked proportional
+to their probability" (Azad §II). Weights are kept as log-weights log pi_i; all functions take
+unnormalised log-weights and are safe for -inf entries (zero weight).
+
+* :func:`systematic` — one uniform offset u ~ U[0, 1/N), positions u + i/N: particle i is picked
+  either floor(N pi_i) or ceil(N pi_i) times (lowest variance, O(N log N)).
+* :func:`multinomial` — N independent draws from Categorical(pi) (the textbook Condensation
+  scheme; kept for comparison).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+__all__ = [
+    "effective_sample_size",
+    "multinomial",
+    "normalize_log_weights",
+    "systematic",
+]
+
+
+def normalize_log_weights(
+    log_weights: Float[Array, " n"],
+) -> tuple[Float[Array, " n"], Bool[Array, ""]]:
+    """log pi_i - logsumexp(log pi); NaN counts as -inf (zero weight).
+
+    Returns:
+        (normalised log-weights, degenerate). ``degenerate`` is True when no weight is finite
+        and positive (every entry -inf or NaN, or an entry +inf); the weights are then reset to
+        uniform, -log N each, so the filter carries on instead of propagating NaN.
+    """
+    n = log_weights.shape[0]
+    lw = jnp.where(jnp.isnan(log_weights), -jnp.inf, log_weights)
+    top = jnp.max(lw)
+    degenerate = ~jnp.isfinite(top)
+    safe_top = jnp.where(degenerate, jnp.zeros_like(top), top)
+    shifted = lw - safe_top
+    normed = shifted - jnp.log(jnp.sum(jnp.exp(shifted)))
+    uniform = jnp.full_like(lw, -jnp.log(n))
+    return jnp.where(degenerate, uniform, normed), degenerate
+
+
+def effective_sample_size(log_weights: Float[Array, " n"]) -> Float[Array, ""]:
+    """ESS = 1 / sum_i pi_i^2 of the normalised weights, in [1, N]."""
+    lw, _ = normalize_log_weights(log_weights)
+    return 1.0 / jnp.sum(jnp.exp(2.0 * lw))
+
+
+def _cdf(log_weights: Float[Array, " n"]) -> Float[Array, " n"]:
+    lw, _ = normalize_log_weights(log_weights)
+    cdf = jnp.cumsum(jnp.exp(lw))
+    return cdf / cdf[-1]
+
+
+def _invert(cdf: Float[Array, " n"], positions: Float[Array, " m"]) -> Int[Array, " m"]:
+    idx = jnp.searchsorted(cdf, positions, side="right", method="sort")
+    return jnp.minimum(idx, cdf.shape[0] - 1).astype(jnp.int32)
+
+
+def systematic_from_uniforms(
+    log_weights: Float[Array, " n"], u: Float[Array, " m"]
+) -> Int[Array, " m"]:
+    """:func:`systematic` given its uniforms u in [0, 1) (only u[0] is used)."""
+    m = u.shape[0]
+    cdf = _cdf(log_weights)
+    return _invert(cdf, (u[0].astype(cdf.dtype) + jnp.arange(m, dtype=cdf.dtype)) / m)
+
+
+def multinomial_from_uniforms(
+    log_weights: Float[Array, " n"], u: Float[Array, " m"]
+) -> Int[Array, " m"]:
+    """:func:`multinomial` given its m uniforms in [0, 1)."""
+    cdf = _cdf(log_weights)
+    return _invert(cdf, u.astype(cdf.dtype))
+
+
+def systematic(
+    key: PRNGKeyArray, log_weights: Float[Array, " n"], n_out: int | None = None
+) -> Int[Array, " m"]:
+    """Systematic resampling: indices of ``n_out`` (default N) particles picked prop. to pi.
+
+    Positions (u + i) / M with one u ~ U[0, 1); each particle i is picked floor(M pi_i) or
+    ceil(M pi_i) times. Indices come out sorted.
+    """
+    m = log_weights.shape[0] if n_out is None else n_out
+    u = jax.random.uniform(key, (1,), dtype=log_weights.dtype)
+    return systematic_from_uniforms(log_weights, jnp.broadcast_to(u, (m,)))
+
+
+def multinomial(
+    key: PRNGKeyArray, log_weights: Float[Array, " n"], n_out: int | None = None
+) -> Int[Array, " m"]:
+    """Multinomial resampling: ``n_out`` (default N) i.i.d. draws from Categorical(pi)."""
+    m = log_weights.shape[0] if n_out is None else n_out
+    u = jax.random.uniform(key, (m,), dtype=log_weights.dtype)
+    return multinomial_from_uniforms(log_weights, u)

@@ -1,0 +1,250 @@
+"""Generic particle filter: Kalman-filter reference on a linear-Gaussian model, resampling
+statistics, motion model, box constraints, adaptive noise, degeneracy, annealing, jit/vmap/scan."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmocap import pf
+
+# --- linear-Gaussian toy model: the first-order motion model with fixed noise -----------------
+DAMP = 0.4
+Q_STD = np.array([0.3, 0.2])  # process noise std (the filter's fixed sigma)
+H = np.array([[1.0, 0.5], [0.0, 1.0]])
+R_STD = np.array([0.25, 0.3])
+M0 = np.array([0.5, -1.0])
+S0 = np.array([0.8, 0.6])
+T = 8
+
+
+def _gauss_loglik(s, y):
+    r = (y - jnp.asarray(H) @ s) / jnp.asarray(R_STD)
+    return -0.5 * jnp.sum(r * r)
+
+
+def _kalman_params():
+    d = 2
+    inf = np.full(d, np.inf)
+    return pf.PFParams(
+        _gauss_loglik, lower=-inf, upper=inf, sigma_min=Q_STD, sigma_max=Q_STD, damping=DAMP
+    )
+
+
+def _simulate(rng):
+    x, xp = M0 + S0 * rng.standard_normal(2), None
+    xp = x.copy()
+    ys = []
+    for _ in range(T):
+        x, xp = x + DAMP * (x - xp) + Q_STD * rng.standard_normal(2), x
+        ys.append(H @ x + R_STD * rng.standard_normal(2))
+    return np.array(ys)
+
+
+def _kalman(ys):
+    """Exact filter on the augmented state z = [s_t, s_{t-1}] (4-d); returns means, variances."""
+    eye, zero = np.eye(2), np.zeros((2, 2))
+    F = np.block([[(1 + DAMP) * eye, -DAMP * eye], [eye, zero]])
+    Q = np.block([[np.diag(Q_STD**2), zero], [zero, zero]])
+    Ha = np.hstack([H, zero])
+    R = np.diag(R_STD**2)
+    S = np.diag(S0**2)
+    m, P = np.concatenate([M0, M0]), np.block([[S, S], [S, S]])  # at rest: s_{-1} = s_0
+    means, variances = [], []
+    for y in ys:
+        m, P = F @ m, F @ P @ F.T + Q
+        K = P @ Ha.T @ np.linalg.inv(Ha @ P @ Ha.T + R)
+        m, P = m + K @ (y - Ha @ m), (np.eye(4) - K @ Ha) @ P
+        means.append(m[:2])
+        variances.append(np.diag(P)[:2])
+    return np.array(means), np.array(variances)
+
+
+def _filter(obs, key, n):
+    """init at rest around M0, then run over obs (T, 2); returns the estimates."""
+    params = _kalman_params()
+    k0, k1 = jax.random.split(key)
+    state = pf.init(k0, params, jnp.asarray(M0), jnp.asarray(S0), n)
+    return pf.run(params, state, obs, k1)[1]
+
+
+# one compiled program per particle count, shared by the tests: vmap over (sequence, key)
+_filter_batch = jax.jit(jax.vmap(_filter, in_axes=(0, 0, None)), static_argnums=2)
+_filter_single = jax.jit(_filter, static_argnums=2)
+
+
+def test_matches_kalman_filter_and_converges(rng):
+    ys = _simulate(rng)
+    km, kv = _kalman(ys)
+    keys = jax.random.split(jax.random.key(0), 4)
+    errs = {}
+    for n in (100, 10_000):
+        est = _filter_batch(jnp.asarray(np.stack([ys] * 4)), keys, n)
+        e_mean = np.abs(np.asarray(est.mean) - km[None]) / np.sqrt(kv[None])  # posterior stds
+        e_var = np.abs(np.asarray(est.var) / kv[None] - 1)
+        errs[n] = (e_mean.mean(), e_var.mean())
+    # exact reference reached at large N; error falls like 1/sqrt(N) (10x here, asked >= 3x)
+    assert errs[10_000][0] < 0.05 and errs[10_000][1] < 0.06, errs
+    assert errs[10_000][0] < errs[100][0] / 3 and errs[10_000][1] < errs[100][1] / 3, errs
+
+
+def test_systematic_counts_within_one():
+    n = 50
+    logw = jax.random.normal(jax.random.key(1), (n,)) * 2.0
+    logw = logw.at[3].set(-jnp.inf)  # a zero-weight particle is never picked
+    w = np.asarray(jax.nn.softmax(logw))
+    idx = jax.jit(jax.vmap(pf.systematic, in_axes=(0, None)))(
+        jax.random.split(jax.random.key(2), 200), logw
+    )
+    counts = np.stack([np.bincount(np.asarray(i), minlength=n) for i in idx])
+    assert np.all(np.abs(counts - n * w[None]) < 1.0)
+    assert np.all(counts[:, 3] == 0)
+    np.testing.assert_allclose(counts.mean(0), n * w, atol=0.15)  # unbiased
+
+
+def test_multinomial_unbiased():
+    n, draws = 20, 400
+    logw = jnp.log(jnp.arange(1.0, n + 1.0))
+    w = np.asarray(jax.nn.softmax(logw))
+    idx = jax.jit(jax.vmap(pf.multinomial, in_axes=(0, None)))(
+        jax.random.split(jax.random.key(3), draws), logw
+    )
+    counts = np.stack([np.bincount(np.asarray(i), minlength=n) for i in idx])
+    # multinomial: mean N w_i, variance N w_i (1 - w_i); 5-sigma bound on the mean over draws
+    se = np.sqrt(n * w * (1 - w) / draws)
+    assert np.all(np.abs(counts.mean(0) - n * w) < 5 * se)
+    assert counts.var(0).mean() > 0.5  # far more spread than systematic
+
+
+def test_normalize_and_ess():
+    lw, deg = jax.jit(pf.normalize_log_weights)(jnp.array([0.0, jnp.nan, -jnp.inf, np.log(3.0)]))
+    np.testing.assert_allclose(np.exp(np.asarray(lw)), [0.25, 0, 0, 0.75], atol=1e-12)
+    assert not bool(deg)
+    np.testing.assert_allclose(
+        float(jax.jit(pf.effective_sample_size)(lw)), 1 / (0.25**2 + 0.75**2)
+    )
+    lw, deg = jax.jit(pf.normalize_log_weights)(jnp.array([jnp.nan, -jnp.inf, -jnp.inf]))
+    assert bool(deg)
+    np.testing.assert_allclose(np.asarray(lw), -np.log(3.0))
+
+
+def _const_loglik(s, z):
+    return -z * jnp.ones((), s.dtype)
+
+
+def test_motion_model_box_and_adaptive_noise():
+    d, n = 3, 6
+    lower, upper = jnp.array([-1.0, -1.0, -1.0]), jnp.array([1.0, 1.0, 1.0])
+    x = jnp.linspace(-0.9, 0.9, n * d).reshape(n, d)
+    xp = x - 0.6 * x / 0.9  # outward velocities: the outer particles leave the box
+    state = pf.PFState(
+        particles=x, previous=xp, log_weights=jnp.full(n, -jnp.log(n)), sigma=jnp.zeros(d)
+    )
+    for boundary in ("clip", "reflect"):
+        params = pf.PFParams(
+            _const_loglik,
+            lower=lower,
+            upper=upper,
+            sigma_min=jnp.full(d, 0.1),
+            sigma_max=jnp.full(d, 0.5),
+            damping=0.7,
+            error_scale=2.0,
+            resample_threshold=0.0,
+            boundary=boundary,
+        )
+        new, est = pf.step(params, state, jnp.asarray(3.0), jax.random.key(0))
+        free = np.asarray(x + 0.7 * (x - xp))  # sigma = 0: s_t = s + delta (s - s_prev)
+        want = (
+            np.clip(free, -1, 1)
+            if boundary == "clip"
+            else np.where(free > 1, 2 - free, np.where(free < -1, -2 - free, free))
+        )
+        assert np.any(np.abs(free) > 1)  # the box is exercised
+        np.testing.assert_allclose(np.asarray(new.particles), want, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(new.previous), np.asarray(x))
+        # sigma = s_min + (s_max - s_min)(1 - exp(-e / e0)), e = -best loglik = 3
+        np.testing.assert_allclose(np.asarray(new.sigma), 0.1 + 0.4 * (1 - np.exp(-1.5)))
+        np.testing.assert_allclose(np.asarray(est.mean), want.mean(0), atol=1e-12)
+        assert float(est.ess) == pytest.approx(n)
+    # a perfect fit shrinks the noise to sigma_min, a poor one grows it towards sigma_max
+    small = pf.step(params, state, jnp.asarray(0.0), jax.random.key(0))[0].sigma
+    large = pf.step(params, state, jnp.asarray(1e3), jax.random.key(0))[0].sigma
+    np.testing.assert_allclose(np.asarray(small), 0.1)
+    np.testing.assert_allclose(np.asarray(large), 0.5)
+
+
+def test_degenerate_frame_is_flagged_and_recovers():
+    d, n = 2, 32
+    box = jnp.full(d, 2.0)
+
+    def loglik(s, z):  # NaN / -inf everywhere when z says so
+        return jnp.where(z > 0, jnp.nan, -jnp.sum(s * s))
+
+    params = pf.PFParams(
+        loglik, lower=-box, upper=box, sigma_min=jnp.full(d, 0.05), sigma_max=jnp.full(d, 0.3)
+    )
+    state = pf.init(jax.random.key(0), params, jnp.zeros(d), 0.5, n)
+    obs = jnp.array([0.0, 1.0, 0.0])
+    final, est = pf.run(params, state, obs, jax.random.key(1))
+    np.testing.assert_array_equal(np.asarray(est.degenerate), [False, True, False])
+    assert np.all(np.isfinite(np.asarray(est.mean)))
+    np.testing.assert_allclose(float(est.ess[1]), n)  # uniform weights after the reset
+    assert np.all(np.isfinite(np.asarray(final.log_weights)))
+
+
+def test_scan_equals_step_loop_deterministic_and_vmaps_over_sequences(rng):
+    n = 100
+    ys = jnp.asarray(np.stack([_simulate(rng) for _ in range(4)]))  # 4 sequences
+    keys = jax.random.split(jax.random.key(7), 4)
+    batched = _filter_batch(ys, keys, n)  # vmap over sequences (same program as above)
+    single = _filter_single(ys[1], keys[1], n)  # plain call (init + lax.scan)
+    np.testing.assert_allclose(np.asarray(batched.mean[1]), np.asarray(single.mean), atol=1e-12)
+    again = _filter_single(ys[1], keys[1], n)  # determinism: same key, same result
+    np.testing.assert_array_equal(np.asarray(again.mean), np.asarray(single.mean))
+    other = _filter_single(ys[1], keys[2], n)
+    assert not np.allclose(np.asarray(other.mean), np.asarray(single.mean))
+    # run (lax.scan) == Python loop of step with the documented keys
+    params = _kalman_params()
+    k0, k1 = jax.random.split(keys[1])
+    state = pf.init(k0, params, jnp.asarray(M0), jnp.asarray(S0), n)
+    for t, kt in enumerate(jax.random.split(k1, T)):
+        state, e = pf.step(params, state, ys[1, t], kt)
+        np.testing.assert_allclose(np.asarray(e.mean), np.asarray(single.mean[t]), atol=1e-12)
+        np.testing.assert_allclose(float(e.ess), float(single.ess[t]), rtol=1e-12)
+
+
+def test_annealing_finds_a_narrow_mode_from_a_uniform_start():
+    d, n = 2, 200
+    target = jnp.array([1.3, -2.1])
+
+    def loglik(s, c):  # narrow likelihood (std 0.05) in a 10 x 10 box
+        return -0.5 * jnp.sum(jnp.square((s - c) / 0.05))
+
+    params = pf.PFParams(
+        loglik,
+        lower=jnp.full(d, -5.0),
+        upper=jnp.full(d, 5.0),
+        sigma_min=jnp.full(d, 0.005),
+        sigma_max=jnp.full(d, 1.0),
+    )
+    key = jax.random.key(11)
+    state = pf.init_uniform(key, params, n)
+    assert np.all(np.abs(np.asarray(state.particles)) <= 5.0)
+    betas = jnp.geomspace(1e-3, 1.0, 8)
+    _, plain = pf.step(params, state, target, key)
+    _, annealed = pf.anneal_step(params, state, target, key, betas)
+    err_plain = float(jnp.linalg.norm(plain.best - target))
+    err_anneal = float(jnp.linalg.norm(annealed.best - target))
+    assert err_anneal < 0.05
+    assert err_anneal < err_plain / 3
+    assert not bool(annealed.degenerate)
+
+
+def test_params_validation():
+    ok = dict(lower=jnp.zeros(2), upper=jnp.ones(2), sigma_min=jnp.zeros(2), sigma_max=jnp.ones(2))
+    with pytest.raises(ValueError, match="resampling"):
+        pf.PFParams(_const_loglik, resampling="stratified-ish", **ok)
+    with pytest.raises(ValueError, match="boundary"):
+        pf.PFParams(_const_loglik, boundary="wrap", **ok)
+    with pytest.raises((ValueError, TypeError), match="sigma_max|shape"):
+        pf.PFParams(_const_loglik, **{**ok, "sigma_max": jnp.ones(3)})
