@@ -28,7 +28,11 @@ HUMANOID_MJCF = DATA / "mjcf" / "humanoid.xml"
 
 fk_batch = jax.jit(jax.vmap(body.fk, in_axes=(None, 0)))
 fk_one = jax.jit(body.fk)
-kp_one = jax.jit(body.keypoints)
+N_POSES = {"bundled": 10_000, "humanoid_urdf": 1_000, "humanoid_mjcf": 1_000}  # shared compiles
+
+
+def kp_one(model, q):
+    return body.keypoints_from_transforms(model, fk_one(model.chain, q))
 
 
 def random_q(chain, n, rng, root=False):
@@ -65,7 +69,7 @@ def test_fk_matches_pytorch_kinematics(models, name, rng):
     model = models[name]
     chain = pk_chain(name)
     assert list(chain.get_joint_parameter_names()) == list(model.chain.dof_names[6:])
-    q = random_q(model.chain, 1000, rng)
+    q = random_q(model.chain, N_POSES[name], rng)
     ours = np.asarray(fk_batch(model.chain, jnp.asarray(q)))
     ref = chain.forward_kinematics(torch.tensor(q[:, 6:]))
     assert set(ref) == set(model.chain.link_names)
@@ -169,27 +173,34 @@ def test_root_composes_and_so3_exp(models, rng):
 
 def test_vmap_jit_grad(models, rng):
     model = models["bundled"]
-    q = random_q(model.chain, 10_000, rng, root=True)
+    q = random_q(model.chain, N_POSES["bundled"], rng, root=True)
     out = fk_batch(model.chain, jnp.asarray(q))
     assert out.shape == (10_000, model.chain.n_links, 4, 4)
     for k in (0, 4_321, 9_999):
         np.testing.assert_allclose(out[k], fk_one(model.chain, jnp.asarray(q[k])), atol=1e-12)
 
-    w = jnp.asarray(rng.normal(size=(model.keypoint_names.__len__(), 3)))
+    w = rng.normal(size=(len(model.keypoint_names), 3))
 
     def loss(x):
-        return jnp.sum(w * body.keypoints(model, x)) + jnp.sum(body.fk(model.chain, x)[:, :3, :3])
+        t = body.fk(model.chain, x)
+        return jnp.sum(w * body.keypoints_from_transforms(model, t)) + jnp.sum(t[:, :3, :3])
+
+    def loss_np(t):  # the same loss of a batch of fk outputs, in NumPy
+        tr = np.asarray(t)[:, :, :3, :3].sum((1, 2, 3))
+        t = np.asarray(t)[:, np.asarray(model.keypoint_link)]
+        kp = np.einsum("bkij,kj->bki", t[..., :3, :3], model.keypoint_offset) + t[..., :3, 3]
+        return np.einsum("bki,ki->b", kp, w) + tr
+
+    def central_differences(x):  # 2 n_dof perturbed poses, padded to the compiled batch size
+        eps, n = 1e-6, model.n_dof
+        xs = np.zeros((N_POSES["bundled"], n))
+        xs[: 2 * n] = x + eps * np.concatenate([np.eye(n), -np.eye(n)])
+        v = loss_np(fk_batch(model.chain, jnp.asarray(xs))[: 2 * n])
+        return (v[:n] - v[n:]) / (2 * eps)
 
     g = jax.jit(jax.grad(loss))
-    vloss = jax.jit(jax.vmap(loss))
-    eps = 1e-6
-    steps = eps * np.concatenate([np.eye(model.n_dof), -np.eye(model.n_dof)])
-
-    def central_differences(x):
-        v = np.asarray(vloss(jnp.asarray(x[None] + steps)))
-        return (v[: model.n_dof] - v[model.n_dof :]) / (2 * eps)
-
     np.testing.assert_allclose(g(jnp.asarray(q[7])), central_differences(q[7]), atol=1e-6)
+    np.testing.assert_allclose(loss(jnp.asarray(q[7])), loss_np(out[7:8])[0], rtol=1e-12)
     # at q = 0 (zero rotation vector: the Taylor branch) gradients are finite and right
     g0 = g(jnp.zeros(model.n_dof))
     assert np.all(np.isfinite(g0))
@@ -202,7 +213,11 @@ def test_vmap_jit_grad(models, rng):
 
 def test_dtype_follows_input(models):
     model = models["bundled"]
-    assert kp_one(model, jnp.zeros(model.n_dof, jnp.float32)).dtype == jnp.float32
+    q32 = jax.ShapeDtypeStruct((model.n_dof,), jnp.float32)
+    assert jax.eval_shape(body.fk, model.chain, q32).dtype == jnp.float32
+    assert jax.eval_shape(body.keypoints, model, q32).dtype == jnp.float32
+    t32 = jax.ShapeDtypeStruct((model.chain.n_links, 4, 4), jnp.float32)
+    assert jax.eval_shape(body.geom_world_poses, model, t32).dtype == jnp.float32
 
 
 # ------------------------------------------------------------------ URDF conversions
@@ -213,7 +228,7 @@ def test_humanoid_urdf_spherical_scale_and_up(models, rng):
     assert {"chest_x", "chest_y", "chest_z", "left_elbow"} <= set(model.chain.dof_names)
     metric = body.load_urdf(HUMANOID_URDF, scale=0.25, up="y")
     q = jnp.asarray(random_q(model.chain, 8, rng))
-    a, b = fk_batch(model.chain, q), fk_batch(metric.chain, q)
+    a, b = np.asarray(fk_batch(model.chain, q)), np.asarray(fk_batch(metric.chain, q))
     up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     np.testing.assert_allclose(b[..., :3, 3], 0.25 * a[..., :3, 3] @ up.T, atol=1e-12)
     rest = fk_one(metric.chain, jnp.zeros(metric.n_dof))
