@@ -25,24 +25,23 @@ Algorithm
 ---------
 Separable and exact (the squared EDT decomposes over axes, as in Felzenszwalb & Huttenlocher):
 
-1. along each column, g^2(i, j) = min_k f(k, j) + (i - k)^2 with f = 0 on target pixels and
-   a large finite value B = (h + w)^2 elsewhere;
-2. along each row, D^2(i, j) = min_l g^2(i, l) + (j - l)^2;
+1. along each column, g(i, j) = distance to the nearest target pixel of column j (1D, exact):
+   i - (last target row <= i) or (first target row >= i) - i, from a prefix maximum and a
+   suffix minimum (associative scans, O(log h) steps); B = (h + w)^2 stands for "none" in g^2;
+2. along each row, D^2(i, j) = min_l g^2(i, l) + (j - l)^2 (the 1D squared transform);
 3. D = sqrt(min(D^2, B)).
 
-Each 1D min-plus transform is evaluated by brute force over all candidates k with a fixed
-number of iterations (no data-dependent exit, so it is jit-, vmap- and scan-friendly):
-a ``fori_loop`` over blocks of ``_BLOCK`` candidate columns, each block a fused chain of
-elementwise minima over the whole stack. Both passes run along the minor (last) axis, the
-first on the transposed stack, which is what vectorises best with XLA on CPU
-(see ``benchmarks/bench_distance.py``). Work is O(n h w (h + w)); for the paper's sizes
-(40 x 40 tiny id maps, ~160 x 160 crops) this is faster than a sequential lower envelope.
+Step 2 is evaluated by brute force over all candidates l with a fixed number of iterations
+(no data-dependent exit, so it is jit-, vmap- and scan-friendly): a ``fori_loop`` over blocks
+of ``_BLOCK`` candidate columns, each block a fused chain of elementwise minima over the whole
+stack, along the minor axis (step 1 runs on the transposed stack for the same reason), which
+is what vectorises best with XLA on CPU (see ``benchmarks/bench_distance.py``). Work is
+O(n h w (w + log h)); for the paper's sizes (40 x 40 tiny id maps, ~160 x 160 crops) this
+beats a sequential lower envelope.
 
 Squared distances are integers below 2^24 and are computed exactly in float32; the square
 root is taken in the output dtype (the default float dtype unless ``dtype`` is given).
 """
-
-from __future__ import annotations
 
 import functools
 
@@ -86,14 +85,31 @@ def _default_float() -> DTypeLike:
     return jnp.result_type(float)
 
 
+def _column_distance_sq(masks_t: Bool[Array, "n w h"]) -> Float[Array, "n w h"]:
+    """g^2 along the last axis: squared distance to the nearest True entry of the same line.
+
+    1D distances need no min-plus: the nearest True at or above i is max{k <= i : m_k}, a
+    prefix maximum (and a suffix minimum below), computed by associative scans in O(h log h).
+    Lines without any True entry get B = (h + w)^2.
+    """
+    h = masks_t.shape[-1]
+    bound = empty_distance(h, masks_t.shape[-2])
+    i = jnp.arange(h, dtype=jnp.int32).reshape(1, 1, h)
+    above = lax.associative_scan(jnp.maximum, jnp.where(masks_t, i, -2 * bound), axis=2)
+    below = lax.associative_scan(
+        jnp.minimum, jnp.where(masks_t, i, 3 * bound), axis=2, reverse=True
+    )
+    g = jnp.minimum(jnp.minimum(i - above, below - i), bound).astype(jnp.float32)
+    return g * g
+
+
 @functools.partial(jax.jit, static_argnames=("dtype",))
 def _edt(masks: Bool[Array, "n h w"], dtype: jnp.dtype) -> Float[Array, "n h w"]:
     _, h, w = masks.shape
     bound = jnp.float32(empty_distance(h, w) ** 2)
-    # pass 1 along columns (on the transposed stack so the axis is minor)
-    f = jnp.where(jnp.swapaxes(masks, 1, 2), jnp.float32(0), bound)
-    g2 = jnp.swapaxes(jnp.minimum(_min_plus_parabola(f), bound), 1, 2)
-    # pass 2 along rows
+    # pass 1 along columns (on the transposed stack so that the axis is minor)
+    g2 = jnp.swapaxes(_column_distance_sq(jnp.swapaxes(masks, 1, 2)), 1, 2)
+    # pass 2 along rows: the min-plus transform with the parabola (j - l)^2
     d2 = jnp.minimum(_min_plus_parabola(g2), bound)
     return jnp.sqrt(d2.astype(dtype))
 

@@ -36,8 +36,6 @@ Everything is pure and jit-compiled: ``init`` / ``step`` / ``anneal_step`` / ``r
 (``run`` = ``lax.scan`` of ``step`` over a sequence). Results are deterministic given the key.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 from typing import Any
 

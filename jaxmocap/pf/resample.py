@@ -10,8 +10,6 @@ unnormalised log-weights and are safe for -inf entries (zero weight).
   scheme; kept for comparison).
 """
 
-from __future__ import annotations
-
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
