@@ -39,10 +39,10 @@ Output per frame: ``points3d`` (3, 3) metres and ``valid`` (3,) bool. Invalid en
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import cv2
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -185,7 +185,7 @@ def init(params: BlobParams = BlobParams()) -> BlobState:
     return BlobState(params, z, z, z, zi, zi, zi, np.zeros(3))
 
 
-@eqx.filter_jit
+@functools.partial(jax.jit, static_argnames="refine")
 def _frame_geometry(
     cams: camlib.Camera,
     uv_l: Float[Array, "m 2"],

@@ -57,18 +57,6 @@ EDGE_KSIZE = 9
 _HSV_SHIFT = 12  # OpenCV's fixed-point precision for the 8-bit RGB -> HSV conversion
 
 
-def _division_tables() -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's ``sdiv_table``, ``hdiv_table180``: round(255 * 2^12 / v), round(180 * 2^12 / 6d)."""
-    i = np.arange(256, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        sdiv = np.where(i > 0, np.round((255 << _HSV_SHIFT) / i), 0)
-        hdiv = np.where(i > 0, np.round((180 << _HSV_SHIFT) / (6.0 * i)), 0)
-    return sdiv.astype(np.int32), hdiv.astype(np.int32)
-
-
-_SDIV, _HDIV = _division_tables()
-
-
 class HSVInterval(eqx.Module):
     """A closed box in OpenCV 8-bit HSV space (H in [0, 180), S and V in [0, 255]).
 
@@ -155,42 +143,69 @@ def _correlate1d(x: Array, kernel: Array, axis: int) -> Array:
     return out
 
 
+def _blur3_planes(planes: Array) -> Array:
+    """3x3 binomial blur of (c, h, w) uint8 planes, OpenCV rounding ``(sum + 8) >> 4``.
+
+    Planes keep the image width as the minor axis, so every step vectorises."""
+    k = jnp.array([1, 2, 1], dtype=jnp.int16)  # sums <= 16 * 255: int16 (wider SIMD lanes)
+    s = _correlate1d(_correlate1d(planes.astype(jnp.int16), k, 1), k, 2)
+    return ((s + 8) >> 4).astype(jnp.int32)
+
+
 def gaussian_blur_3x3(image: UInt8[Array, "h w c"]) -> UInt8[Array, "h w c"]:
     """3x3 Gaussian ``[1 2 1]^T [1 2 1] / 16`` with OpenCV's rounding: ``(sum + 8) >> 4``.
 
     Bit-exact with ``cv2.GaussianBlur(image, (3, 3), 0)`` (BORDER_REFLECT_101).
     """
-    k = jnp.array([1, 2, 1], dtype=jnp.int32)
-    x = image.astype(jnp.int32)
-    s = _correlate1d(_correlate1d(x, k, 0), k, 1)
-    return ((s + 8) >> 4).astype(jnp.uint8)
+    planes = _blur3_planes(jnp.moveaxis(image, -1, 0))
+    return jnp.moveaxis(planes, 0, -1).astype(jnp.uint8)
+
+
+def _round_div(num: int, den: Array) -> Array:
+    """``round(num / den)`` for integer den in [1, 255] as int32; float32 division reproduces
+    OpenCV's double-precision division tables exactly for these numerators (checked in tests)."""
+    q = jnp.float32(num) / den.astype(jnp.float32)
+    return jnp.floor(q + jnp.float32(0.5)).astype(jnp.int32)
+
+
+def _hsv_planes(r: Array, g: Array, b: Array) -> tuple[Array, Array, Array]:
+    """OpenCV's 8-bit RGB -> HSV on int32 planes: ``V = max``,
+    ``S = (diff * round(255 * 2^12 / V) + 2^11) >> 12``,
+    ``H = (h' * round(180 * 2^12 / (6 diff)) + 2^11) >> 12`` (+180 if negative), with ``h'``
+    the hexcone sector offset (``g - b``, ``b - r + 2 diff`` or ``r - g + 4 diff``)."""
+    v = jnp.maximum(jnp.maximum(r, g), b)
+    diff = v - jnp.minimum(jnp.minimum(r, g), b)
+    half = 1 << (_HSV_SHIFT - 1)
+    sdiv = jnp.where(v > 0, _round_div(255 << _HSV_SHIFT, jnp.maximum(v, 1)), 0)
+    hdiv = jnp.where(diff > 0, _round_div((180 << _HSV_SHIFT) // 6, jnp.maximum(diff, 1)), 0)
+    s = (diff * sdiv + half) >> _HSV_SHIFT
+    h = jnp.where(v == r, g - b, jnp.where(v == g, b - r + 2 * diff, r - g + 4 * diff))
+    h = (h * hdiv + half) >> _HSV_SHIFT
+    h = jnp.where(h < 0, h + 180, h)
+    return h, s, v
 
 
 def rgb_to_hsv(image: UInt8[Array, "*batch 3"]) -> UInt8[Array, "*batch 3"]:
     """RGB -> HSV in OpenCV's 8-bit fixed-point arithmetic (== ``cv2.COLOR_RGB2HSV``).
 
     ``V = max``, ``S = round(diff * 255 / V)``, ``H = round(h' * 180 / (6 diff))`` with
-    ``h'`` the hexcone sector offset; H in [0, 180).
+    ``h'`` the hexcone sector offset; H in [0, 180) (degrees / 2).
     """
     x = image.astype(jnp.int32)
-    r, g, b = x[..., 0], x[..., 1], x[..., 2]
-    v = jnp.maximum(jnp.maximum(r, g), b)
-    diff = v - jnp.minimum(jnp.minimum(r, g), b)
-    half = 1 << (_HSV_SHIFT - 1)
-    s = (diff * jnp.asarray(_SDIV)[v] + half) >> _HSV_SHIFT
-    h = jnp.where(v == r, g - b, jnp.where(v == g, b - r + 2 * diff, r - g + 4 * diff))
-    h = (h * jnp.asarray(_HDIV)[diff] + half) >> _HSV_SHIFT
-    h = jnp.where(h < 0, h + 180, h)
-    return jnp.stack([h, s, v], axis=-1).astype(jnp.uint8)
+    hsv = _hsv_planes(x[..., 0], x[..., 1], x[..., 2])
+    return jnp.stack(hsv, axis=-1).astype(jnp.uint8)
+
+
+def _in_range_planes(h: Array, s: Array, v: Array, interval: HSVInterval) -> Array:
+    lo, hi = interval.low, interval.high
+    hue = jnp.where(lo[0] <= hi[0], (h >= lo[0]) & (h <= hi[0]), (h >= lo[0]) | (h <= hi[0]))
+    return hue & (s >= lo[1]) & (s <= hi[1]) & (v >= lo[2]) & (v <= hi[2])
 
 
 def in_range(hsv: UInt8[Array, "*batch 3"], interval: HSVInterval) -> Bool[Array, "*batch"]:
     """``low <= hsv <= high`` per channel (hue wrapping when ``low[0] > high[0]``)."""
     x = hsv.astype(jnp.int32)
-    lo, hi = interval.low, interval.high
-    h, s, v = x[..., 0], x[..., 1], x[..., 2]
-    hue = jnp.where(lo[0] <= hi[0], (h >= lo[0]) & (h <= hi[0]), (h >= lo[0]) | (h <= hi[0]))
-    return hue & (s >= lo[1]) & (s <= hi[1]) & (v >= lo[2]) & (v <= hi[2])
+    return _in_range_planes(x[..., 0], x[..., 1], x[..., 2], interval)
 
 
 def binary_gradient(mask: Bool[Array, "h w"], dtype=jnp.float32) -> Float[Array, "h w"]:
@@ -236,13 +251,14 @@ def segment(
     ``foreground``: an external foreground mask (e.g. background subtraction) used instead of
     the shirt-colour segmentation. Returns skin map, foreground and the edge map ``g``.
     """
-    hsv = rgb_to_hsv(gaussian_blur_3x3(image))
-    skin = in_range(hsv, params.skin)
-    fg = in_range(hsv, params.shirt) if foreground is None else foreground.astype(bool)
+    r, g, b = _blur3_planes(jnp.moveaxis(image, -1, 0))
+    hsv = _hsv_planes(r, g, b)
+    skin = _in_range_planes(*hsv, params.skin)
+    fg = _in_range_planes(*hsv, params.shirt) if foreground is None else foreground.astype(bool)
     return Segmentation(skin, fg, edge_map(fg, params.edge_sigma, params.edge_ksize))
 
 
-@eqx.filter_jit
+@jax.jit
 def segment_views(
     params: SegmentParams,
     images: UInt8[Array, "n h w 3"],

@@ -184,3 +184,23 @@ def test_input_validation():
         B.update(B.init(), np.zeros((H, W)), np.zeros((H, W)), cams[:1])
     with pytest.raises(ValueError, match="min_area_ratio"):
         B.BlobParams(min_area_ratio=1.5)
+
+
+def test_partly_occluded_blob_is_predicted_not_measured(rng):
+    """A hand blob losing half its pixels in both views (partial occlusion) has a biased
+    centroid: the tracker carries the hand by its motion model instead (area test)."""
+    cams = stereo_cams()
+    pose = np.array([[0.0, 0.0, 1.6], [0.15, 0.3, 1.1], [0.1, -0.32, 1.2]])
+    traj = [pose + [0.0, 0.0, 0.01 * k] for k in range(4)]
+    state = B.init()
+    for k, centres in enumerate(traj):
+        ml, mr = skin_masks(cams, centres, rng)
+        if k == 2:  # hide the left half of the right hand (row 2) in both views
+            for mk, cam in zip((ml, mr), cams, strict=True):
+                u, v = np.asarray(C.project(cam, centres[2]))
+                mk[:, : int(round(u))] &= np.abs(np.arange(H) - v)[:, None] > 12
+        state, pts, valid = B.update(state, ml, mr, cams)
+        assert valid.all()
+        expected = B.PREDICTED if k == 2 else B.MEASURED
+        assert state.status[2] == expected and np.all(state.status[:2] == B.MEASURED)
+        assert_close(cams, pts, centres)
