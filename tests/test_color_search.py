@@ -24,11 +24,13 @@ def np_bins(img: np.ndarray) -> np.ndarray:
     return ir * 10 + ig
 
 
-def brute_force_search(img, mask, scales, stride=6, tau=0.1, min_fg=S.MIN_FOREGROUND_FRACTION):
+def brute_force_search(img, mask, scales, stride=6, tau=0.1, min_fg=S.MIN_FOREGROUND_FRACTION,
+                       min_intensity=S.MIN_INTENSITY):
     """Full-resolution windows at the same centres, histograms by np.bincount."""
     bins = np_bins(img)
     h, w = img.shape[0] // stride, img.shape[1] // stride
-    fg = np.ones(img.shape[:2], bool) if mask is None else mask
+    fg = np.ones(img.shape[:2], bool) if mask is None else mask.copy()
+    fg &= img.astype(int).sum(-1) >= min_intensity
     heat = np.zeros((len(scales), h + 1, w + 1))
     valid = np.zeros(heat.shape, bool)
     for k, s in enumerate(scales):
@@ -64,6 +66,7 @@ def test_chroma_bins_exact(rng):
 @pytest.mark.parametrize("use_mask", [False, True])
 def test_window_histograms_match_calchist(rng, use_mask):
     img = rng.integers(0, 256, (72, 90, 3)).astype(np.uint8)
+    img[::7, ::5] //= 16  # some dark pixels (r + g + b < 45) that are not counted
     mask = rng.random((72, 90)) < 0.7 if use_mask else None
     integral = jax.jit(S.integral_histogram)(
         jnp.asarray(img), None if mask is None else jnp.asarray(mask)
@@ -79,10 +82,13 @@ def test_window_histograms_match_calchist(rng, use_mask):
         hist[list(S.REACHABLE_BINS)] = block[:-1]
         y0, x0, s = 6 * i, 6 * j, 6 * m
         roi = np.ascontiguousarray(bins_u8[y0 : y0 + s, x0 : x0 + s])
-        roi_mask = None if mask is None else mask[y0 : y0 + s, x0 : x0 + s].astype(np.uint8)
+        counted = img[y0 : y0 + s, x0 : x0 + s].astype(int).sum(-1) >= S.MIN_INTENSITY
+        if mask is not None:
+            counted &= mask[y0 : y0 + s, x0 : x0 + s]
+        roi_mask = counted.astype(np.uint8)
         ref = cv2.calcHist([roi], [0], roi_mask, [100], [0, 100]).reshape(-1)
         np.testing.assert_array_equal(hist, ref)
-        sel = roi.reshape(-1) if mask is None else roi[mask[y0 : y0 + s, x0 : x0 + s]]
+        sel = roi[counted]
         np.testing.assert_array_equal(hist, np.bincount(sel, minlength=100))
         assert float(block[-1]) == len(sel)
 
@@ -110,6 +116,7 @@ def _scene(rng, h=72, w=96):
     img[..., 0] += 20
     img[20:56, 30:66] = rng.integers(0, 256, (36, 36, 3))  # colourful square
     img[2:20, 70:90] = [200, 40, 30]  # a red distractor
+    img[60:72, 0:30] = rng.integers(0, 15, (12, 30, 3))  # dark noise (not counted)
     return img.astype(np.uint8)
 
 

@@ -57,11 +57,11 @@ def maybe_add_reference(
     min_distance: float | Float[Array, ""] = MIN_FROBENIUS_DISTANCE,
 ) -> tuple[ReferenceIlluminations, Bool[Array, ""]]:
     """Add ``W*`` if its Frobenius distance to every stored matrix exceeds ``min_distance``."""
-    dist = jnp.sqrt(jnp.sum((refs.W - W_star) ** 2, axis=(1, 2)))
+    dist = jnp.sqrt(jnp.sum((refs.W - W_star[None]) ** 2, axis=(1, 2)))
     nearest = jnp.min(jnp.where(refs.valid, dist, jnp.inf))
     add = nearest > min_distance
     slot = refs.count % refs.capacity
-    W = jnp.where(add & (jnp.arange(refs.capacity) == slot)[:, None, None], W_star, refs.W)
+    W = jnp.where(add & (jnp.arange(refs.capacity) == slot)[:, None, None], W_star[None], refs.W)
     return ReferenceIlluminations(W=W, count=refs.count + add.astype(refs.count.dtype)), add
 
 

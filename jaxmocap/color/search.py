@@ -48,6 +48,9 @@ U_SIGMA_FRACTION = 0.1  # Wang §4: u_sigma = u_max / 10
 DEFAULT_SCALES = (48, 72, 96, 120, 144, 192)
 # Not in the paper: with a foreground mask, a window needs this fraction of foreground pixels.
 MIN_FOREGROUND_FRACTION = 0.25
+# Not in the paper: pixels with r + g + b below this (0..765) are left out of the histograms, as
+# the chrominance of near-black pixels is mostly sensor noise (it looks falsely "colourful").
+MIN_INTENSITY = 45.0
 
 
 class SearchResult(eqx.Module):
@@ -67,7 +70,9 @@ class SearchResult(eqx.Module):
     heat: Float[Array, "n_scales hc1 wc1"]
 
 
-def _bin_rg(image: UInt8[Array, "h w 3"]) -> tuple[Int[Array, "h w"], Int[Array, "h w"]]:
+def _bin_rg(
+    image: UInt8[Array, "h w 3"],
+) -> tuple[Int[Array, "h w"], Int[Array, "h w"], Float[Array, "h w"]]:
     """Row and column ``(floor(10 r / S), floor(10 g / S))`` of the 10 x 10 chromaticity grid.
 
     The floor is taken of a float32 division of exact integers: when ``10 r / S`` is an integer
@@ -82,12 +87,12 @@ def _bin_rg(image: UInt8[Array, "h w 3"]) -> tuple[Int[Array, "h w"], Int[Array,
     ir = jnp.minimum(jnp.floor(BINS_PER_AXIS * r / safe), top).astype(jnp.int32)
     ig = jnp.minimum(jnp.floor(BINS_PER_AXIS * g / safe), top).astype(jnp.int32)
     grey = BINS_PER_AXIS // 3
-    return jnp.where(total > 0, ir, grey), jnp.where(total > 0, ig, grey)
+    return jnp.where(total > 0, ir, grey), jnp.where(total > 0, ig, grey), total
 
 
 def chroma_bins(image: UInt8[Array, "h w 3"]) -> Int[Array, "h w"]:
     """Chrominance bin index ``10 floor(10 r / S) + floor(10 g / S)`` in ``[0, 100)``; exact."""
-    ir, ig = _bin_rg(image)
+    ir, ig, _ = _bin_rg(image)
     return ir * BINS_PER_AXIS + ig
 
 
@@ -139,23 +144,26 @@ def integral_histogram(
     image: UInt8[Array, "h w 3"],
     mask: Bool[Array, "h w"] | None = None,
     stride: int = STRIDE,
+    min_intensity: float | Float[Array, ""] = MIN_INTENSITY,
 ) -> Float[Array, "hc1 wc1 65"]:
     """Integral histogram on the ``stride x stride`` cell grid, compact bins + a count channel.
 
     ``out[a, b, j]`` (``j < 64``) counts the (foreground) pixels of bin ``REACHABLE_BINS[j]`` in
     cells ``[0, a) x [0, b)``, i.e. pixels ``[0, stride a) x [0, stride b)``; ``out[a, b, 64]``
-    counts all of them. Shape ``(H // stride + 1, W // stride + 1, 65)``, float32 (exact
+    counts all of them. Pixels outside ``mask`` or with ``r + g + b < min_intensity`` are not
+    counted. Shape ``(H // stride + 1, W // stride + 1, 65)``, float32 (exact
     integers).
     """
     h, w = image.shape[0] // stride, image.shape[1] // stride
     n_compact = len(REACHABLE_BINS)
-    bins = _compact_bins(*_bin_rg(image[: h * stride, : w * stride]))
+    ir, ig, total = _bin_rg(image[: h * stride, : w * stride])
+    bins = _compact_bins(ir, ig)
     # Cell index of every pixel: a compile-time constant (static shapes), no integer division.
     cell = np.arange(h * w, dtype=np.int32).reshape(h, w).repeat(stride, 0).repeat(stride, 1)
-    if mask is None:
-        weight = jnp.ones(bins.shape, jnp.float32)
-    else:
-        weight = mask[: h * stride, : w * stride].astype(jnp.float32)
+    counted = total >= min_intensity
+    if mask is not None:
+        counted = counted & mask[: h * stride, : w * stride]
+    weight = counted.astype(jnp.float32)
     flat = (jnp.asarray(cell * n_compact) + bins).reshape(-1)
     counts = jax.ops.segment_sum(weight.reshape(-1), flat, h * w * n_compact)
     counts = counts.reshape(h, w, n_compact)
@@ -207,17 +215,19 @@ def histogram_search(
     stride: int = STRIDE,
     tau: float | Float[Array, ""] = TAU,
     min_foreground: float | Float[Array, ""] = MIN_FOREGROUND_FRACTION,
+    min_intensity: float | Float[Array, ""] = MIN_INTENSITY,
 ) -> SearchResult:
     """Locate the shirt: the ``u``-weighted mean window ``(x', y', s')`` (Wang §4).
 
-    ``image`` is RGB uint8. With a foreground ``mask`` only foreground pixels enter the
-    histograms, and windows whose foreground fraction is below ``min_foreground`` are excluded.
+    ``image`` is RGB uint8. Only counted pixels enter the histograms: inside the foreground
+    ``mask`` (if given) and with ``r + g + b >= min_intensity``; windows whose counted fraction
+    is below ``min_foreground`` are excluded.
     ``scales`` and ``stride`` are static (they set shapes); ``tau`` may be traced. Jit with
     ``jax.jit(histogram_search, static_argnames=("scales", "stride"))``.
     """
     _check_scales(scales, stride, image.shape)
     scales = tuple(int(s) for s in scales)
-    integral = integral_histogram(image, mask, stride)
+    integral = integral_histogram(image, mask, stride, min_intensity)
     hc1, wc1 = integral.shape[:2]
     heats, valids = [], []
     for s in scales:
