@@ -71,6 +71,7 @@ __all__ = [
 
 UNDISTORT_FIXED_POINT_ITERS = 4  # OpenCV-style fixed-point steps (cv::undistortPoints)
 UNDISTORT_NEWTON_ITERS = 5  # then Newton steps on the 2x2 distortion Jacobian
+DLT_INVERSE_ITERS = 3  # inverse-iteration steps of the homogeneous DLT (see _dlt)
 TRIANGULATE_GN_ITERS = 5  # Gauss-Newton steps on the reprojection error
 CAMERAS_JSON_VERSION = 1
 ROTATION_TOLERANCE = 1e-4  # max |R R^T - I| and |det R - 1| accepted from cameras.json
@@ -321,25 +322,50 @@ def unstack_cameras(cams: Camera) -> list[Camera]:
 # ----------------------------------------------------------------------------- triangulation
 
 
+def _adjugate3(B: Array) -> tuple[Array, Array]:
+    """Adjugate (n, 3, 3) and determinant (n,) of batched 3x3 matrices B (n, 3, 3)."""
+    c0 = jnp.cross(B[:, 1], B[:, 2])
+    c1 = jnp.cross(B[:, 2], B[:, 0])
+    c2 = jnp.cross(B[:, 0], B[:, 1])
+    return jnp.stack([c0, c1, c2], axis=-1), jnp.sum(B[:, 0] * c0, axis=-1)
+
+
 def _dlt(xy: Array, R: Array, t: Array, w: Array) -> Array:
-    """Homogeneous N-view DLT for one point: xy (v, 2) normalised, weights w (v,)."""
+    """Homogeneous N-view DLT: xy (v, n, 2) normalised, cameras [R | t] (v, 3, 4), weights
+    w (v, n) -> points (n, 3).
+
+    Each view adds the rows ``x P_3 - P_1`` and ``y P_3 - P_2`` of A; the estimate is the unit
+    h minimising ``||A h||``, the eigenvector of ``M = A^T A`` with the smallest eigenvalue
+    (as ``cv2.triangulatePoints``). Instead of a batched eigen-solver (slow on CPU) we start
+    from the inhomogeneous solution (h_4 = 1: ``B X = -b`` with ``M = [[B, b], [b^T, c]]``)
+    and run ``DLT_INVERSE_ITERS`` steps of inverse iteration ``h <- M^-1 h``, solved in closed
+    form with the Schur complement ``c - b^T B^-1 b``; elementwise, so fast and
+    differentiable.
+    """
     P = jnp.concatenate([R, t[:, :, None]], axis=2)  # (v, 3, 4), normalised cameras
-    rows_x = xy[:, 0:1] * P[:, 2] - P[:, 0]
-    rows_y = xy[:, 1:2] * P[:, 2] - P[:, 1]
-    A = jnp.concatenate([rows_x * w[:, None], rows_y * w[:, None]], axis=0)  # (2v, 4)
-    _, vecs = jnp.linalg.eigh(A.T @ A)
-    h = vecs[:, 0]
-    return h[:3] / h[3]
+    rows_x = (xy[..., 0:1] * P[:, None, 2] - P[:, None, 0]) * w[..., None]  # (v, n, 4)
+    rows_y = (xy[..., 1:2] * P[:, None, 2] - P[:, None, 1]) * w[..., None]
+    M = jnp.einsum("vni,vnj->nij", rows_x, rows_x) + jnp.einsum("vni,vnj->nij", rows_y, rows_y)
+    B, b, c = M[:, :3, :3], M[:, :3, 3], M[:, 3, 3]
+    adj, det = _adjugate3(B)
+    Binv_b = jnp.einsum("nij,nj->ni", adj, b) / det[:, None]
+    schur = c - jnp.sum(b * Binv_b, axis=-1)
+    tiny = jnp.finfo(M.dtype).eps * jnp.trace(M, axis1=1, axis2=2)
+    schur = jnp.where(jnp.abs(schur) < tiny, tiny, schur)  # exact data: M is singular
+    h1, h2 = -Binv_b, jnp.ones_like(c)
+    for _ in range(DLT_INVERSE_ITERS):
+        Binv_h1 = jnp.einsum("nij,nj->ni", adj, h1) / det[:, None]
+        y2 = (h2 - jnp.sum(b * Binv_h1, axis=-1)) / schur
+        h1 = Binv_h1 - Binv_b * y2[:, None]
+        h2 = y2
+        scale = jnp.sqrt(jnp.sum(h1 * h1, axis=-1) + h2 * h2)
+        h1, h2 = h1 / scale[:, None], h2 / scale
+    return h1 / h2[:, None]
 
 
 def _solve_sym3(A: Array, b: Array) -> Array:
-    """Solve batched symmetric positive-definite 3x3 systems A (n, 3, 3) x = b (n, 3) by
-    the adjugate (elementwise, cheap to compile and differentiate)."""
-    c0 = jnp.cross(A[:, 1], A[:, 2])
-    c1 = jnp.cross(A[:, 2], A[:, 0])
-    c2 = jnp.cross(A[:, 0], A[:, 1])
-    adj = jnp.stack([c0, c1, c2], axis=-1)  # adj(A) for symmetric A (columns = cofactors)
-    det = jnp.sum(A[:, 0] * c0, axis=-1)
+    """Solve batched 3x3 systems A (n, 3, 3) x = b (n, 3) by the adjugate (elementwise)."""
+    adj, det = _adjugate3(A)
     return jnp.einsum("nij,nj->ni", adj, b) / det[:, None]
 
 
@@ -406,7 +432,7 @@ def triangulate(
     valid = w > 0
     flat = jnp.where(valid[..., None], flat, 0.0)
     xy = jax.vmap(undistort_normalized)(cams, flat)  # (v, n, 2)
-    X = jax.vmap(_dlt, in_axes=(1, None, None, 1))(xy, cams.R, cams.t, w)  # (n, 3)
+    X = _dlt(xy, cams.R, cams.t, w)  # (n, 3)
 
     if refine:
         sw = jnp.sqrt(w)
