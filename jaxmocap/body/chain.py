@@ -142,12 +142,13 @@ def so3_exp(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
 
 
 def _mm(a: Array, b: Array) -> Array:
-    """3x3 @ 3x3 as broadcast multiply-add (fuses under vmap; no batched dot)."""
-    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+    """3x3 @ 3x3 as a dot (measured: broadcast multiply-sum forms fuse along the chain and
+    recompute parents, 10x slower under vmap at 1000 poses; see benchmarks/bench_fk.py)."""
+    return a @ b
 
 
 def _mv(a: Array, v: Array) -> Array:
-    return (a * v[..., None, :]).sum(-1)
+    return (a @ v[..., None])[..., 0]
 
 
 def fk(chain: KinematicChain, q: Float[Array, " n_dof"]) -> Float[Array, "n_links 4 4"]:
