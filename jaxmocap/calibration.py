@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, UInt8
 
 from .camera import Camera, pixel_rays
+from .errors import InputError
 
 __all__ = [
     "CalibrationError",
@@ -48,7 +49,7 @@ BOARD_BLACK, BOARD_WHITE, BACKGROUND = 25.0, 230.0, 110.0
 BOARD_MARGIN = 0.75  # white border around the squares, in squares
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """Calibration could not run: too few usable views, inconsistent image sizes, ..."""
 
 

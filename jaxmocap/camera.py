@@ -45,6 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxmocap.errors import InputError
+
 ArrayIn = Array | np.ndarray  # inputs accept NumPy arrays too
 VectorLike = ArrayLike | Sequence  # also nested lists of numbers
 
@@ -121,7 +123,7 @@ class Camera(eqx.Module):
                 raise ValueError(f"Camera.K: focal lengths K[0,0], K[1,1] must be > 0, got {f}")
 
 
-class CameraFileError(ValueError):
+class CameraFileError(InputError):
     """A ``cameras.json`` file that does not follow the schema in this module's docstring."""
 
 
