@@ -29,8 +29,11 @@ def reference(model, W, img, T=3.0, mask=None):
     x = img.reshape(-1, 3).astype(np.float64) @ np.asarray(W).T
     mean, cov = np.asarray(model.mean), np.asarray(model.cov)
     d2 = np.stack(
-        [np.einsum("ni,ij,nj->n", x - mean[k], np.linalg.inv(cov[k]), x - mean[k])
-         for k in range(len(mean))], axis=1
+        [
+            np.einsum("ni,ij,nj->n", x - mean[k], np.linalg.inv(cov[k]), x - mean[k])
+            for k in range(len(mean))
+        ],
+        axis=1,
     )
     best = d2.argmin(1)
     dist = np.sqrt(d2.min(1))
@@ -54,8 +57,9 @@ def test_classify_matches_numpy_and_scipy(rng, classify_jit):
     img = np.clip(np.round(px), 0, 255).astype(np.uint8).reshape(60, 80, 3)
     mask = rng.random((60, 80)) < 0.8
     for T, m in [(3.0, None), (2.0, mask)]:
-        ids, dist = classify_jit(model, jnp.asarray(W), jnp.asarray(img),
-                                 None if m is None else jnp.asarray(m), T)
+        ids, dist = classify_jit(
+            model, jnp.asarray(W), jnp.asarray(img), None if m is None else jnp.asarray(m), T
+        )
         ref_ids, ref_dist, x = reference(model, W, img, T, m)
         assert int(np.sum(np.asarray(ids) != ref_ids)) == 0
         np.testing.assert_allclose(np.asarray(dist), ref_dist, rtol=1e-9, atol=1e-9)
@@ -91,13 +95,14 @@ def test_classify_float32_and_vmap(rng, classify_jit):
 
 def test_log_cholesky_round_trip(rng):
     cov = np.asarray(random_model(rng, 3).cov)
-    np.testing.assert_allclose(cov_from_log_cholesky(log_cholesky(jnp.asarray(cov))), cov,
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        cov_from_log_cholesky(log_cholesky(jnp.asarray(cov))), cov, rtol=1e-12
+    )
 
 
 def test_soft_classify_limit_and_grad(rng):
     model = random_model(rng, k=3)
-    img = (np.asarray(model.mean)[rng.integers(0, 3, 30)] + rng.normal(0, 10, (30, 3)))
+    img = np.asarray(model.mean)[rng.integers(0, 3, 30)] + rng.normal(0, 10, (30, 3))
     img = jnp.asarray(img.reshape(5, 6, 3))
     W = jnp.eye(3) + 0.05 * jnp.asarray(rng.normal(size=(3, 3)))
     # zero temperature limit: argmax equals the hard classifier
@@ -114,6 +119,7 @@ def test_soft_classify_limit_and_grad(rng):
         return jnp.sum(target * jnp.log(r + 1e-12))
 
     p = {"mean": model.mean, "chol": log_cholesky(model.cov), "W": W, "T": jnp.asarray(3.0)}
+    loss = jax.jit(loss)
     g = jax.jit(jax.grad(loss))(p)
     flat, unravel = jax.flatten_util.ravel_pytree(p)
     gflat = jax.flatten_util.ravel_pytree(g)[0]

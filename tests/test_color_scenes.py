@@ -19,9 +19,21 @@ from jaxmocap.color import (
     white_balance_from_ids,
 )
 
-SHIRT = np.array([[205, 35, 40], [35, 170, 50], [40, 60, 205], [225, 210, 40], [40, 190, 200],
-                  [200, 45, 190], [235, 125, 30], [110, 45, 170], [150, 225, 60],
-                  [245, 140, 170]], float)
+SHIRT = np.array(
+    [
+        [205, 35, 40],
+        [35, 170, 50],
+        [40, 60, 205],
+        [225, 210, 40],
+        [40, 190, 200],
+        [200, 45, 190],
+        [235, 125, 30],
+        [110, 45, 170],
+        [150, 225, 60],
+        [245, 140, 170],
+    ],
+    float,
+)
 
 
 def make_scene(rng, h=480, w=640, L=None, shirt_w=None, noise=3.0):
@@ -143,7 +155,7 @@ def test_maybe_add_reference_threshold_and_ring_buffer():
     refs, added = add(refs, jnp.eye(3) + 0.6 / 3)  # ||.||_F = 0.6 > 0.5
     assert bool(added) and int(refs.count) == 2
     np.testing.assert_allclose(refs.W[1], jnp.eye(3) + 0.2)
-    for i, v in enumerate([2.0, 3.0]):  # third fills the buffer, fourth overwrites slot 0
+    for v in [2.0, 3.0]:  # third fills the buffer, fourth overwrites slot 0
         refs, added = add(refs, v * jnp.eye(3))
         assert bool(added)
     assert int(refs.count) == 4 and bool(jnp.all(refs.valid))

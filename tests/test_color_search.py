@@ -24,8 +24,15 @@ def np_bins(img: np.ndarray) -> np.ndarray:
     return ir * 10 + ig
 
 
-def brute_force_search(img, mask, scales, stride=6, tau=0.1, min_fg=S.MIN_FOREGROUND_FRACTION,
-                       min_intensity=S.MIN_INTENSITY):
+def brute_force_search(
+    img,
+    mask,
+    scales,
+    stride=6,
+    tau=0.1,
+    min_fg=S.MIN_FOREGROUND_FRACTION,
+    min_intensity=S.MIN_INTENSITY,
+):
     """Full-resolution windows at the same centres, histograms by np.bincount."""
     bins = np_bins(img)
     h, w = img.shape[0] // stride, img.shape[1] // stride
@@ -127,8 +134,9 @@ def test_search_matches_brute_force(rng, search_fn, use_mask):
     if use_mask:
         mask = np.zeros(img.shape[:2], bool)
         mask[10:70, 20:80] = rng.random((60, 60)) < 0.9
-    res = search_fn(jnp.asarray(img), None if mask is None else jnp.asarray(mask),
-                    scales=SMALL_SCALES)
+    res = search_fn(
+        jnp.asarray(img), None if mask is None else jnp.asarray(mask), scales=SMALL_SCALES
+    )
     heat, (x, y, s) = brute_force_search(img, mask, SMALL_SCALES)
     np.testing.assert_allclose(np.asarray(res.heat), heat, atol=1e-6)
     np.testing.assert_allclose([res.x, res.y, res.s], [x, y, s], rtol=1e-5)

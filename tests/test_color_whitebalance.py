@@ -14,9 +14,21 @@ from jaxmocap.color import (
     white_balance_from_scribbles,
 )
 
-SHIRT = np.array([[205, 35, 40], [35, 170, 50], [40, 60, 205], [225, 210, 40], [40, 190, 200],
-                  [200, 45, 190], [235, 125, 30], [110, 45, 170], [150, 225, 60],
-                  [245, 140, 170]], float)
+SHIRT = np.array(
+    [
+        [205, 35, 40],
+        [35, 170, 50],
+        [40, 60, 205],
+        [225, 210, 40],
+        [40, 190, 200],
+        [200, 45, 190],
+        [235, 125, 30],
+        [110, 45, 170],
+        [150, 225, 60],
+        [245, 140, 170],
+    ],
+    float,
+)
 
 
 def model():
@@ -65,8 +77,7 @@ def test_matches_closed_form_least_squares(rng):
     W0 = np.eye(3) + 0.1 * rng.normal(size=(3, 3))
     fit = jax.jit(fit_white_balance)
     for reg in (1e-4, 0.3):
-        W = fit(jnp.asarray(obs), jnp.asarray(tgt), jnp.asarray(w), jnp.asarray(W0),
-                              reg)
+        W = fit(jnp.asarray(obs), jnp.asarray(tgt), jnp.asarray(w), jnp.asarray(W0), reg)
         np.testing.assert_allclose(W, closed_form(obs, tgt, w, W0, reg), rtol=1e-8, atol=1e-10)
 
 
@@ -77,9 +88,11 @@ def test_graceful_degradation(rng):
         L = illuminant(rng)
         W_true = np.linalg.inv(L)
         three = rng.choice(10, 3, replace=False)
-        for key, vis, noise in [("noise5_10colours", range(10), 5.0),
-                                ("noiseless_3colours", three, 0.0),
-                                ("noise5_3colours", three, 5.0)]:
+        for key, vis, noise in [
+            ("noise5_10colours", range(10), 5.0),
+            ("noiseless_3colours", three, 0.0),
+            ("noise5_3colours", three, 5.0),
+        ]:
             img, lab = scene(rng, L, vis, noise)
             W = white_balance_from_scribbles(model(), [img], [lab])
             errs[key].append(np.abs(np.asarray(W) - W_true).max())
@@ -103,15 +116,16 @@ def test_prior_takes_over_when_under_determined(rng):
     normal /= np.linalg.norm(normal)
     np.testing.assert_allclose(W @ normal, W0 @ normal, atol=1e-6)  # unseen direction = prior
     img, lab = scene(rng, L, visible=[])
-    np.testing.assert_allclose(white_balance_from_scribbles(model(), [img], [lab], W_prior=W0), W0,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        white_balance_from_scribbles(model(), [img], [lab], W_prior=W0), W0, atol=1e-12
+    )
 
 
 def test_patch_means_vmap_and_grad(rng):
     L = illuminant(rng)
     imgs, labs = zip(*[scene(rng, L, noise=3.0) for _ in range(2)], strict=True)
     imgs, labs = jnp.asarray(np.stack(imgs)), jnp.asarray(np.stack(labs))
-    means, counts = jax.vmap(lambda i, l: patch_means(i, l, 10))(imgs, labs)
+    means, counts = jax.vmap(lambda im, lab: patch_means(im, lab, 10))(imgs, labs)
     for b in range(2):
         sel = np.asarray(labs[b]) == 3
         np.testing.assert_allclose(means[b, 2], np.asarray(imgs[b])[sel].mean(0), rtol=1e-12)
@@ -128,5 +142,6 @@ def test_patch_means_vmap_and_grad(rng):
     eps = 1e-4
     for i, j in [(0, 0), (3, 1), (9, 2)]:
         e = jnp.zeros_like(obs).at[i, j].set(eps)
-        assert float(g[i, j]) == pytest.approx(float((f(obs + e) - f(obs - e)) / (2 * eps)),
-                                               rel=1e-5, abs=1e-9)
+        assert float(g[i, j]) == pytest.approx(
+            float((f(obs + e) - f(obs - e)) / (2 * eps)), rel=1e-5, abs=1e-9
+        )

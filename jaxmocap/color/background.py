@@ -37,7 +37,8 @@ class BackgroundSubtractor:
             )
         self.learning_rate = float(learning_rate)
         self._mog = cv2.createBackgroundSubtractorMOG2(
-            history=int(history), varThreshold=float(var_threshold),
+            history=int(history),
+            varThreshold=float(var_threshold),
             detectShadows=bool(detect_shadows),
         )
 

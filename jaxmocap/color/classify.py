@@ -59,8 +59,18 @@ def quadratic_coefficients(model: ColorModel, W: Float[Array, "3 3"]) -> Float[A
     b = -2.0 * Pm @ W  # (W^T P m)_i = sum_j W_ji (P m)_j
     c = jnp.einsum("ki,ki->k", m, Pm)
     return jnp.stack(
-        [A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], 2 * A[:, 0, 1], 2 * A[:, 0, 2], 2 * A[:, 1, 2],
-         b[:, 0], b[:, 1], b[:, 2], c]
+        [
+            A[:, 0, 0],
+            A[:, 1, 1],
+            A[:, 2, 2],
+            2 * A[:, 0, 1],
+            2 * A[:, 0, 2],
+            2 * A[:, 1, 2],
+            b[:, 0],
+            b[:, 1],
+            b[:, 2],
+            c,
+        ]
     )
 
 
@@ -80,9 +90,11 @@ def _squared_distances(coef: Array, feats: list[Array]) -> list[Array]:
 
 
 def mahalanobis_sq(
-    model: ColorModel, W: Float[Array, "3 3"], image: UInt8[Array, "h w 3"] | Float[Array, "h w 3"]
+    model: ColorModel,
+    W: Float[Array, "3 3"],
+    image: UInt8[Array, "h w 3"] | Float[Array, "h w 3"],
 ) -> Float[Array, "h w k"]:
-    """Squared Mahalanobis distances ``||W I_xy - mu_k||^2_{Sigma_k}`` of every pixel to each colour."""
+    """Squared Mahalanobis distances ``||W I_xy - mu_k||^2_{Sigma_k}`` to every colour."""
     dtype = _dtype(model, W, image)
     coef = quadratic_coefficients(model, W.astype(dtype)).astype(dtype)
     return jnp.stack(_squared_distances(coef, _features(image, dtype)), axis=-1)
@@ -117,7 +129,9 @@ def classify(
     return jnp.where(keep, idx, 0), jnp.sqrt(jnp.maximum(best, 0))
 
 
-def classified_fraction(ids: Int[Array, "h w"], mask: Bool[Array, "h w"] | None = None) -> Float[Array, ""]:
+def classified_fraction(
+    ids: Int[Array, "h w"], mask: Bool[Array, "h w"] | None = None
+) -> Float[Array, ""]:
     """Fraction of (foreground) pixels that got a colour id (0 if there is no foreground)."""
     n_fg = ids.size if mask is None else jnp.sum(mask)
     return jnp.sum(ids > 0) / jnp.maximum(n_fg, 1)

@@ -41,9 +41,7 @@ class ReferenceIlluminations(eqx.Module):
         return jnp.arange(self.capacity) < self.count
 
 
-def init_references(
-    W0: Float[Array, "3 3"], capacity: int = CAPACITY
-) -> ReferenceIlluminations:
+def init_references(W0: Float[Array, "3 3"], capacity: int = CAPACITY) -> ReferenceIlluminations:
     """A buffer holding only ``W0`` (the user-labelled initial white balance, §5.1)."""
     if capacity < 1:
         raise ValueError(f"init_references: capacity must be >= 1, got {capacity}")

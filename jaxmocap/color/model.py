@@ -113,8 +113,9 @@ def fit_color_model(
         d = x - mu
         means.append(mu)
         covs.append(d.T @ d / len(x) + min_variance * np.eye(3))
-    return ColorModel(mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)),
-                      names=tuple(names))
+    return ColorModel(
+        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names)
+    )
 
 
 def _fail(path, where: str, msg: str) -> ColorModelError:
@@ -185,8 +186,9 @@ def load_color_model(path: str | os.PathLike) -> ColorModel:
         if not isinstance(name, str):
             raise _fail(path, f"colors[{k}].name", f"expected a string, got {name!r}")
         names.append(name)
-    return ColorModel(mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)),
-                      names=tuple(names))
+    return ColorModel(
+        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names)
+    )
 
 
 def save_color_model(path: str | os.PathLike, model: ColorModel) -> Path:

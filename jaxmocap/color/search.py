@@ -177,15 +177,15 @@ def expand_bins(hist: Float[Array, "*batch 64"]) -> Float[Array, "*batch 100"]:
     return full.at[..., jnp.asarray(REACHABLE_BINS)].set(hist)
 
 
-def window_histograms(
-    integral: Float[Array, "hc1 wc1 c"], cells: int
-) -> Float[Array, "na nb c"]:
+def window_histograms(integral: Float[Array, "hc1 wc1 c"], cells: int) -> Float[Array, "na nb c"]:
     """Sums of all ``cells x cells`` blocks; ``[i, j]`` is the block starting at cell (i, j)."""
     m = cells
     return integral[m:, m:] - integral[:-m, m:] - integral[m:, :-m] + integral[:-m, :-m]
 
 
-def uniformity(hist: Float[Array, "*batch n"], tau: float | Float[Array, ""] = TAU) -> Float[Array, "*batch"]:
+def uniformity(
+    hist: Float[Array, "*batch n"], tau: float | Float[Array, ""] = TAU
+) -> Float[Array, "*batch"]:
     """``u(h) = sum_i min(h_i, tau)`` of histograms normalised here to sum 1 (0 if empty)."""
     total = hist.sum(axis=-1)
     safe = jnp.where(total > 0, total, 1)
