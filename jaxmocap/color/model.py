@@ -35,6 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxmocap.errors import InputError
+
 FORMAT = "jaxmocap.colors"
 VERSION = 1
 # Not in the paper: a variance floor (0..255 units^2) keeping fitted covariances positive
@@ -42,7 +44,7 @@ VERSION = 1
 MIN_VARIANCE = 1.0
 
 
-class ColorModelError(ValueError):
+class ColorModelError(InputError):
     """A colour model (``colors.json`` or a fit) that is malformed or not usable."""
 
 
