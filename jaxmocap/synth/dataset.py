@@ -1,0 +1,307 @@
+"""Synthetic datasets on disk and the ``jaxmocap synth`` command.
+
+A dataset folder holds
+
+* ``scene.json`` — ``{"version": 1, "scene": {SceneConfig fields}, "render": {...}}``: every
+  setting (with the seed it regenerates the sequence bit-identically on the same machine
+  and dtype, recorded in ``render.dtype``);
+* ``cameras.json`` — the rig (:func:`jaxmocap.camera.save_cameras`);
+* ``groundtruth.npz`` — the ground truth of :func:`~jaxmocap.synth.sequence.render_sequence`;
+* ``<camera>.mp4`` — one video per camera (``mp4v``, lossy), and/or with ``--png``
+  ``<camera>/000000.png, ...`` lossless frames.
+
+The folder is written into a temporary folder beside the target and renamed into place, so
+a target either does not exist or is complete. :func:`load_dataset` reads it back as a
+:class:`~jaxmocap.synth.sequence.Sequence` (PNG frames when present, else the videos).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmocap.camera import load_cameras, save_cameras
+from jaxmocap.errors import InputError
+from jaxmocap.synth.scene import RIGS, SCENE_JSON_VERSION, SceneConfig, SceneError
+from jaxmocap.synth.sequence import Sequence, render_sequence
+
+VIDEO_CODEC = "mp4v"
+GT_FRAME_KEYS = ("q", "keypoints", "patch_ids", "illuminant", "intensity", "visible",
+                 "occluded_fraction", "body_pixels", "times")
+GT_KEYS = GT_FRAME_KEYS + ("dof_names", "keypoint_names")
+
+
+class DatasetError(InputError):
+    """A dataset folder that is missing files or holds inconsistent ones."""
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _check_target(folder: Path) -> None:
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"{folder}: a file is in the way; expected a new or empty folder")
+    if folder.is_dir() and any(folder.iterdir()):
+        raise DatasetError(f"{folder}: folder exists and is not empty; choose a new folder")
+
+
+def _write_video(path: Path, frames: np.ndarray, fps: float) -> None:
+    h, w = frames.shape[1:3]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*VIDEO_CODEC), float(fps),
+                             (w, h))
+    if not writer.isOpened():
+        raise OSError(f"{path}: OpenCV cannot open a {VIDEO_CODEC} video writer")
+    try:
+        for f in frames:
+            writer.write(np.ascontiguousarray(f[..., ::-1]))
+    finally:
+        writer.release()
+
+
+def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
+                  png: bool = False, dtype_name: str | None = None) -> Path:
+    """Write ``seq`` as a dataset folder (module docstring), atomically. Raises
+    :class:`DatasetError` if ``folder`` is a file or a non-empty folder."""
+    folder = Path(folder)
+    if not (video or png):
+        raise DatasetError("write_dataset: nothing to write; ask for video and/or png frames")
+    _check_target(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    try:
+        t, n_cams, h, w, _ = seq.frames.shape
+        render_info = {"dtype": dtype_name or str(seq.groundtruth["q"].dtype), "n_frames": t,
+                       "cameras": list(seq.camera_names), "width": w, "height": h,
+                       "fps": seq.config.fps, "video": video, "png": png}
+        doc = {"version": SCENE_JSON_VERSION, "scene": seq.config.to_dict(),
+               "render": render_info}
+        (tmp / "scene.json").write_text(json.dumps(doc, indent=2) + "\n")
+        save_cameras(tmp / "cameras.json", seq.cameras, seq.camera_names)
+        np.savez_compressed(tmp / "groundtruth.npz", **seq.groundtruth)
+        for c, name in enumerate(seq.camera_names):
+            if video:
+                _write_video(tmp / f"{name}.mp4", seq.frames[:, c], seq.config.fps)
+            if png:
+                (tmp / name).mkdir()
+                for k in range(t):
+                    cv2.imwrite(str(tmp / name / f"{k:06d}.png"), seq.frames[k, c, ..., ::-1])
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700 folders
+        _check_target(folder)
+        if folder.is_dir():
+            folder.rmdir()
+        os.rename(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _read_frames_png(folder: Path, name: str, t: int, h: int, w: int) -> np.ndarray:
+    out = np.empty((t, h, w, 3), np.uint8)
+    for k in range(t):
+        path = folder / name / f"{k:06d}.png"
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise DatasetError(f"{path}: missing or not a readable PNG (frame {k} of {t})")
+        if img.shape != (h, w, 3):
+            raise DatasetError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
+                               f"expected {w}x{h}")
+        out[k] = img[..., ::-1]
+    return out
+
+
+def _read_frames_video(path: Path, t: int, h: int, w: int) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing video (and no PNG frames folder)")
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    try:
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            frames.append(img[..., ::-1])
+    finally:
+        cap.release()
+    if len(frames) != t:
+        raise DatasetError(f"{path}: {len(frames)} readable frames, expected {t}")
+    if frames[0].shape != (h, w, 3):
+        raise DatasetError(f"{path}: frames are {frames[0].shape[1]}x{frames[0].shape[0]}, "
+                           f"expected {w}x{h}")
+    return np.stack(frames)
+
+
+def _read_groundtruth(path: Path, t: int, n_cams: int, h: int, w: int) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            gt = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing ground-truth file") from None
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{path}: not a readable .npz file ({e})") from None
+    missing = [k for k in GT_KEYS if k not in gt]
+    if missing:
+        raise DatasetError(f"{path}: missing field(s) {missing}")
+    expect = {"patch_ids": (t, n_cams, h, w), "colour_ids": (t, n_cams, h, w),
+              "illuminant": (t, 3, 3), "intensity": (t,), "visible": (t, n_cams),
+              "occluded_fraction": (t, n_cams), "body_pixels": (t, n_cams), "times": (t,)}
+    for k, shape in expect.items():
+        if k in gt and gt[k].shape != shape:
+            raise DatasetError(f"{path}: field {k!r} has shape {gt[k].shape}, expected {shape}")
+    n_dof, n_kp = len(gt["dof_names"]), len(gt["keypoint_names"])
+    for k, shape in (("q", (t, n_dof)), ("keypoints", (t, n_kp, 3))):
+        if gt[k].shape != shape:
+            raise DatasetError(f"{path}: field {k!r} has shape {gt[k].shape}, expected {shape}")
+    return gt
+
+
+def load_dataset(folder: str | os.PathLike) -> Sequence:
+    """Read a dataset folder written by :func:`write_dataset` (or ``jaxmocap synth``).
+
+    Raises :class:`DatasetError` naming the file and field for a missing or corrupt part.
+    Frames come from the PNG folders when present (lossless), else from the videos."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: not a dataset folder (does not exist or is a file)")
+    scene_path = folder / "scene.json"
+    try:
+        doc = json.loads(scene_path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{scene_path}: missing scene file") from None
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{scene_path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    if not isinstance(doc, dict) or doc.get("version") != SCENE_JSON_VERSION:
+        got = doc.get("version") if isinstance(doc, dict) else doc
+        raise DatasetError(f"{scene_path}: field 'version': expected {SCENE_JSON_VERSION}, "
+                           f"got {got!r}")
+    try:
+        config = SceneConfig.from_dict(doc.get("scene"), str(scene_path))
+    except SceneError as e:
+        raise DatasetError(str(e)) from None
+    info = doc.get("render")
+    keys = ("n_frames", "cameras", "width", "height")
+    if not isinstance(info, dict) or any(k not in info for k in keys):
+        raise DatasetError(f"{scene_path}: field 'render': expected an object with {keys}")
+    t, names, w, h = (info[k] for k in keys)
+    try:
+        cams, cam_names = load_cameras(folder / "cameras.json")
+    except ValueError as e:  # CameraFileError names the file and field
+        raise DatasetError(str(e)) from None
+    if cam_names != list(names):
+        raise DatasetError(f"{folder / 'cameras.json'}: cameras {cam_names}, scene.json "
+                           f"says {list(names)}")
+    gt = _read_groundtruth(folder / "groundtruth.npz", t, len(names), h, w)
+    frames = np.stack([
+        _read_frames_png(folder, n, t, h, w) if (folder / n).is_dir()
+        else _read_frames_video(folder / f"{n}.mp4", t, h, w)
+        for n in names], axis=1)
+    return Sequence(frames=frames, cameras=cams, camera_names=cam_names, groundtruth=gt,
+                    config=config)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+# option -> SceneConfig field
+_SCENE_OPTIONS = {
+    "clip": "clip", "fps": "fps", "start": "start", "frames": "n_frames", "preset": "rig",
+    "cameras": "n_cameras", "width": "width", "height": "height", "baseline": "baseline",
+    "distance": "distance", "k1": "k1", "garment": "garment", "shirt_rgb": "shirt_rgb",
+    "intensity": "intensity", "noise": "noise_sigma", "drift": "drift", "lamp_off": "lamp_off",
+    "blur": "motion_blur", "shutter": "shutter", "background": "background",
+    "distractors": "n_distractors", "moving_object": "moving_object", "occluder": "occluder",
+    "leave_view": "leave_view", "colour_ids": "colour_ids", "seed": "seed",
+}  # fmt: skip
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "synth", help="render a synthetic sequence with ground truth into a dataset folder",
+        description="Render a retargeted mocap clip with a camera rig and the papers' "
+        "nuisances into OUT: one video per camera, cameras.json, groundtruth.npz, scene.json. "
+        "Unset options take SceneConfig's defaults (or the --scene file's values).")
+    p.add_argument("out", help="dataset folder to create (must not exist or be empty)")
+    p.add_argument("--scene", help="scene.json of an earlier dataset: regenerate it; other "
+                   "options override its settings")
+    a = p.add_argument
+    a("--clip", help="DeepMimic clip name (default humanoid3d_punch, held out)")
+    a("--fps", type=float)
+    a("--start", type=int, help="first clip frame")
+    a("--frames", type=int, help="number of frames (default: the whole clip)")
+    a("--preset", choices=sorted(RIGS), help="camera rig: stereo (Azad) or webcams (Wang)")
+    a("--cameras", type=int, help="number of cameras, 1-4")
+    a("--width", type=int)
+    a("--height", type=int)
+    a("--baseline", type=float, help="metres between neighbouring cameras")
+    a("--distance", type=float, help="metres from the subject")
+    a("--k1", type=float, help="radial distortion k1")
+    a("--garment", choices=("shirt", "single"))
+    a("--shirt-rgb", type=float, nargs=3, metavar=("R", "G", "B"))
+    a("--intensity", type=float, help="light intensity (1 normal, <1 dim)")
+    a("--noise", type=float, help="sensor noise sigma, fraction of 255")
+    a("--drift", type=float, help="relative amplitude of the lamp's smooth drift")
+    a("--lamp-off", type=int, metavar="FRAME", help="switch the lamp off at this frame")
+    a("--blur", type=int, metavar="S", help="motion blur: odd number of sub-frames")
+    a("--shutter", type=float, help="exposure as a fraction of the frame interval")
+    a("--background", choices=("plain", "clutter"))
+    a("--distractors", type=int)
+    a("--moving-object", action=argparse.BooleanOptionalAction, default=None)
+    a("--occluder", type=int, nargs=2, metavar=("FIRST", "LAST"))
+    a("--leave-view", type=int, nargs=2, metavar=("FIRST", "LAST"))
+    a("--colour-ids", action=argparse.BooleanOptionalAction, default=None)
+    a("--seed", type=int)
+    a("--png", action="store_true", help="also write lossless PNG frames")
+    a("--no-video", action="store_true", help="do not write the mp4 videos (needs --png)")
+    a("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def config_from_args(args: argparse.Namespace) -> SceneConfig:
+    """The SceneConfig of the command line (over a ``--scene`` file when given)."""
+    base: dict = {}
+    if args.scene:
+        path = Path(args.scene)
+        try:
+            doc = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: no such scene file") from None
+        except json.JSONDecodeError as e:
+            raise DatasetError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("scene"), dict):
+            raise DatasetError(f"{path}: field 'scene': expected an object of settings")
+        base = dict(doc["scene"])
+    for opt, field in _SCENE_OPTIONS.items():
+        v = getattr(args, opt)
+        if v is not None:
+            base[field] = tuple(v) if isinstance(v, list) else v
+    return SceneConfig.from_dict(base, args.scene or "command line")
+
+
+def run(args: argparse.Namespace) -> int:
+    import time
+
+    if args.no_video and not args.png:
+        raise DatasetError("--no-video needs --png (otherwise no frames would be written)")
+    config = config_from_args(args)
+    _check_target(Path(args.out))
+    t0 = time.perf_counter()
+    seq = render_sequence(config, progress=not args.quiet)
+    dt = time.perf_counter() - t0
+    folder = write_dataset(seq, args.out, video=not args.no_video, png=args.png,
+                           dtype_name=str(jnp.dtype(jnp.result_type(float))))
+    t, n_cams, h, w, _ = seq.frames.shape
+    print(f"jaxmocap synth: wrote {t} frames x {n_cams} cameras ({w}x{h}) to {folder} "
+          f"in {dt:.1f} s ({t / dt:.1f} frames/s)")
+    return 0
