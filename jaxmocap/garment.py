@@ -33,6 +33,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .body import BodyModel
 
+RGB = ArrayLike | Sequence[float | int]  # an RGB triple in [0, 1]
+
 MAX_HALF_SPACES = 3  # half-spaces per patch (Garment contract, docs/ARCHITECTURE.md)
 NO_PLANE = (0.0, 0.0, 0.0, -1.0)  # 0 . p - 1 <= 0 holds everywhere: an unused half-space
 SKIN_RGB = (0.87, 0.67, 0.55)  # a light skin albedo (linear RGB in [0, 1])
@@ -112,11 +114,11 @@ class Garment(eqx.Module):
 
 def make_garment(
     model: BodyModel,
-    patches: Sequence[tuple[str, str, Sequence[Sequence[float]], int]],
-    colours: Sequence[tuple[str, Sequence[float]]],
+    patches: Sequence[tuple[str, str, Sequence[Sequence[float | int]] | np.ndarray, int]],
+    colours: Sequence[tuple[str, RGB]],
     skin_geoms: Sequence[str] = (),
-    skin_rgb: ArrayLike = SKIN_RGB,
-    body_rgb: ArrayLike = BODY_RGB,
+    skin_rgb: RGB = SKIN_RGB,
+    body_rgb: RGB = BODY_RGB,
 ) -> Garment:
     """Garment from readable rows: ``patches = [(name, geom name, half-spaces, colour id)]``
     with up to 3 half-spaces ``(a_x, a_y, a_z, b)`` each, ``colours = [(name, rgb)]``.
@@ -176,11 +178,11 @@ def default_skin_geoms(model: BodyModel) -> tuple[str, ...]:
 # colour sits on one torso patch and one limb patch on the *other* side of the body, so the
 # two patches of a colour are far apart and never touch, and every neighbour differs.
 FLANK_Y = 0.11  # m, thorax half-width beyond which the flank patches start (thorax b = 0.17)
-_FRONT, _BACK = (-1.0, 0, 0, 0), (1.0, 0, 0, 0)  # x >= 0, x <= 0
-_LEFT, _RIGHT = (0, -1.0, 0, 0), (0, 1.0, 0, 0)  # y >= 0, y <= 0
-_UP, _DOWN = (0, 0, -1.0, 0), (0, 0, 1.0, 0)  # z >= 0, z <= 0
-_MID_L, _MID_R = (0, 1.0, 0, -FLANK_Y), (0, -1.0, 0, -FLANK_Y)  # y <= FLANK_Y, y >= -FLANK_Y
-_FLANK_L, _FLANK_R = (0, -1.0, 0, FLANK_Y), (0, 1.0, 0, FLANK_Y)  # y >= FLANK_Y, y <= -FLANK_Y
+_FRONT, _BACK = (-1.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # x >= 0, x <= 0
+_LEFT, _RIGHT = (0.0, -1.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)  # y >= 0, y <= 0
+_UP, _DOWN = (0.0, 0.0, -1.0, 0.0), (0.0, 0.0, 1.0, 0.0)  # z >= 0, z <= 0
+_MID_L, _MID_R = (0.0, 1.0, 0.0, -FLANK_Y), (0.0, -1.0, 0.0, -FLANK_Y)  # |y| <= FLANK_Y
+_FLANK_L, _FLANK_R = (0.0, -1.0, 0.0, FLANK_Y), (0.0, 1.0, 0.0, FLANK_Y)  # |y| >= FLANK_Y
 # (patch name, geom, half-spaces, colour name)
 DEFAULT_SHIRT = (
     ("chest_front_left", "thorax", (_FRONT, _LEFT, _MID_L), "red"),
@@ -225,8 +227,10 @@ def patch_at(garment: Garment, geom: Int[Array, "*n"], p: Float[Array, "*n 3"]) 
     """Patch id (0 = none) of the surface point ``p`` (geom frame, metres) on geom ``geom``
     (``-1`` = background gives 0): the first patch of that geom whose half-spaces contain p."""
     planes = garment.patch_planes.astype(p.dtype)
-    vals = jnp.einsum("...k,pjk->...pj", p, planes[..., :3]) + planes[..., 3]
-    inside = jnp.all(vals <= 0, axis=-1) & (garment.patch_geom == geom[..., None])
+    offset = planes[..., 3].reshape((1,) * (p.ndim - 1) + planes.shape[:2])
+    vals = jnp.einsum("...k,pjk->...pj", p, planes[..., :3]) + offset
+    owner = garment.patch_geom.reshape((1,) * geom.ndim + garment.patch_geom.shape)
+    inside = jnp.all(vals <= 0, axis=-1) & (owner == geom[..., None])
     return jnp.where(jnp.any(inside, axis=-1), jnp.argmax(inside, axis=-1) + 1, 0).astype(jnp.int32)
 
 
@@ -259,8 +263,8 @@ def _rgb_key(rgb: np.ndarray) -> tuple[int, int, int]:
 def garment_from_model(
     model: BodyModel,
     skin_geoms: Sequence[str] | None = None,
-    skin_rgb: ArrayLike = SKIN_RGB,
-    body_rgb: ArrayLike = BODY_RGB,
+    skin_rgb: RGB = SKIN_RGB,
+    body_rgb: RGB = BODY_RGB,
 ) -> Garment:
     """Each non-skin geom becomes one patch of its own ``rgba`` colour; distinct RGB values
     (compared at 8 bits) become colour ids 1..n in order of first appearance.
@@ -284,8 +288,8 @@ def garment_from_model(
 
 def single_colour_garment(
     model: BodyModel,
-    shirt_rgb: ArrayLike,
-    skin_rgb: ArrayLike = SKIN_RGB,
+    shirt_rgb: RGB,
+    skin_rgb: RGB = SKIN_RGB,
     skin_geoms: Sequence[str] | None = None,
 ) -> Garment:
     """Azad et al. 2007's set-up: every non-skin geom is shirt (one colour id 1), head, neck

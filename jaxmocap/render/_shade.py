@@ -74,19 +74,17 @@ def default_lighting(dtype=None) -> Lighting:
 
 def shade(hits: Hits, garment: Garment, lighting: Lighting) -> Float[Array, "*n 3"]:
     """Linear camera RGB of every hit (module docstring formula); 0 for background rays."""
-    n, x = hits.normal, hits.point
-    rho = albedo(garment, hits.geom, hits.patch).astype(n.dtype)
-    cos_dir = jnp.einsum("...k,lk->...l", n, lighting.directions)
-    lit = lighting.ambient + jnp.einsum(
-        "...l,l->...", jnp.maximum(cos_dir, 0), lighting.dir_intensity
-    )
-    to_light = lighting.positions - x[..., None, :]  # (..., m, 3)
-    dist2 = jnp.sum(to_light * to_light, axis=-1)
-    cos = jnp.sum(n[..., None, :] * to_light, axis=-1) / jnp.sqrt(jnp.maximum(dist2, 1e-12))
-    lit = lit + jnp.sum(
-        lighting.point_intensity * jnp.maximum(cos, 0) / jnp.maximum(dist2, 1e-12), axis=-1
-    )
-    c = lighting.intensity * jnp.einsum("ij,...j->...i", lighting.illuminant, rho * lit[..., None])
+    shape = hits.normal.shape
+    n, x = hits.normal.reshape(-1, 3), hits.point.reshape(-1, 3)
+    rho = albedo(garment, hits.geom, hits.patch).astype(n.dtype).reshape(-1, 3)
+    cos_dir = n @ lighting.directions.T  # (N, n_dir)
+    lit = lighting.ambient + jnp.maximum(cos_dir, 0) @ lighting.dir_intensity
+    to_light = lighting.positions[None, :, :] - x[:, None, :]  # (N, n_point, 3)
+    dist2 = jnp.maximum(jnp.sum(to_light * to_light, axis=-1), 1e-12)
+    cos_pt = jnp.einsum("nk,nmk->nm", n, to_light) / jnp.sqrt(dist2)
+    lit = lit + (jnp.maximum(cos_pt, 0) / dist2) @ lighting.point_intensity
+    c = lighting.intensity * (rho * lit[:, None]) @ lighting.illuminant.T
+    c = c.reshape(shape)
     return jnp.where(hits.background[..., None], 0, c)
 
 
