@@ -45,7 +45,7 @@ def test_round_trip_and_bvh_package(tmp_path, rng):
     assert list(ours.names) == ref.get_joints_names()
     assert ref.nframes == N_FRAMES == ours.n_frames
     assert ref.frame_time == pytest.approx(1 / 30.0, abs=1e-8)
-    for j, sl in zip(ours.joints, ours.channel_slices()):
+    for j, sl in zip(ours.joints, ours.channel_slices(), strict=True):
         assert list(j.channels) == ref.joint_channels(j.name)
         assert list(j.offset) == pytest.approx(list(ref.joint_offset(j.name)), abs=1e-9)
         for k in (0, N_FRAMES - 1):

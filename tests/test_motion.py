@@ -98,7 +98,7 @@ def test_skeleton_fk_matches_pybullet(humanoid):
     # one Clip holding the picked frames (times are irrelevant to FK)
     clips = [load_deepmimic(n, dtype=np.float64) for n, _ in picks]
     sel = lambda attr: jnp.concatenate([getattr(c, attr)[np.array(k)]
-                                        for c, (_, k) in zip(clips, picks)])
+                                        for c, (_, k) in zip(clips, picks, strict=True)])
     clip = Clip(jnp.arange(len(frames), dtype=jnp.float64), sel("root_pos"), sel("root_quat"),
                 sel("joint_quat"), sel("hinge"), name="mix")
     rot, pos = jax.jit(skeleton_fk)(clip)
@@ -168,12 +168,18 @@ def test_retarget_bone_directions_and_root(humanoid):
         results.append(clip_to_body_q(clip, model))
     q = jnp.concatenate([r.q for r in results])
     excess = np.abs(np.concatenate([np.asarray(r.q_raw - r.q) for r in results]))
-    transforms = jax.jit(jax.vmap(fk, in_axes=(None, 0)))(model.chain, q)
-    kp = jax.vmap(keypoints_from_transforms, in_axes=(None, 0))(model, transforms)
+
+    @jax.jit
+    def body_fk(model, q):
+        t = jax.vmap(fk, in_axes=(None, 0))(model.chain, q)
+        return t, jax.vmap(keypoints_from_transforms, in_axes=(None, 0))(model, t)
+
+    transforms, kp = body_fk(model, q)
+    q = np.asarray(q)
     ours_pos = np.asarray(transforms[:, :, :3, 3])
 
     src_pos, src_rot = [], []
-    for clip, (name, fps) in zip(clips, specs):
+    for clip, (name, fps) in zip(clips, specs, strict=True):
         f = raw_frames(name)
         for k in range(clip.n_frames):  # pose pybullet with our (resampled) decoded frame
             row = np.concatenate([[0.0], clip.root_pos[k], clip.root_quat[k],
@@ -207,8 +213,8 @@ def test_retarget_bone_directions_and_root(humanoid):
     np.testing.assert_allclose(ours_pos[:, 0], src_pos[:, 0] @ M.T, atol=1e-9)
     np.testing.assert_allclose(transforms[:, 0, :3, :3], M @ src_rot[:, 0] @ M.T, atol=1e-6)
     # joint limits respected, wrists untouched
-    assert np.all(q[:, 6:] >= model.chain.lower[6:] - 1e-12)
-    assert np.all(q[:, 6:] <= model.chain.upper[6:] + 1e-12)
+    assert np.all(q[:, 6:] >= np.asarray(model.chain.lower[6:]) - 1e-12)
+    assert np.all(q[:, 6:] <= np.asarray(model.chain.upper[6:]) + 1e-12)
     assert np.all(q[:, [i for n, i in dof.items() if "wrist" in n]] == 0)
     report = limit_report(model, results[2])  # kick leans the spine/neck past our limits
     assert set(report) <= set(model.chain.dof_names) and report

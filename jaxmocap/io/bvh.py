@@ -406,7 +406,7 @@ def bvh_fk(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
     every joint, in the file's frame and units."""
     n = bvh.n_frames
     rots, pos = [], []
-    for j, sl in zip(bvh.joints, bvh.channel_slices()):
+    for j, sl in zip(bvh.joints, bvh.channel_slices(), strict=True):
         vals = bvh.motion[:, sl]
         rch = [(c, m) for m, c in enumerate(j.channels) if c in ROTATIONS]
         local_r = _euler_matrix([c for c, _ in rch], vals[:, [m for _, m in rch]])
@@ -464,7 +464,7 @@ def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
     rest_pos = rest_pos[0]
     idx = [bvh.names.index(mapping[k]) for k in order]
     dirs = []
-    for ours, j in zip(order, idx):
+    for ours, j in zip(order, idx, strict=True):
         end = bone_ends.get(ours)
         if end in mapping and end != ours:
             d = rest_pos[bvh.names.index(mapping[end])] - rest_pos[j]

@@ -31,7 +31,8 @@ from jaxtyping import Array, Float
 
 from jaxmocap.synth._rotations import mm, mv, normalize_quat, quat_to_matrix, slerp
 
-DEEPMIMIC_SCALE = 0.25  # humanoid_stable_pd.py: loadURDF("humanoid/humanoid.urdf", globalScaling=0.25)
+# pybullet_envs/deep_mimic/env/humanoid_stable_pd.py loads humanoid.urdf with globalScaling=0.25
+DEEPMIMIC_SCALE = 0.25
 FRAME_WIDTH = 44
 
 # Source skeleton links in pybullet's joint-index order (URDF_MAINTAIN_LINK_ORDER); link 0 is the

@@ -32,7 +32,6 @@ unclipped values so :func:`limit_report` can say how often and how far.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from functools import partial
 from typing import NamedTuple
 
 import equinox as eqx
