@@ -49,7 +49,10 @@ def _numpy_reference(model, Wb, img, prior, C, T):
     mu, cov = np.asarray(model.mean), np.asarray(model.cov)
     x = img.reshape(-1, 3).astype(np.float64) @ np.asarray(Wb).T
     m = np.stack(
-        [np.sqrt(np.sum((x - mu[k]) * np.linalg.solve(cov[k], (x - mu[k]).T).T, -1)) for k in range(3)],
+        [
+            np.sqrt(np.sum((x - mu[k]) * np.linalg.solve(cov[k], (x - mu[k]).T).T, -1))
+            for k in range(3)
+        ],
         -1,
     )
     d = np.stack([ndimage.distance_transform_edt(prior != p) for p in range(1, 5)], -1)
