@@ -49,32 +49,27 @@ def effective_sample_size(log_weights: Float[Array, " n"]) -> Float[Array, ""]:
     return 1.0 / jnp.sum(jnp.exp(2.0 * lw))
 
 
-def _cdf(log_weights: Float[Array, " n"]) -> Float[Array, " n"]:
-    lw, _ = normalize_log_weights(log_weights)
-    cdf = jnp.cumsum(jnp.exp(lw))
-    return cdf / cdf[-1]
-
-
-def _invert(cdf: Float[Array, " n"], positions: Float[Array, " m"]) -> Int[Array, " m"]:
-    idx = jnp.searchsorted(cdf, positions, side="right", method="sort")
+def _invert(log_weights: Float[Array, " n"], positions: Float[Array, " m"]) -> Int[Array, " m"]:
+    """Indices i with cdf_{i-1} <= position < cdf_i, for NORMALISED log-weights."""
+    cdf = jnp.cumsum(jnp.exp(log_weights))
+    cdf = cdf / cdf[-1]
+    idx = jnp.searchsorted(cdf, positions.astype(cdf.dtype), side="right", method="scan")
     return jnp.minimum(idx, cdf.shape[0] - 1).astype(jnp.int32)
 
 
 def systematic_from_uniforms(
     log_weights: Float[Array, " n"], u: Float[Array, " m"]
 ) -> Int[Array, " m"]:
-    """:func:`systematic` given its uniforms u in [0, 1) (only u[0] is used)."""
+    """:func:`systematic` for normalised log-weights, given uniforms u in [0, 1) (uses u[0])."""
     m = u.shape[0]
-    cdf = _cdf(log_weights)
-    return _invert(cdf, (u[0].astype(cdf.dtype) + jnp.arange(m, dtype=cdf.dtype)) / m)
+    return _invert(log_weights, (u[0] + jnp.arange(m, dtype=u.dtype)) / m)
 
 
 def multinomial_from_uniforms(
     log_weights: Float[Array, " n"], u: Float[Array, " m"]
 ) -> Int[Array, " m"]:
-    """:func:`multinomial` given its m uniforms in [0, 1)."""
-    cdf = _cdf(log_weights)
-    return _invert(cdf, u.astype(cdf.dtype))
+    """:func:`multinomial` for normalised log-weights, given its m uniforms in [0, 1)."""
+    return _invert(log_weights, u)
 
 
 def systematic(
@@ -86,8 +81,9 @@ def systematic(
     ceil(M pi_i) times. Indices come out sorted.
     """
     m = log_weights.shape[0] if n_out is None else n_out
+    lw, _ = normalize_log_weights(log_weights)
     u = jax.random.uniform(key, (1,), dtype=log_weights.dtype)
-    return systematic_from_uniforms(log_weights, jnp.broadcast_to(u, (m,)))
+    return systematic_from_uniforms(lw, jnp.broadcast_to(u, (m,)))
 
 
 def multinomial(
@@ -95,5 +91,6 @@ def multinomial(
 ) -> Int[Array, " m"]:
     """Multinomial resampling: ``n_out`` (default N) i.i.d. draws from Categorical(pi)."""
     m = log_weights.shape[0] if n_out is None else n_out
+    lw, _ = normalize_log_weights(log_weights)
     u = jax.random.uniform(key, (m,), dtype=log_weights.dtype)
-    return multinomial_from_uniforms(log_weights, u)
+    return multinomial_from_uniforms(lw, u)
