@@ -175,8 +175,9 @@ def default_skin_geoms(model: BodyModel) -> tuple[str, ...]:
 # shoulders capsule z = link -y; arm capsules z along the arm, +z towards the shoulder).
 # Thorax: front/back x left/right, plus the two flanks |y| > FLANK_Y; abdomen: front/back x
 # left/right; shoulders: left/right; upper arms and forearms: proximal/distal halves. Each
-# colour sits on one torso patch and one limb patch on the *other* side of the body, so the
-# two patches of a colour are far apart and never touch, and every neighbour differs.
+# colour sits on one torso patch and one limb patch on the *other* side of the body, chosen to
+# maximise the smallest distance between same-coloured patches (>= 0.32 m between centroids at
+# rest), so the two patches of a colour never touch and every neighbour differs.
 FLANK_Y = 0.11  # m, thorax half-width beyond which the flank patches start (thorax b = 0.17)
 _FRONT, _BACK = (-1.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # x >= 0, x <= 0
 _LEFT, _RIGHT = (0.0, -1.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)  # y >= 0, y <= 0
@@ -195,12 +196,12 @@ DEFAULT_SHIRT = (
     ("belly_front_right", "abdomen", (_FRONT, _RIGHT), "cyan"),
     ("belly_back_left", "abdomen", (_BACK, _LEFT), "blue"),
     ("belly_back_right", "abdomen", (_BACK, _RIGHT), "purple"),
-    ("shoulder_left", "shoulders", (_DOWN,), "pink"),  # geom z = link -y: z <= 0 is left
-    ("shoulder_right", "shoulders", (_UP,), "magenta"),
-    ("l_upper_arm_top", "l_upper_arm", (_UP,), "cyan"),
-    ("l_upper_arm_bottom", "l_upper_arm", (_DOWN,), "purple"),
-    ("r_upper_arm_top", "r_upper_arm", (_UP,), "green"),
-    ("r_upper_arm_bottom", "r_upper_arm", (_DOWN,), "blue"),
+    ("shoulder_left", "shoulders", (_DOWN,), "cyan"),  # geom z = link -y: z <= 0 is left
+    ("shoulder_right", "shoulders", (_UP,), "green"),
+    ("l_upper_arm_top", "l_upper_arm", (_UP,), "purple"),
+    ("l_upper_arm_bottom", "l_upper_arm", (_DOWN,), "pink"),
+    ("r_upper_arm_top", "r_upper_arm", (_UP,), "blue"),
+    ("r_upper_arm_bottom", "r_upper_arm", (_DOWN,), "magenta"),
     ("l_forearm_top", "l_forearm", (_UP,), "lime"),
     ("l_forearm_bottom", "l_forearm", (_DOWN,), "orange"),
     ("r_forearm_top", "r_forearm", (_UP,), "yellow"),
