@@ -135,7 +135,7 @@ class SceneConfig:
     seed: int = 0
 
     def __post_init__(self):
-        _validate(self)
+        _validate(dataclasses.asdict(self))
 
     def rig_settings(self) -> dict[str, Any]:
         """The rig preset with this config's overrides applied."""
@@ -159,7 +159,13 @@ class SceneConfig:
         if unknown:
             raise SceneError(f"{where}: unknown field(s) {unknown}; known: {sorted(names)}")
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        for k in _FLOAT_FIELDS & set(kw):  # JSON writes 30.0 as 30
+            if _is_int(kw[k]):
+                kw[k] = float(kw[k])
+        if isinstance(kw.get("shirt_rgb"), tuple):
+            kw["shirt_rgb"] = tuple(float(v) if _is_num(v) else v for v in kw["shirt_rgb"])
         try:
+            _validate({**dataclasses.asdict(cls()), **kw})  # types too, before construction
             return cls(**kw)
         except SceneError as e:
             raise SceneError(f"{where}: {e}") from None
@@ -181,7 +187,13 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
 
 
-def _validate(c: SceneConfig) -> None:
+_FLOAT_FIELDS = {"fps", "baseline", "distance", "k1", "intensity", "noise_sigma", "drift",
+                 "shutter"}
+
+
+def _validate(values: dict[str, Any]) -> None:
+    """Check every field's type and range (raises :class:`SceneError` naming the field)."""
+    c = _Fields(values)
     _check(isinstance(c.clip, str) and bool(c.clip), "clip", "a clip name", c.clip)
     _check(_is_num(c.fps) and c.fps > 0, "fps", "a number > 0", c.fps)
     _check(_is_int(c.start) and c.start >= 0, "start", "an integer >= 0", c.start)
@@ -230,6 +242,11 @@ def _validate(c: SceneConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- cameras
+
+
+class _Fields:
+    def __init__(self, values: dict[str, Any]):
+        self.__dict__.update(values)
 
 
 def camera_names(config: SceneConfig) -> list[str]:
@@ -410,8 +427,27 @@ def leave_offset(config: SceneConfig, t: np.ndarray) -> np.ndarray:
     a, b = config.leave_view
     u = (t - a) / (b - a)
     prof = np.where(u < 0.5, _smoothstep(3 * u), _smoothstep(3 * (1 - u)))
-    depth = config.rig_settings()["distance"]
-    return (view_half_width(config, depth) + LEAVE_MARGIN) * prof
+    return leave_distance(config) * prof
+
+
+def leave_distance(config: SceneConfig) -> float:
+    """The smallest lateral offset (m, +y, in steps of 0.25 m) that puts a box of
+    ``LEAVE_MARGIN`` m around the subject's region (``|x| <= 0.8``, ``0 <= z <= 2.2``) outside
+    every camera's field of view (pinhole projection)."""
+    cams = make_cameras(config)
+    xs, zs = np.meshgrid(np.linspace(-0.8, 0.8, 5), np.linspace(0.0, 2.2, 5))
+    for step in range(1, 200):
+        d = 0.25 * step
+        pts = np.stack([xs.ravel(), np.full(xs.size, d - LEAVE_MARGIN), zs.ravel()], axis=1)
+        seen = False
+        for cam in cams:
+            pc = pts @ np.asarray(cam.R, float).T + np.asarray(cam.t, float)
+            u = np.asarray(cam.K, float)[0, 0] * pc[:, 0] / np.maximum(pc[:, 2], 1e-9)
+            u = u + np.asarray(cam.K, float)[0, 2]
+            seen |= bool(np.any((pc[:, 2] > 0) & (u < cam.width + 0.5)))
+        if not seen:
+            return d
+    raise SceneError("leave_view: the rig sees too wide to walk out of its view")
 
 
 def interpolate_poses(q: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -93,7 +93,7 @@ def config_garment(config: SceneConfig) -> Garment:
 def clip_poses(config: SceneConfig, model: BodyModel | None = None) -> np.ndarray:
     """The subject's pose per frame (T, n_dof): the clip retargeted to the body at
     ``config.fps``, played back and forth for long sequences, from frame ``start``, with the
-    root's horizontal path centred on the origin (the rig looks there)."""
+    root's horizontal path over the whole clip centred on the origin (the rig looks there)."""
     from jaxmocap.synth.deepmimic import load_deepmimic
     from jaxmocap.synth.motion import clip_to_body_q
 
@@ -102,7 +102,7 @@ def clip_poses(config: SceneConfig, model: BodyModel | None = None) -> np.ndarra
         clip = load_deepmimic(config.clip, dtype=np.float64)
     except FileNotFoundError as e:
         raise SceneError(f"field 'clip': {e}") from None
-    q = np.asarray(clip_to_body_q(clip, model, fps=config.fps).q, np.float64)
+    q = np.array(clip_to_body_q(clip, model, fps=config.fps).q, np.float64)
     n_clip = q.shape[0]
     n = config.n_frames if config.n_frames is not None else max(n_clip - config.start, 0)
     if n < 1:
@@ -111,10 +111,9 @@ def clip_poses(config: SceneConfig, model: BodyModel | None = None) -> np.ndarra
     period = max(2 * (n_clip - 1), 1)
     k = k % period
     k = np.where(k < n_clip, k, period - k)  # ping-pong
-    q = q[k]
     xy = q[:, :2]
-    q[:, :2] = xy - (xy.min(axis=0) + xy.max(axis=0)) / 2
-    return q
+    q[:, :2] = xy - (xy.min(axis=0) + xy.max(axis=0)) / 2  # whole clip: same for any window
+    return q[k]
 
 
 # ----------------------------------------------------------------------------- one frame
