@@ -17,6 +17,7 @@ from jaxmocap.errors import InputError
 
 SUBCOMMANDS = (
     "jaxmocap.demo",
+    "jaxmocap.posedb",
     "jaxmocap.synth.dataset",
 )
 

@@ -1,0 +1,203 @@
+"""Building, caching and loading the pose database; the ``jaxmocap build-db`` command.
+
+A database file is a ``.npz`` with ``maps`` (n, 40, 40) ``uint8`` colour ids, ``poses``
+(n, n_dof) float32 and ``meta`` (JSON: key, sampling settings, DOF and colour names). It is
+cached as ``<cache>/posedb/posedb-<key>.npz`` (cache: :func:`jaxmocap._config.cache_dir`),
+where the key hashes the body model, the garment, the sampling settings, the canonical camera,
+the tiny-map settings and :data:`CODE_VERSION`, so that any change builds a new database.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import render
+from ..body import BodyModel, default_body
+from ..garment import Garment, default_garment
+from ._sample import (
+    DEFAULT_SIZE,
+    SamplingConfig,
+    SamplingError,
+    canonical_camera,
+    model_digest,
+    sample_poses,
+    source_pool,
+)
+from ._search import DatabaseError, PoseDB, make_posedb
+
+CODE_VERSION = "posedb-1"  # bump when sampling or rendering code changes the database
+RENDER_BATCH = 512  # poses per jitted render call (one compiled shape, last batch padded)
+
+
+def database_key(config: SamplingConfig, model: BodyModel, garment: Garment) -> str:
+    """The version key of a database: SHA-256 (first 20 hex digits) of everything that
+    determines its content (module docstring)."""
+    from ..synth import TRAIN_CLIPS
+
+    config = config.validate()
+    clips = config.clips or TRAIN_CLIPS
+    h = hashlib.sha256()
+    h.update(CODE_VERSION.encode())
+    h.update(repr(config._replace(clips=tuple(clips))).encode())
+    h.update(model_digest(model, garment, canonical_camera(jnp.float32)).encode())
+    h.update(f"{render.TINY_SIZE} {render.TINY_MARGIN}".encode())
+    return h.hexdigest()[:20]
+
+
+@jax.jit
+def _render_batch(model, garment, qs, cam):
+    return render.tiny_id_maps(model, garment, qs, cam)
+
+
+def render_maps(
+    model: BodyModel, garment: Garment, poses: np.ndarray, progress: bool = True
+) -> np.ndarray:
+    """Tiny colour-id maps (n, 40, 40) ``uint8`` of database poses seen by the canonical camera,
+    ``RENDER_BATCH`` poses per jitted call (vmap inside), with a tqdm progress bar."""
+    from tqdm.auto import tqdm
+
+    cam = canonical_camera(jnp.float32)
+    n = len(poses)
+    out = np.zeros((n, render.TINY_SIZE, render.TINY_SIZE), np.uint8)
+    with tqdm(total=n, desc="pose database", unit="map", disable=not progress) as bar:
+        for s in range(0, n, RENDER_BATCH):
+            qs = poses[s:s + RENDER_BATCH]
+            m = len(qs)
+            if m < RENDER_BATCH:
+                qs = np.concatenate([qs, np.repeat(qs[-1:], RENDER_BATCH - m, axis=0)])
+            out[s:s + m] = np.asarray(_render_batch(model, garment, jnp.asarray(qs), cam))[:m]
+            bar.update(m)
+    return out
+
+
+def build_arrays(
+    config: SamplingConfig,
+    model: BodyModel,
+    garment: Garment,
+    progress: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the poses and render their tiny maps: ``(maps uint8 (n,40,40), poses (n, n_dof))``."""
+    from ..synth import TRAIN_CLIPS
+
+    pool = source_pool(model, tuple(config.clips or TRAIN_CLIPS))
+    poses = sample_poses(config, model, pool)
+    return render_maps(model, garment, poses, progress), poses
+
+
+def save_database(path: str | Path, maps: np.ndarray, poses: np.ndarray, meta: dict) -> Path:
+    """Write a database ``.npz`` (compressed, written to a temporary name then renamed)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, maps=maps, poses=poses, meta=np.array(json.dumps(meta)))
+    tmp.replace(path)
+    return path
+
+
+def load_database(path: str | Path, key: str | None = None) -> PoseDB:
+    """Load a database ``.npz`` written by :func:`save_database` (checking ``key`` if given)."""
+    path = Path(path)
+    try:
+        with np.load(path) as f:
+            maps, poses, meta = f["maps"], f["poses"], json.loads(str(f["meta"]))
+    except FileNotFoundError:
+        raise
+    except (KeyError, ValueError, OSError) as err:
+        raise DatabaseError(f"{path}: not a pose database .npz (expected arrays maps, poses, "
+                            f"meta): {err}") from None
+    if key is not None and meta.get("key") != key:
+        raise DatabaseError(f"{path}: meta.key is {meta.get('key')!r}, expected {key!r}")
+    return make_posedb(maps, poses, int(meta["n_colours"]), key=str(meta["key"]))
+
+
+def _meta(key: str, config: SamplingConfig, model: BodyModel, garment: Garment) -> dict:
+    return {"key": key, "code_version": CODE_VERSION, "config": config._asdict(),
+            "dof_names": list(model.chain.dof_names), "n_colours": garment.n_colours,
+            "colour_names": list(garment.colour_names)}
+
+
+def build_database(
+    config: SamplingConfig | None = None,
+    model: BodyModel | None = None,
+    garment: Garment | None = None,
+    out: str | Path | None = None,
+    progress: bool = True,
+) -> PoseDB:
+    """Build a pose database (always; see :func:`load_or_build` for the cached one), writing
+    it to ``out`` if given. Deterministic given the settings."""
+    config = (config or SamplingConfig()).validate()
+    model = model or default_body()
+    garment = garment or default_garment(model)
+    key = database_key(config, model, garment)
+    maps, poses = build_arrays(config, model, garment, progress)
+    if out is not None:
+        save_database(out, maps, poses, _meta(key, config, model, garment))
+    return make_posedb(maps, poses, garment.n_colours, key=key)
+
+
+def cache_path(key: str, cache: str | Path | None = None) -> Path:
+    """Where the database with version ``key`` is cached."""
+    from .._config import cache_dir
+
+    folder = Path(cache) if cache is not None else cache_dir() / "posedb"
+    return folder / f"posedb-{key}.npz"
+
+
+def load_or_build(
+    config: SamplingConfig | None = None,
+    model: BodyModel | None = None,
+    garment: Garment | None = None,
+    cache: str | Path | None = None,
+    progress: bool = True,
+) -> PoseDB:
+    """The cached database for these settings, built and cached on first use."""
+    config = (config or SamplingConfig()).validate()
+    model = model or default_body()
+    garment = garment or default_garment(model)
+    key = database_key(config, model, garment)
+    path = cache_path(key, cache)
+    if path.exists():
+        return load_database(path, key)
+    return build_database(config, model, garment, out=path, progress=progress)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("build-db", help="build (or find in the cache) the pose database "
+                       "of Wang et al. §5.2")
+    p.add_argument("--size", type=int, default=DEFAULT_SIZE,
+                   help="number of poses (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default: %(default)s)")
+    p.add_argument("--out", default=None,
+                   help="write the database .npz here (default: the user's cache folder)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cli import UsageError
+
+    try:
+        config = SamplingConfig(size=args.size, seed=args.seed).validate()
+    except SamplingError as err:
+        raise UsageError(f"--size/--seed: {err}") from None
+    if args.out is not None:
+        out = Path(args.out)
+        if out.suffix != ".npz":
+            raise UsageError(f"--out {args.out}: expected a path ending in .npz")
+        db = build_database(config, out=out, progress=not args.quiet)
+        where = out
+    else:
+        db = load_or_build(config, progress=not args.quiet)
+        where = cache_path(db.key)
+    print(f"pose database: {db.size} poses, key {db.key}, {where}")
+    return 0
