@@ -98,12 +98,9 @@ def test_patch_lookup_matches_numpy(rng):
     got = np.asarray(patch_at(g, jnp.asarray(geom), jnp.asarray(p)))
     planes = np.asarray(g.patch_planes)
     expect = np.zeros(n, int)
-    for i in range(n):
-        for j in range(g.n_patches):  # first matching patch of the geom
-            owner = int(g.patch_geom[j]) == geom[i]
-            if owner and np.all(planes[j, :, :3] @ p[i] + planes[j, :, 3] <= 0):
-                expect[i] = j + 1
-                break
+    for j in reversed(range(g.n_patches)):  # the first matching patch of the geom wins
+        contains = np.all(p @ planes[j, :, :3].T + planes[j, :, 3] <= 0, axis=1)
+        expect[contains & (geom == int(g.patch_geom[j]))] = j + 1
     np.testing.assert_array_equal(got, expect)
     assert set(np.unique(got)) == set(range(21))
     # jit and vmap give the same lookup
