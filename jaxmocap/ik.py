@@ -1,0 +1,741 @@
+"""Inverse kinematics from shirt-patch centroids (Wang et al. 2011, §5.2 steps 2 and 4).
+
+Step 2 (global pose): the blended database pose ``q_b`` fixes the joint angles but not where
+the body stands; a 6-DOF solve over the root translation and rotation matches the patch
+centroids in every camera.
+
+Step 4 (refinement): over all DOFs (or a chosen subset),
+
+    q* = argmin_q  sum_{i,k} ||c^{*i}_k(q) - c^{ki}||^2_{Sigma_c}
+                   + ||q - q_b||^2_{Sigma_b} + ||q - q_h||^2_{Sigma_p}
+
+with ``||x||^2_Sigma = x^T Sigma^{-1} x``, ``c^{ki}`` (pixels) the observed centroid of patch
+k in camera i, ``q_b`` the blended pose and ``q_h`` the pose of the previous frame.
+
+**Patch anchors.** The paper takes ``c^{*i}(q)`` from the centroids of a rendered id map,
+which is piecewise constant in q. Here each patch's 3D centroid is a point fixed in the frame
+of the link that carries it (:class:`PatchAnchors`), computed once from the garment, and
+``c^{*i}_k(q) = project(cam_i, T_link(q) @ offset_k)``: a smooth residual that Gauss-Newton
+and implicit differentiation can use.
+
+**Whitening.** Every term is turned into ordinary least squares with the Cholesky factor
+``Sigma = L L^T``: ``||x||^2_Sigma = ||L^{-1} x||^2``. Diagonal covariances may be given as
+vectors of variances. Missing / occluded patches have weight 0 (their residual is replaced by
+0 before anything else, so NaN centroids are harmless).
+
+**Joint limits** are kept by a smooth reparametrisation: each DOF with finite limits
+``[l, u]`` is written ``q = (u + l)/2 + (u - l)/2 tanh(z)`` and the solve runs over ``z``.
+Every iterate, hence the solution, lies inside the limits; a target beyond a limit drives
+``z`` towards infinity and ``q`` to the limit. DOFs without finite limits (the root) are
+solved directly. Gradients through the solve use optimistix' implicit adjoint (the implicit
+function theorem on the normal equations); its linear solve is an SVD so that a DOF pinned
+at a limit (zero Jacobian column) contributes no gradient instead of NaN.
+
+Units: metres, radians, pixels. Covariances: pixels^2 (Sigma_c), the squared units of q
+(Sigma_b, Sigma_p).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
+from jax.dtypes import float0
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jaxmocap.body import ROOT_DOFS, BodyModel, KinematicChain, fk, so3_exp
+from jaxmocap.camera import Camera, project, triangulate
+from jaxmocap.garment import Garment
+from jaxmocap.render import patch_surface_points
+
+DEFAULT_MAX_STEPS = 64  # fixed iteration budget of every IK solve (static: sets the program)
+DEFAULT_RTOL = 1e-7  # relative tolerance on z and on the whitened residuals (traced)
+DEFAULT_ATOL = 1e-9  # absolute tolerance (traced)
+LIMIT_MARGIN = 1e-6  # initial guesses on a limit start this fraction of the half range inside
+MIN_KABSCH_PATCHES = 3  # a rigid fit needs 3 non-collinear triangulated anchors
+KABSCH_MIN_SPREAD = 1e-6  # 2nd singular value / 1st below this: anchors collinear, fit refused
+COV_REL_RIDGE = 1e-6  # ridge added to estimated covariances, relative to their mean variance
+COV_FLOOR_PX2 = 1e-6  # absolute ridge of Sigma_c (pixels^2)
+COV_FLOOR_Q = 1e-10  # absolute ridge of Sigma_b, Sigma_p (m^2 or rad^2)
+COV_FILE_VERSION = 1
+
+# Solution of the normal equations in the implicit adjoint: SVD (pseudo-inverse), so that a DOF
+# saturated at a joint limit simply has zero sensitivity.
+_OPTIONS = {"jac": __import__('os').environ.get('IKJAC','fwd')}
+_ADJOINT = optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
+
+
+# ----------------------------------------------------------------------------- patch anchors
+
+
+class PatchAnchors(eqx.Module):
+    """The 3D centroid of every shirt patch as a point fixed in the frame of its link.
+
+    ``link`` (P,) link index, ``offset`` (P, 3) metres in that link's frame.
+    """
+
+    link: Int[Array, " n_patches"]
+    offset: Float[Array, "n_patches 3"]
+
+    def __check_init__(self):
+        if self.link.shape[0] != self.offset.shape[0]:
+            raise ValueError(
+                f"PatchAnchors: link has {self.link.shape[0]} rows, offset "
+                f"{self.offset.shape[0]}; expected one of each per patch"
+            )
+
+    @property
+    def n_patches(self) -> int:
+        return self.offset.shape[0]
+
+
+def anchors_from_samples(
+    link: Int[ArrayLike, " n_patches"],
+    points: Float[ArrayLike, "n_patches n_samples 3"],
+    weights: Float[ArrayLike, "n_patches n_samples"] | None = None,
+) -> PatchAnchors:
+    """Patch anchors as the (weighted) mean of surface samples of each patch region.
+
+    ``points[k]`` are samples of patch k's surface expressed in the frame of ``link[k]``
+    (metres); ``weights`` (default uniform) e.g. area weights, 0 for padding samples.
+    """
+    link = np.asarray(link)
+    pts = jnp.asarray(points)
+    if link.ndim != 1 or pts.ndim != 3 or pts.shape[0] != link.shape[0] or pts.shape[2] != 3:
+        raise ValueError(
+            f"anchors_from_samples: expected link (P,) and points (P, S, 3); got link "
+            f"{link.shape} and points {pts.shape}"
+        )
+    w = jnp.ones(pts.shape[:2], pts.dtype) if weights is None else jnp.asarray(weights, pts.dtype)
+    if w.shape != pts.shape[:2]:
+        raise ValueError(f"anchors_from_samples: weights {w.shape}, expected {pts.shape[:2]}")
+    total = w.sum(axis=1)
+    if np.any(np.asarray(total) <= 0):
+        raise ValueError(
+            "anchors_from_samples: patches "
+            f"{np.flatnonzero(np.asarray(total) <= 0).tolist()} have no sample of positive weight"
+        )
+    offset = jnp.einsum("ps,psd->pd", w, pts) / total[:, None]
+    return PatchAnchors(link=jnp.asarray(link, jnp.int32), offset=offset)
+
+
+def anchors_from_garment(model: BodyModel, garment: Garment, dtype=None) -> PatchAnchors:
+    """Patch anchors of a garment: the mean of the surface samples of each patch region.
+
+    Samples come from :func:`jaxmocap.render.patch_surface_points` (points on the patch's
+    geom, in the geom frame, kept where the patch's half-spaces hold) and are moved into the
+    frame of the geom's link. Patch k of the result is patch id k + 1 of the garment.
+    """
+    dtype = dtype or model.geometry.pose.dtype
+    pts, valid = patch_surface_points(model, garment, dtype)  # (P, S, 3) geom frame
+    pose = model.geometry.pose.astype(dtype)[garment.patch_geom]  # geom -> link coordinates
+    pts_link = jnp.einsum("pij,psj->psi", pose[:, :3, :3], pts) + pose[:, None, :3, 3]
+    link = np.asarray(model.geometry.link)[np.asarray(garment.patch_geom)]
+    return anchors_from_samples(link, pts_link, valid.astype(dtype))
+
+
+def anchor_positions(
+    chain: KinematicChain, anchors: PatchAnchors, q: Float[Array, " n_dof"]
+) -> Float[Array, "n_patches 3"]:
+    """World positions (metres) of the patch anchors at pose q: ``T_link(q) @ offset``."""
+    T = fk(chain, q)[anchors.link]
+    off = anchors.offset.astype(q.dtype)
+    return jnp.einsum("pij,pj->pi", T[:, :3, :3], off) + T[:, :3, 3]
+
+
+def _project_all(cams: Camera, X: Float[Array, "n 3"]) -> Float[Array, "n_cams n 2"]:
+    return jax.vmap(project, in_axes=(0, None))(cams, X)
+
+
+def project_anchors(
+    cams: Camera, chain: KinematicChain, anchors: PatchAnchors, q: Float[Array, " n_dof"]
+) -> Float[Array, "n_cams n_patches 2"]:
+    """Projected anchors ``c^{*i}_k(q)`` (pixels) in every camera of a stacked Camera."""
+    return _project_all(cams, anchor_positions(chain, anchors, q))
+
+
+# ----------------------------------------------------------------------------- covariances
+
+
+def _check_cov(name: str, a: Array, tail: int | None) -> None:
+    if tail == 2:
+        if a.ndim not in (2, 3) or a.shape[-2:] != (2, 2):
+            raise ValueError(f"IKCovariances.{name}: expected (2, 2) or (P, 2, 2), got {a.shape}")
+    elif a.ndim not in (1, 2) or (a.ndim == 2 and a.shape[0] != a.shape[1]):
+        raise ValueError(
+            f"IKCovariances.{name}: expected (n_dof,) variances or (n_dof, n_dof), got {a.shape}"
+        )
+
+
+class IKCovariances(eqx.Module):
+    """Covariances of the three IK terms (Wang et al. §5.2 step 4).
+
+    ``centroid``: Sigma_c, (2, 2) shared by all patches or (P, 2, 2) per patch, pixels^2.
+    ``blend``: Sigma_b of q - q_b; ``prior``: Sigma_p of q - q_h. Each (n_dof, n_dof) or a
+    vector (n_dof,) of variances (diagonal covariance). All must be positive definite.
+    """
+
+    centroid: Float[Array, "*patches 2 2"]
+    blend: Float[Array, "n_dof n_dof"] | Float[Array, " n_dof"]
+    prior: Float[Array, "n_dof n_dof"] | Float[Array, " n_dof"]
+
+    def __check_init__(self):
+        _check_cov("centroid", self.centroid, 2)
+        _check_cov("blend", self.blend, None)
+        _check_cov("prior", self.prior, None)
+        if self.blend.shape[0] != self.prior.shape[0]:
+            raise ValueError(
+                f"IKCovariances: blend is for {self.blend.shape[0]} DOFs, prior for "
+                f"{self.prior.shape[0]}"
+            )
+
+    @classmethod
+    def isotropic(
+        cls, centroid_px: float, blend_std: ArrayLike, prior_std: ArrayLike, n_dof: int
+    ) -> IKCovariances:
+        """Diagonal covariances from standard deviations (pixels; units of q per DOF)."""
+        sb = jnp.broadcast_to(jnp.asarray(blend_std, float), (n_dof,))
+        sp = jnp.broadcast_to(jnp.asarray(prior_std, float), (n_dof,))
+        return cls(centroid=centroid_px**2 * jnp.eye(2), blend=sb**2, prior=sp**2)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the covariances to an ``.npz`` file (keys centroid, blend, prior, version)."""
+        np.savez(
+            path,
+            centroid=np.asarray(self.centroid),
+            blend=np.asarray(self.blend),
+            prior=np.asarray(self.prior),
+            version=np.int64(COV_FILE_VERSION),
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> IKCovariances:
+        """Read covariances written by :meth:`save`; checks shapes and positive definiteness."""
+        path = Path(path)
+        try:
+            data = np.load(path)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: cannot read IK covariances ({e})") from None
+        with data:
+            fields = {}
+            for key in ("centroid", "blend", "prior", "version"):
+                if key not in data.files:
+                    raise ValueError(f"{path}: missing field {key!r} (have {data.files})")
+                fields[key] = np.asarray(data[key])
+        if int(fields["version"]) != COV_FILE_VERSION:
+            raise ValueError(
+                f"{path}: field 'version' is {int(fields['version'])}, expected {COV_FILE_VERSION}"
+            )
+        for key in ("centroid", "blend", "prior"):
+            a = fields[key]
+            ok = np.all(np.isfinite(a)) and (
+                np.all(a > 0) if a.ndim == 1 else np.all(np.linalg.eigvalsh(a) > 0)
+            )
+            if not ok:
+                raise ValueError(f"{path}: field {key!r} is not a positive definite covariance")
+        return cls(**{k: jnp.asarray(fields[k]) for k in ("centroid", "blend", "prior")})
+
+
+def _whitener(cov: Array, dtype) -> Array:
+    """``W`` with ``W^T W = Sigma^{-1}``: ``L^{-1}`` (Sigma = L L^T), or 1/sqrt for variances."""
+    cov = cov.astype(dtype)
+    if cov.ndim == 1:
+        return jax.lax.rsqrt(cov)
+    L = jnp.linalg.cholesky(cov)
+    eye = jnp.broadcast_to(jnp.eye(cov.shape[-1], dtype=dtype), cov.shape)
+    return jax.scipy.linalg.solve_triangular(L, eye, lower=True)
+
+
+def _whiten(W: Array, x: Array) -> Array:
+    return W * x if W.ndim == 1 else W @ x
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def _zero_tangent(t):
+    if not isinstance(t, SymbolicZero):
+        return t
+    return np.zeros(t.aval.shape, t.aval.dtype) if t.aval.dtype == float0 else jnp.zeros(
+        t.aval.shape, t.aval.dtype
+    )
+
+
+def _dense_jacobian(f):
+    """``f(y, args)`` whose JVP in ``y`` builds the Jacobian once (vmapped forward mode).
+
+    Gauss-Newton solvers call the linearised residual several times per step (Jacobian
+    materialisation, predicted reduction, its transpose). With this rule those calls are
+    matrix products with one dense ``J``, instead of re-emitting the linearised forward
+    kinematics each time: a much smaller program (compile time) and fewer flops per step.
+    Tangents in ``args`` (e.g. covariances, under ``jax.grad``) go through an ordinary JVP.
+    """
+
+    @jax.custom_jvp
+    def g(y, args):
+        return f(y, args)
+
+    @functools.partial(g.defjvp, symbolic_zeros=True)
+    def g_jvp(primals, tangents):
+        y, args = primals
+        ty, targs = tangents
+        if isinstance(ty, SymbolicZero):
+            out = f(y, args)
+            tout = jnp.zeros_like(out)
+        else:
+            basis = jnp.eye(y.shape[0], dtype=y.dtype)
+            push = lambda v: jax.jvp(lambda y_: f(y_, args), (y,), (v,))
+            out, J = jax.vmap(push, out_axes=(None, -1))(basis)
+            tout = J @ ty
+        is_zero = lambda t: isinstance(t, SymbolicZero)
+        if not all(map(is_zero, jax.tree.leaves(targs, is_leaf=is_zero))):
+            targs = jax.tree.map(_zero_tangent, targs, is_leaf=is_zero)
+            tout = tout + jax.jvp(lambda a: f(y, a), (args,), (targs,))[1]
+        return out, tout
+
+    return g
+
+
+
+class _Terms(eqx.Module):
+    """Everything the residual needs, passed as optimistix ``args`` (so it is differentiated)."""
+
+    chain: KinematicChain
+    cams: Camera
+    anchors: PatchAnchors
+    obs: Array  # (C, P, 2) observed centroids, 0 where invisible
+    vis: Array  # (C, P) bool
+    q_b: Array
+    q_h: Array
+    Wc: Array  # (P, 2, 2)
+    Wb: Array
+    Wp: Array
+
+
+def _centroid_residual(X: Array, t: _Terms) -> Array:
+    d = _project_all(t.cams, X) - t.obs  # (C, P, 2)
+    r = jnp.einsum("pij,cpj->cpi", t.Wc, d)
+    return jnp.where(t.vis[..., None], r, 0.0).reshape(-1)
+
+
+def _residual(q: Array, t: _Terms) -> Array:
+    X = anchor_positions(t.chain, t.anchors, q)
+    return jnp.concatenate(
+        [_centroid_residual(X, t), _whiten(t.Wb, q - t.q_b), _whiten(t.Wp, q - t.q_h)]
+    )
+
+
+def _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov) -> _Terms:
+    dt = q_b.dtype
+    vis = jnp.asarray(visible, bool)
+    obs = jnp.where(vis[..., None], centroids.astype(dt), 0.0)
+    n_p = anchors.n_patches
+    if vis.shape != (cams.K.shape[0], n_p) or centroids.shape != vis.shape + (2,):
+        raise ValueError(
+            f"IK: expected centroids ({cams.K.shape[0]}, {n_p}, 2) and visible "
+            f"({cams.K.shape[0]}, {n_p}) for {cams.K.shape[0]} cameras and {n_p} patches; got "
+            f"{centroids.shape} and {vis.shape}"
+        )
+    if cov.blend.shape[0] != q_b.shape[0]:
+        raise ValueError(
+            f"IK: covariances are for {cov.blend.shape[0]} DOFs, the pose has {q_b.shape[0]}"
+        )
+    Wc = jnp.broadcast_to(_whitener(cov.centroid, dt), (n_p, 2, 2))
+    return _Terms(
+        chain, cams, anchors, obs, vis, q_b, q_h.astype(dt), Wc,
+        _whitener(cov.blend, dt), _whitener(cov.prior, dt),
+    )  # fmt: skip
+
+
+def ik_residuals(
+    q: Float[Array, " n_dof"],
+    chain: KinematicChain,
+    cams: Camera,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    q_h: Float[Array, " n_dof"],
+    cov: IKCovariances,
+) -> Float[Array, " n_res"]:
+    """Whitened residual vector of the step-4 energy: ``E(q) = sum(ik_residuals(...)**2)``.
+
+    Layout: ``n_cams * P * 2`` centroid terms (0 for invisible patches), then ``n_dof``
+    blend-prior terms, then ``n_dof`` temporal-prior terms.
+    """
+    return _residual(q, _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov))
+
+
+# ----------------------------------------------------------------------------- joint limits
+
+
+def _limit_params(lower: Array, upper: Array) -> tuple[Array, Array, Array]:
+    """(finite, mid, half) of the limit map; NaN-free for infinite limits."""
+    finite = jnp.isfinite(lower) & jnp.isfinite(upper)
+    lo = jnp.where(finite, lower, -1.0)
+    hi = jnp.where(finite, upper, 1.0)
+    return finite, 0.5 * (hi + lo), 0.5 * (hi - lo)
+
+
+def _z_to_q(z: Array, finite: Array, mid: Array, half: Array) -> Array:
+    return jnp.where(finite, mid + half * jnp.tanh(z), z)
+
+
+def _q_to_z(q: Array, finite: Array, mid: Array, half: Array) -> Array:
+    ratio = jnp.clip((q - mid) / half, -1.0 + LIMIT_MARGIN, 1.0 - LIMIT_MARGIN)
+    return jnp.where(finite, jnp.arctanh(ratio), q)
+
+
+# ----------------------------------------------------------------------------- solutions
+
+
+class IKSolution(eqx.Module):
+    """Result of an IK solve.
+
+    ``q`` the solved pose, ``result`` the optimistix result code (``optx.RESULTS.successful``
+    or why not: e.g. ``nonlinear_max_steps_reached``), ``num_steps`` iterations taken,
+    ``cost`` the energy (sum of squared whitened residuals) at ``q``.
+    """
+
+    q: Float[Array, "*batch n_dof"]
+    result: optx.RESULTS
+    num_steps: Int[Array, "*batch"]
+    cost: Float[Array, "*batch"]
+
+    @property
+    def converged(self) -> Bool[Array, "*batch"]:
+        return self.result == optx.RESULTS.successful
+
+
+def _free_index(free_dofs: tuple[int, ...] | None, n_dof: int) -> np.ndarray:
+    if free_dofs is None:
+        return np.arange(n_dof)
+    idx = np.asarray(free_dofs, dtype=np.int64).reshape(-1)
+    if idx.size == 0 or np.any(idx < 0) or np.any(idx >= n_dof) or len(set(idx.tolist())) != idx.size:
+        raise ValueError(
+            f"solve_ik: free_dofs must be distinct indices in [0, {n_dof}), got {free_dofs}"
+        )
+    return np.sort(idx)
+
+
+def solve_ik(
+    chain: KinematicChain,
+    cams: Camera,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    q_h: Float[Array, " n_dof"],
+    cov: IKCovariances,
+    q_init: Float[Array, " n_dof"] | None = None,
+    *,
+    free_dofs: tuple[int, ...] | None = None,
+    rtol: float | Float[Array, ""] = DEFAULT_RTOL,
+    atol: float | Float[Array, ""] = DEFAULT_ATOL,
+    max_steps: int = DEFAULT_MAX_STEPS,
+) -> IKSolution:
+    """Pose refinement by IK (Wang et al. §5.2 step 4), Levenberg-Marquardt in optimistix.
+
+    Minimises the energy of :func:`ik_residuals` over the DOFs ``free_dofs`` (default all;
+    a static tuple of indices into q), the others staying at ``q_init`` (default ``q_b``),
+    which is also the initial guess. Joint limits of ``chain`` hold for the result (tanh
+    reparametrisation, see the module docstring). ``rtol``/``atol`` are traced: changing them
+    does not recompile; ``free_dofs`` and ``max_steps`` are static. Never raises on
+    non-convergence: check ``result`` / ``converged``. Differentiable (implicit adjoint)
+    w.r.t. every array input, covariances included. Batch frames with ``jax.vmap``.
+    """
+    tol = lambda x: jnp.asarray(x, dtype=q_b.dtype)
+    return _solve_ik(chain, cams, anchors, centroids, visible, q_b, q_h, cov, q_init,
+                     free_dofs, tol(rtol), tol(atol), max_steps)  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("free_dofs", "max_steps"))
+def _solve_ik(
+    chain: KinematicChain,
+    cams: Camera,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    q_h: Float[Array, " n_dof"],
+    cov: IKCovariances,
+    q_init: Float[Array, " n_dof"] | None,
+    free_dofs: tuple[int, ...] | None,
+    rtol: Float[Array, ""],
+    atol: Float[Array, ""],
+    max_steps: int,
+) -> IKSolution:
+    """The jitted core of :func:`solve_ik` (every argument explicit, tolerances arrays)."""
+    terms = _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov)
+    dt = q_b.dtype
+    q0 = q_b if q_init is None else q_init.astype(dt)
+    idx = _free_index(free_dofs, q_b.shape[0])
+    limits = _limit_params(chain.lower[idx].astype(dt), chain.upper[idx].astype(dt))
+
+    @_dense_jacobian
+    def fn(z, args):
+        q_fixed, lim, t = args
+        return _residual(q_fixed.at[idx].set(_z_to_q(z, *lim)), t)
+
+    args = (q0, limits, terms)
+    z0 = _q_to_z(q0[idx], *limits)
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(
+        fn, solver, z0, args, max_steps=max_steps, throw=False, adjoint=_ADJOINT, options=_OPTIONS
+    )
+    q = q0.at[idx].set(_z_to_q(sol.value, *limits))
+    cost = jnp.sum(sol.state.f_info.residual**2)
+    return IKSolution(q=q, result=sol.result, num_steps=sol.stats["num_steps"], cost=cost)
+
+
+# ----------------------------------------------------------------------------- global 6-DOF solve
+
+
+def so3_log(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
+    """Rotation vector (rad) of a rotation matrix; the inverse of ``so3_exp`` on |w| <= pi.
+
+    Through the unit quaternion by Shepperd's method (largest diagonal pivot), so it is
+    accurate near 0 and near pi; NaN-free ("safe where" before the division).
+    """
+    m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
+    tr = m00 + m11 + m22
+    cands = jnp.stack(
+        [
+            jnp.stack([1 + tr, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]),
+            jnp.stack([R[2, 1] - R[1, 2], 1 + m00 - m11 - m22, R[0, 1] + R[1, 0], R[0, 2] + R[2, 0]]),
+            jnp.stack([R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1 - m00 + m11 - m22, R[1, 2] + R[2, 1]]),
+            jnp.stack([R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1 - m00 - m11 + m22]),
+        ]
+    )  # fmt: skip
+    quat = cands[jnp.argmax(jnp.stack([tr, m00, m11, m22]))]
+    quat = quat / jnp.linalg.norm(quat)
+    quat = jnp.where(quat[0] < 0, -quat, quat)
+    w, v = quat[0], quat[1:]
+    vn2 = jnp.sum(v * v)
+    small = vn2 < jnp.finfo(R.dtype).eps
+    vn = jnp.sqrt(jnp.where(small, 1.0, vn2))
+    scale = jnp.where(small, 2.0 / w - (2.0 / 3.0) * vn2 / w**3, 2.0 * jnp.arctan2(vn, w) / vn)
+    return scale * v
+
+
+def _kabsch(
+    X: Float[Array, "n 3"], Y: Float[Array, "n 3"], w: Float[Array, " n"]
+) -> tuple[Array, Array, Array]:
+    """Weighted rigid fit ``Y ~ R X + t`` (Kabsch); returns (R, t, well_conditioned)."""
+    sw = jnp.maximum(w.sum(), jnp.finfo(X.dtype).tiny)
+    mx = (w[:, None] * X).sum(0) / sw
+    my = (w[:, None] * Y).sum(0) / sw
+    H = jnp.einsum("n,ni,nj->ij", w, X - mx[None], Y - my[None])
+    U, S, Vt = jnp.linalg.svd(H)
+    d = jnp.sign(jnp.linalg.det(Vt.T @ U.T))
+    D = jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), jnp.where(d == 0, 1.0, d)]))
+    R = Vt.T @ D @ U.T
+    t = my - R @ mx
+    return R, t, S[1] > KABSCH_MIN_SPREAD * S[0]
+
+
+def _root_frame(q_b: Array) -> Array:
+    """q_b with the root DOFs zeroed: the body in its root-placement frame."""
+    return q_b.at[:ROOT_DOFS].set(0.0)
+
+
+@jax.jit
+def initial_root(
+    cams: Camera,
+    chain: KinematicChain,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    root_prev: Float[Array, "6"],
+) -> tuple[Float[Array, "6"], Bool[Array, ""]]:
+    """Initial root (translation m, rotation vector rad) for the global solve (step 2).
+
+    With 2+ cameras, patches seen by at least two of them are triangulated (N-view DLT,
+    :func:`jaxmocap.camera.triangulate`); if at least ``MIN_KABSCH_PATCHES`` non-collinear
+    ones are, the root is the closed-form rigid (Kabsch) fit of the anchors of ``q_b`` (in
+    the root-placement frame) to them. Otherwise ``root_prev`` (e.g. the previous frame's
+    root) is kept. Returns (root, whether the fit was used). Not differentiated.
+    """
+    dt = q_b.dtype
+    root_prev = root_prev.astype(dt)
+    if cams.K.ndim != 3 or cams.K.shape[0] < 2:
+        return root_prev, jnp.array(False)
+    vis = jnp.asarray(visible, bool)
+    X = anchor_positions(chain, anchors, _root_frame(q_b))
+    Y = triangulate(cams, centroids.astype(dt), refine=False, weights=vis.astype(dt))
+    seen = vis.sum(0) >= 2
+    Y = jnp.where(seen[:, None], Y, 0.0)
+    R, t, well = _kabsch(X, Y, seen.astype(dt))
+    use = (seen.sum() >= MIN_KABSCH_PATCHES) & well
+    root = jnp.where(use, jnp.concatenate([t, so3_log(R)]), root_prev)
+    return jax.lax.stop_gradient(root), use
+
+
+def solve_global(
+    chain: KinematicChain,
+    cams: Camera,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    root_init: Float[Array, "6"],
+    centroid_cov: Float[Array, "*patches 2 2"] | None = None,
+    *,
+    rtol: float | Float[Array, ""] = DEFAULT_RTOL,
+    atol: float | Float[Array, ""] = DEFAULT_ATOL,
+    max_steps: int = DEFAULT_MAX_STEPS,
+) -> IKSolution:
+    """Global position and orientation (Wang et al. §5.2 step 2): a 6-DOF IK.
+
+    The joints stay at ``q_b``; the root (``q[0:6]``, whose value in ``q_b`` is ignored) is
+    found by minimising ``sum_{i,k} ||c^{*i}_k(q) - c^{ki}||^2_{Sigma_c}`` over visible
+    patches in all cameras (Sigma_c default: identity, pixels), starting from ``root_init``
+    (see :func:`initial_root`). The rotation is solved as a left increment
+    ``exp([dw]_x) R_init`` (well conditioned for any ``root_init``). Returns an
+    :class:`IKSolution` (``q`` = q_b with the solved root). Tolerances traced, as
+    :func:`solve_ik`.
+    """
+    tol = lambda x: jnp.asarray(x, dtype=q_b.dtype)
+    return _solve_global(chain, cams, anchors, centroids, visible, q_b, root_init, centroid_cov,
+                         tol(rtol), tol(atol), max_steps)  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("max_steps",))
+def _solve_global(
+    chain: KinematicChain,
+    cams: Camera,
+    anchors: PatchAnchors,
+    centroids: Float[Array, "n_cams n_patches 2"],
+    visible: Bool[Array, "n_cams n_patches"],
+    q_b: Float[Array, " n_dof"],
+    root_init: Float[Array, "6"],
+    centroid_cov: Float[Array, "*patches 2 2"] | None,
+    rtol: Float[Array, ""],
+    atol: Float[Array, ""],
+    max_steps: int,
+) -> IKSolution:
+    """The jitted core of :func:`solve_global`."""
+    dt = q_b.dtype
+    n_p = anchors.n_patches
+    cov_c = jnp.eye(2, dtype=dt) if centroid_cov is None else centroid_cov
+    vis = jnp.asarray(visible, bool)
+    if vis.shape != (cams.K.shape[0], n_p) or centroids.shape != vis.shape + (2,):
+        raise ValueError(
+            f"solve_global: expected centroids (n_cams, {n_p}, 2) and visible (n_cams, {n_p}); "
+            f"got {centroids.shape} and {vis.shape}"
+        )
+    X = anchor_positions(chain, anchors, _root_frame(q_b))
+    root_init = root_init.astype(dt)
+    R0, t0 = so3_exp(root_init[3:6]), root_init[0:3]
+    obs = jnp.where(vis[..., None], centroids.astype(dt), 0.0)
+    Wc = jnp.broadcast_to(_whitener(cov_c, dt), (n_p, 2, 2))
+
+    def place(y, R0, t0):
+        R = so3_exp(y[3:6]) @ R0
+        return R, t0 + y[0:3]
+
+    @_dense_jacobian
+    def fn(y, args):
+        X, R0, t0, cams, obs, vis, Wc = args
+        R, t = place(y, R0, t0)
+        d = _project_all(cams, X @ R.T + t[None, :]) - obs
+        r = jnp.einsum("pij,cpj->cpi", Wc, d)
+        return jnp.where(vis[..., None], r, 0.0).reshape(-1)
+
+    args = (X, R0, t0, cams, obs, vis, Wc)
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(
+        fn, solver, jnp.zeros(6, dt), args, max_steps=max_steps, throw=False, adjoint=_ADJOINT, options=_OPTIONS
+    )
+    R, t = place(sol.value, R0, t0)
+    q = q_b.at[0:3].set(t).at[3:6].set(so3_log(R))
+    cost = jnp.sum(sol.state.f_info.residual**2)
+    return IKSolution(q=q, result=sol.result, num_steps=sol.stats["num_steps"], cost=cost)
+
+
+# ----------------------------------------------------------------------------- covariance training
+
+
+def _second_moment(e: Array, w: Array) -> tuple[Array, Array]:
+    """(sum_n w_n e_n e_n^T, sum_n w_n) over the leading axis."""
+    return jnp.einsum("n,ni,nj->ij", w, e, e), w.sum()
+
+
+def _regularise(S: Array, floor: float) -> Array:
+    S = 0.5 * (S + jnp.swapaxes(S, -1, -2))
+    n = S.shape[-1]
+    mean_var = jnp.trace(S, axis1=-2, axis2=-1) / n
+    ridge = COV_REL_RIDGE * mean_var + floor
+    return S + ridge[..., None, None] * jnp.eye(n, dtype=S.dtype)
+
+
+@functools.partial(jax.jit, static_argnames=("per_patch",))
+def estimate_covariances(
+    cams: Camera,
+    chain: KinematicChain,
+    anchors: PatchAnchors,
+    q_gt: Float[Array, "n_frames n_dof"],
+    centroids: Float[Array, "n_frames n_cams n_patches 2"],
+    visible: Bool[Array, "n_frames n_cams n_patches"],
+    q_b: Float[Array, "n_frames n_dof"],
+    *,
+    per_patch: bool = False,
+) -> IKCovariances:
+    """Train Sigma_c, Sigma_b, Sigma_p on a ground-truth sequence (Wang et al. §5.2 step 4).
+
+    As in the paper, q is replaced by the ground truth in each term and the covariance of the
+    term is taken over the sequence:
+
+        Sigma_c = E[(c^{*i}_k(q_gt) - c^{ki})(...)^T]  over visible patches, cameras, frames
+        Sigma_b = E[(q_gt - q_b)(...)^T]               over frames
+        Sigma_p = E[(q_gt[t] - q_gt[t-1])(...)^T]      over consecutive frames
+
+    The moments are taken about zero, the maximum-likelihood covariance of the zero-mean
+    Gaussian that the energy assumes (a bias in the errors is thus counted as error). Each is
+    symmetrised and given a small ridge (``COV_REL_RIDGE`` of its mean variance plus
+    ``COV_FLOOR_*``), so DOFs that never vary stay positive definite. With ``per_patch``,
+    Sigma_c is (P, 2, 2), patch k's moment shrunk by one pseudo-observation of the shared
+    Sigma_c (patches rarely or never seen fall back to it).
+    """
+    if q_gt.ndim != 2 or q_gt.shape[0] < 2 or q_b.shape != q_gt.shape:
+        raise ValueError(
+            f"estimate_covariances: need q_gt and q_b (n_frames >= 2, n_dof) of equal shape; got "
+            f"{q_gt.shape} and {q_b.shape}"
+        )
+    n_f, n_dof = q_gt.shape
+    if visible.shape != (n_f, cams.K.shape[0], anchors.n_patches):
+        raise ValueError(
+            f"estimate_covariances: visible {visible.shape}, expected "
+            f"({n_f}, {cams.K.shape[0]}, {anchors.n_patches})"
+        )
+    dt = q_gt.dtype
+    proj = jax.vmap(project_anchors, in_axes=(None, None, None, 0))(cams, chain, anchors, q_gt)
+    vis = jnp.asarray(visible, bool)
+    err = jnp.where(vis[..., None], proj - centroids.astype(dt), 0.0)  # (T, C, P, 2)
+    w = vis.astype(dt)
+    S_all, n_all = _second_moment(err.reshape(-1, 2), w.reshape(-1))
+    shared = _regularise(S_all / jnp.maximum(n_all, 1.0), COV_FLOOR_PX2)
+    if per_patch:
+        S_p = jnp.einsum("tcp,tcpi,tcpj->pij", w, err, err)
+        n_p = w.sum((0, 1))
+        sigma_c = (S_p + shared[None]) / (n_p + 1.0)[:, None, None]
+        sigma_c = _regularise(sigma_c, COV_FLOOR_PX2)
+    else:
+        sigma_c = shared
+    ones = jnp.ones(n_f, dt)
+    Sb, nb = _second_moment(q_gt - q_b.astype(dt), ones)
+    Sp, np_ = _second_moment(q_gt[1:] - q_gt[:-1], ones[1:])
+    return IKCovariances(
+        centroid=sigma_c,
+        blend=_regularise(Sb / nb, COV_FLOOR_Q),
+        prior=_regularise(Sp / np_, COV_FLOOR_Q),
+    )
