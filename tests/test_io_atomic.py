@@ -1,0 +1,88 @@
+"""Atomic writing: targets appear only complete, failures leave nothing behind, bad targets
+are refused with an InputError naming the path."""
+
+import os
+
+import numpy as np
+import pytest
+
+from jaxmocap.errors import InputError
+from jaxmocap.io.atomic import (
+    AtomicFiles,
+    OutputPathError,
+    atomic_folder,
+    atomic_path,
+    atomic_write,
+    check_output_file,
+    check_output_folder,
+    write_bytes,
+    write_text,
+)
+
+
+def test_write_and_replace(tmp_path):
+    p = tmp_path / "sub" / "a.txt"
+    write_text(p, "one\n")
+    assert p.read_text() == "one\n"
+    write_text(p, "two\n")
+    assert p.read_text() == "two\n"
+    write_bytes(tmp_path / "b.bin", b"\x00\x01")
+    assert (tmp_path / "b.bin").read_bytes() == b"\x00\x01"
+    assert sorted(os.listdir(tmp_path)) == ["b.bin", "sub"]
+    assert os.listdir(tmp_path / "sub") == ["a.txt"]
+
+
+def test_failure_keeps_old_content_and_no_temporaries(tmp_path):
+    p = tmp_path / "a.txt"
+    write_text(p, "old")
+    with pytest.raises(RuntimeError), atomic_write(p) as f:
+        f.write("half")
+        raise RuntimeError("boom")
+    assert p.read_text() == "old"
+    assert os.listdir(tmp_path) == ["a.txt"]
+
+
+def test_atomic_path_keeps_suffix_for_name_based_writers(tmp_path):
+    target = tmp_path / "x.npz"
+    with atomic_path(target) as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".npz"
+        np.savez(tmp, a=np.arange(3))  # np.savez would append .npz to another suffix
+    with np.load(target) as z:
+        np.testing.assert_array_equal(z["a"], np.arange(3))
+    assert os.listdir(tmp_path) == ["x.npz"]
+
+
+def test_group_all_or_nothing(tmp_path):
+    with AtomicFiles() as out:
+        out.path(tmp_path / "a.txt").write_text("a")
+        out.path(tmp_path / "b.txt").write_text("b")
+        assert not (tmp_path / "a.txt").exists()  # nothing visible before the end
+    assert (tmp_path / "a.txt").read_text() == "a" and (tmp_path / "b.txt").read_text() == "b"
+    with pytest.raises(KeyError), AtomicFiles() as out:
+        out.path(tmp_path / "c.txt").write_text("c")
+        raise KeyError("fail after the first output")
+    assert sorted(os.listdir(tmp_path)) == ["a.txt", "b.txt"]
+
+
+def test_folder(tmp_path):
+    with atomic_folder(tmp_path / "ds") as d:
+        (d / "f.txt").write_text("x")
+        assert not (tmp_path / "ds").exists()
+    assert (tmp_path / "ds" / "f.txt").read_text() == "x"
+    with pytest.raises(OutputPathError, match="not empty"), atomic_folder(tmp_path / "ds"):
+        pass
+    with pytest.raises(ValueError), atomic_folder(tmp_path / "e") as d:
+        (d / "f.txt").write_text("x")
+        raise ValueError
+    assert sorted(os.listdir(tmp_path)) == ["ds"]
+
+
+def test_refuses_bad_targets(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="output folder is a file"):
+        check_output_folder(tmp_path / "file")
+    with pytest.raises(InputError, match="file: the output folder is a file"):
+        check_output_file(tmp_path / "file" / "x.csv")
+    with pytest.raises(InputError, match="is a folder"):
+        check_output_file(tmp_path)
+    assert check_output_folder(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
