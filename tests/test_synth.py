@@ -356,3 +356,11 @@ def test_load_dataset_reports_missing_and_corrupt_files(written, tmp_path):
         dataset.load_dataset(d)
     with pytest.raises(dataset.DatasetError, match="not a dataset folder"):
         dataset.load_dataset(tmp_path / "nothing")
+
+
+def test_contact_sheet_tiles_frames_by_camera(seq):
+    sheet = dataset.contact_sheet(seq, n=3, width=40)
+    assert sheet.shape == (2 * 32, 3 * 42, 3) and sheet.dtype == np.uint8
+    tile = sheet[33:63, 43:83]  # camera 1, middle frame (index 2 or 3 of 0..5), no label rows
+    ref = cv2.resize(seq.frames[round(2.5), 1], (40, 30), interpolation=cv2.INTER_AREA)
+    assert np.mean(np.abs(tile[16:].astype(int) - ref[16:])) < 1e-9

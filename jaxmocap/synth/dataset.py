@@ -67,8 +67,10 @@ def _write_video(path: Path, frames: np.ndarray, fps: float) -> None:
 
 
 def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
-                  png: bool = False, dtype_name: str | None = None) -> Path:
-    """Write ``seq`` as a dataset folder (module docstring), atomically. Raises
+                  png: bool = False, dtype_name: str | None = None, sheet: bool = False
+                  ) -> Path:
+    """Write ``seq`` as a dataset folder (module docstring), atomically, optionally with a
+    ``contact_sheet.png`` preview (:func:`contact_sheet`). Raises
     :class:`DatasetError` if ``folder`` is a file or a non-empty folder."""
     folder = Path(folder)
     if not (video or png):
@@ -86,6 +88,8 @@ def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
         (tmp / "scene.json").write_text(json.dumps(doc, indent=2) + "\n")
         save_cameras(tmp / "cameras.json", seq.cameras, seq.camera_names)
         np.savez_compressed(tmp / "groundtruth.npz", **seq.groundtruth)
+        if sheet:
+            cv2.imwrite(str(tmp / "contact_sheet.png"), contact_sheet(seq)[..., ::-1])
         for c, name in enumerate(seq.camera_names):
             if video:
                 _write_video(tmp / f"{name}.mp4", seq.frames[:, c], seq.config.fps)
@@ -104,6 +108,26 @@ def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return folder
+
+
+def contact_sheet(seq: Sequence, n: int = 8, width: int = 200) -> np.ndarray:
+    """A preview image (``uint8`` RGB): ``n`` evenly spaced frames (columns) x cameras (rows),
+    each thumbnail ``width`` pixels wide and labelled with its frame number and camera."""
+    t, n_cams, h, w, _ = seq.frames.shape
+    idx = np.unique(np.linspace(0, t - 1, min(n, t)).round().astype(int))
+    th = max(1, round(h * width / w))
+    rows = []
+    for c in range(n_cams):
+        tiles = []
+        for k in idx:
+            tile = cv2.resize(seq.frames[k, c], (width, th), interpolation=cv2.INTER_AREA)
+            label = f"{seq.camera_names[c]} frame {k}"
+            for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+                cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, thick,
+                            cv2.LINE_AA)
+            tiles.append(cv2.copyMakeBorder(tile, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0))
+        rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(rows, axis=0)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -265,6 +289,7 @@ def add_parser(sub) -> None:
     a("--png", action="store_true", help="also write lossless PNG frames")
     a("--no-video", action="store_true", help="do not write the mp4 videos (needs --png)")
     a("--quiet", action="store_true", help="no progress bar")
+    a("--contact-sheet", action="store_true", help="also write contact_sheet.png (8 frames)")
     p.set_defaults(func=run)
 
 
@@ -300,7 +325,8 @@ def run(args: argparse.Namespace) -> int:
     seq = render_sequence(config, progress=not args.quiet)
     dt = time.perf_counter() - t0
     folder = write_dataset(seq, args.out, video=not args.no_video, png=args.png,
-                           dtype_name=str(jnp.dtype(jnp.result_type(float))))
+                           dtype_name=str(jnp.dtype(jnp.result_type(float))),
+                           sheet=args.contact_sheet)
     t, n_cams, h, w, _ = seq.frames.shape
     print(f"jaxmocap synth: wrote {t} frames x {n_cams} cameras ({w}x{h}) to {folder} "
           f"in {dt:.1f} s ({t / dt:.1f} frames/s)")
