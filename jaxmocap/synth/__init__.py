@@ -6,6 +6,7 @@ them and defines the train / held-out split (docs/DATA.md); ``scene``, ``sequenc
 ``dataset`` render sequences with ground truth and the papers' nuisances (``jaxmocap synth``).
 """
 
+from .dataset import DatasetError, load_dataset, write_dataset
 from .deepmimic import (
     Clip,
     clip_path,
@@ -26,7 +27,6 @@ from .motion import (
 from .retarget import Retargeted, SourcePose, limit_report, retarget
 from .scene import SceneConfig, SceneError
 from .sequence import Sequence, render_sequence
-from .dataset import DatasetError, load_dataset, write_dataset
 
 __all__ = [
     "Clip", "clip_path", "deepmimic_skeleton", "list_clips", "load_deepmimic", "resample",
