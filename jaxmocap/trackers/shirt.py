@@ -1,0 +1,556 @@
+"""The colour-shirt tracker of Wang et al. 2011 (§4–5): ``init`` and the per-frame ``step``.
+
+One frame, for 1..n calibrated cameras (all inside one jitted function):
+
+1. **Locate and crop** (§4): histogram search on each full frame (optionally restricted to a
+   background-subtraction mask) gives ``(x', y', s')``; the square of side
+   ``CROP_FACTOR s'`` around ``(x', y')`` is resampled (bilinear) to ``n x n`` working pixels,
+   so every later shape is static whatever the shirt's size.
+2. **Classify** (§5.2 step 1): white balance ``W`` and Gaussian classification (``T = 3``);
+   when fewer than 40% of the foreground pixels are classified, every stored reference
+   illumination is tried and the best kept.
+3. **Database pose** (step 2): the classified crop, normalised to a tiny 40 x 40 map, queries
+   the pose database (10-NN, blended pose ``q_b`` with joint angles and a root orientation
+   relative to the canonical camera).
+4. **Global placement** (step 2): ``q_b``'s tiny id map is rendered in the canonical camera;
+   its patch centroids, moved into each camera's query window, are 2D constraints for a
+   6-DOF IK (:func:`jaxmocap.ik.solve_global`) started from a closed-form guess
+   (triangulation + Kabsch with 2+ cameras; otherwise the root read off the query window by
+   :func:`jaxmocap.pose_in_camera` at the depth implied by the window's size).
+5. **Pose-assisted classification** (step 3): ``r^b`` rendered in each crop, one exact EDT per
+   patch, ``argmin_p ||W I - mu_k(p)||_Sigma + C d_p`` with ``C = 6 / s'``, ``T = 5``.
+6. **IK** (step 4): patch centroids ``c^{ki}`` in every camera, then
+   ``q* = argmin sum ||c^{*i}(q) - c^{ki}||^2_Sc + ||q - q_b||^2_Sb + ||q - q_h||^2_Sp``.
+7. **White balance** (step 5): ``q*`` rendered in each crop, ``W*`` refitted on its colour
+   ids (eroded by one pixel so that silhouettes off by a pixel do not mix colours), and
+   ``W*`` joins the reference illuminations when ``min ||W* - W||_F > 0.5``.
+
+Ablations (static switches of :class:`ShirtParams`): ``pose_prior=False`` skips step 5's
+prior — centroids come from the step-1 classification (``T = 3``), each pixel given to the
+nearer of the two patches of its colour in ``r^b`` (that tie-break only, no cost);
+``adaptive_white_balance=False`` keeps ``W = W0`` and no references (the WP09-like baseline
+of Wang Fig. 9–10 is both switches off).
+
+**Loss and recovery.** A frame is *valid* when the shirt was found in some camera and at
+least ``MIN_VALID_PATCHES`` patch centroids were measured; otherwise ``q*`` holds the previous
+pose and ``W`` is not updated. After an invalid frame the temporal prior is dropped
+(``q_h := q_b``), so the next valid frame starts afresh from the database.
+
+**Live vs scan.** ``step`` is pure and jit-compiled once per (camera count, image size,
+settings); ``run`` loops over frames in Python (live video, optionally with OpenCV's MOG2
+masks computed on the host per frame), ``run_scan`` runs a whole sequence under
+``jax.lax.scan`` (masks, if any, precomputed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, UInt8
+
+from jaxmocap.body import BodyModel
+from jaxmocap.camera import Camera, pixel_rays, to_camera
+from jaxmocap.color import (
+    ColorModel,
+    ReferenceIlluminations,
+    classify_with_references,
+    histogram_search,
+    init_references,
+    maybe_add_reference,
+    white_balance_from_ids,
+)
+from jaxmocap.color.classify import THRESHOLD
+from jaxmocap.color.pose_assisted import (
+    POSE_THRESHOLD,
+    PRIOR_SCALE,
+    PatchCentroids,
+    patch_centroids,
+    patch_distance_maps,
+    pose_assisted_classify,
+)
+from jaxmocap.garment import Garment
+from jaxmocap.ik import IKCovariances, PatchAnchors, initial_root, solve_global, solve_ik
+from jaxmocap.posedb._sample import canonical_camera, pose_in_camera
+from jaxmocap.posedb._search import PoseDB, estimate_pose
+from jaxmocap.render import TINY_SIZE, render_uv, resample_ids, tiny_hits, window_from_mask
+
+# Not in the paper: crop side relative to the histogram search's scale s' (the shirt's
+# extent is about 2 s' with the arms out) and the working size of the resampled crop.
+CROP_FACTOR = 2.6
+WORK_SIZE = 128
+MIN_VALID_PATCHES = 4  # measured patch centroids (all cameras) for a frame to count
+# Ablation without pose prior: the per-pixel cost of distance that only breaks colour ties
+# between the two patches of one colour (standard deviations per working pixel).
+TIE_BREAK_WEIGHT = 1e-4
+REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
+
+
+def scales_for_width(width: int, stride: int = 6) -> tuple[int, ...]:
+    """The histogram search's six scales (Wang §4) for an image ``width`` pixels wide: the
+    640-pixel defaults of :data:`jaxmocap.color.DEFAULT_SCALES` scaled, each a multiple of
+    ``2 stride`` (at least one per size)."""
+    from jaxmocap.color import DEFAULT_SCALES
+
+    step = 2 * stride
+    out = sorted({max(step, int(round(s * width / 640 / step)) * step) for s in DEFAULT_SCALES})
+    return tuple(out)
+
+
+class ShirtParams(eqx.Module):
+    """Everything the tracker needs that does not change over a sequence.
+
+    ``cams`` is a stacked :class:`~jaxmocap.camera.Camera` (leading axis = cameras); ``db`` a
+    :class:`jaxmocap.PoseDB`. Static switches select the ablations (module docstring).
+    """
+
+    color: ColorModel
+    body: BodyModel
+    garment: Garment
+    cams: Camera
+    anchors: PatchAnchors
+    cov: IKCovariances
+    db: PoseDB
+    canon: Camera  # the database's canonical camera
+    pose_prior: bool = eqx.field(static=True, default=True)
+    adaptive_white_balance: bool = eqx.field(static=True, default=True)
+    work_size: int = eqx.field(static=True, default=WORK_SIZE)
+    scales: tuple[int, ...] = eqx.field(static=True, default=())
+    crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
+
+    @property
+    def n_cams(self) -> int:
+        return self.cams.K.shape[0]
+
+
+class ShirtState(eqx.Module):
+    """What carries over between frames: per-camera white balance and reference
+    illuminations, the previous pose and whether the previous frame was valid."""
+
+    W: Float[Array, "n_cams 3 3"]
+    refs: ReferenceIlluminations  # batched over cameras
+    q: Float[Array, " n_dof"]
+    valid: Bool[Array, ""]
+
+
+class ShirtOutput(eqx.Module):
+    """Per-frame results. ``q`` the final pose ``q*``, ``q_blend`` the globally placed blended
+    database pose; per camera: crop ``window`` (x0, y0, s, s) image pixels, the step-1
+    classified ``fraction``, whether a reference illumination was used / added, the measured
+    ``centroids`` (pixels) and their ``visible`` flags."""
+
+    q: Float[Array, " n_dof"]
+    q_blend: Float[Array, " n_dof"]
+    valid: Bool[Array, ""]
+    window: Float[Array, "n_cams 4"]
+    fraction: Float[Array, " n_cams"]
+    used_reference: Bool[Array, " n_cams"]
+    added_reference: Bool[Array, " n_cams"]
+    centroids: Float[Array, "n_cams n_patches 2"]
+    visible: Bool[Array, "n_cams n_patches"]
+
+
+def make_params(
+    color: ColorModel,
+    body: BodyModel,
+    garment: Garment,
+    cams: Camera,
+    anchors: PatchAnchors,
+    cov: IKCovariances,
+    db: PoseDB,
+    *,
+    pose_prior: bool = True,
+    adaptive_white_balance: bool = True,
+    work_size: int = WORK_SIZE,
+    scales: Sequence[int] | None = None,
+    crop_factor: float = CROP_FACTOR,
+) -> ShirtParams:
+    """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`."""
+    if cams.K.ndim != 3:
+        raise ValueError("make_params: cams must be stacked (jaxmocap.camera.stack_cameras)")
+    if anchors.n_patches != garment.n_patches:
+        raise ValueError(
+            f"make_params: {anchors.n_patches} patch anchors for a garment with "
+            f"{garment.n_patches} patches"
+        )
+    if color.n_colors != garment.n_colours:
+        raise ValueError(
+            f"make_params: colour model has {color.n_colors} colours, garment {garment.n_colours}"
+        )
+    if work_size < 16:
+        raise ValueError(f"make_params: work_size must be >= 16, got {work_size}")
+    sc = tuple(int(s) for s in scales) if scales is not None else scales_for_width(cams.width)
+    return ShirtParams(
+        color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
+        pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
+    )  # fmt: skip
+
+
+def init(
+    params: ShirtParams, W0: Float[Array, "n_cams 3 3"], q0: Float[Array, " n_dof"]
+) -> ShirtState:
+    """Initial state: the user-labelled white balance ``W0`` per camera (§5.1), which also
+    starts each camera's reference illuminations, and a pose ``q0`` (e.g. the rest pose);
+    the first frame is treated as after a loss (no temporal prior)."""
+    W0 = jnp.asarray(W0)
+    if W0.shape != (params.n_cams, 3, 3):
+        raise ValueError(f"init: W0 must be ({params.n_cams}, 3, 3), got {W0.shape}")
+    refs = jax.vmap(init_references)(W0)
+    return ShirtState(W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False))
+
+
+# ----------------------------------------------------------------------------- image helpers
+
+
+def crop_window(x: Array, y: Array, s: Array, factor: float) -> Float[Array, " 4"]:
+    """Square crop ``(x0, y0, side, side)`` of side ``factor s`` centred on ``(x, y)``."""
+    side = factor * s
+    return jnp.stack([x - side / 2, y - side / 2, side, side])
+
+
+def crop_uv(window: Float[Array, " 4"], n: int) -> Float[Array, "n n 2"]:
+    """Image positions of the ``n x n`` working pixels: ``x0 + (j + 1/2) s / n`` (as
+    :func:`jaxmocap.render.window_uv`)."""
+    f = (jnp.arange(n, dtype=window.dtype) + 0.5) / n
+    uu, vv = jnp.meshgrid(window[0] + f * window[2], window[1] + f * window[3])
+    return jnp.stack([uu, vv], axis=-1)
+
+
+def sample_bilinear(
+    image: UInt8[Array, "h w c"] | Float[Array, "h w c"], uv: Float[Array, "m n 2"]
+) -> Float[Array, "m n c"]:
+    """Bilinear samples of ``image`` at pixel positions ``uv`` (x, y), edge-clamped."""
+    h, w = image.shape[:2]
+    dt = uv.dtype
+    x = jnp.clip(uv[..., 0], 0, w - 1)
+    y = jnp.clip(uv[..., 1], 0, h - 1)
+    x0 = jnp.clip(jnp.floor(x), 0, w - 2).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(y), 0, h - 2).astype(jnp.int32)
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    im = image.astype(dt)
+    a, b = im[y0, x0], im[y0, x0 + 1]
+    c, d = im[y0 + 1, x0], im[y0 + 1, x0 + 1]
+    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def sample_nearest(mask: Bool[Array, "h w"], uv: Float[Array, "m n 2"]) -> Bool[Array, "m n"]:
+    """Nearest-pixel samples of a mask at ``uv``; False outside the image."""
+    h, w = mask.shape
+    ij = jnp.round(uv).astype(jnp.int32)
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+    return inside & mask[jnp.clip(ij[..., 1], 0, h - 1), jnp.clip(ij[..., 0], 0, w - 1)]
+
+
+def _erode(ids: Int[Array, "h w"]) -> Int[Array, "h w"]:
+    """Ids kept where the 4 neighbours carry the same id (a one-pixel erosion per id)."""
+    p = jnp.pad(ids, 1, constant_values=-1)
+    same = (
+        (p[:-2, 1:-1] == ids) & (p[2:, 1:-1] == ids) & (p[1:-1, :-2] == ids) & (p[1:-1, 2:] == ids)
+    )
+    return jnp.where(same, ids, 0)
+
+
+def _crop_to_image(win_crop: Float[Array, " 4"], crop: Float[Array, " 4"], n: int) -> Array:
+    """A window in working-pixel coordinates (pixel j covering [j - 1/2, j + 1/2]) as image
+    pixels: ``x = x0 + (x_c + 1/2) s / n``."""
+    k = crop[2] / n
+    return jnp.stack(
+        [crop[0] + (win_crop[0] + 0.5) * k, crop[1] + (win_crop[1] + 0.5) * k,
+         win_crop[2] * k, win_crop[3] * k]
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- the frame step
+
+
+def _root_guess(params: ShirtParams, q_db: Array, win_db: Array, win_q: Array, i: int) -> Array:
+    """Root (6) of the database pose placed in camera ``i`` so that its canonical window
+    ``win_db`` lands on the query window ``win_q``: the root's pixel keeps its normalised
+    position in the window and its depth scales with the window side and focal length."""
+    cam = jax.tree.map(lambda a: a[i], params.cams)
+    canon = params.canon
+    dt = q_db.dtype
+    root_c = canon.t.astype(dt)  # root at the origin: its canonical camera-frame position
+    p_c = canon.K.astype(dt) @ root_c
+    p_c = p_c[:2] / p_c[2]
+    p_i = win_q[:2] + (p_c - win_db[:2]) * win_q[2] / win_db[2]
+    depth = root_c[2] * (cam.K[0, 0] / canon.K[0, 0]) * (win_db[2] / win_q[2])
+    o, d = pixel_rays(cam, p_i)
+    X = o + d * depth / to_camera(cam, o + d)[2]
+    q = pose_in_camera(q_db, cam, to_camera(cam, X))
+    return q[:6]
+
+
+def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
+    n = params.work_size
+    P = params.garment.n_patches
+    dt = state.q.dtype
+    n_cams = params.n_cams
+    cams = params.cams
+    cam_i = [jax.tree.map(lambda a, i=i: a[i], cams) for i in range(n_cams)]
+    patch_colour = params.garment.patch_colour
+
+    # step 0 + 1: search, crop, classify (per camera, unrolled: lax.cond stays a branch)
+    crops, fgs, windows, s_found, found, cls = [], [], [], [], [], []
+    for i in range(n_cams):
+        mask_i = None if masks is None else masks[i]
+        res = histogram_search(frames[i], mask_i, scales=params.scales)
+        win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt), params.crop_factor)
+        uv = crop_uv(win, n)
+        crop = sample_bilinear(frames[i], uv)
+        fg = None if masks is None else sample_nearest(masks[i], uv)
+        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
+        if params.adaptive_white_balance:
+            c = classify_with_references(params.color, refs_i, state.W[i], crop, fg, THRESHOLD)
+        else:
+            c = classify_with_references(
+                params.color, refs_i, state.W[i], crop, fg, THRESHOLD, min_fraction=0.0
+            )
+        crops.append(crop), fgs.append(fg), windows.append(win)
+        s_found.append(res.s.astype(dt)), found.append(res.found), cls.append(c)
+
+    # step 2: database pose per camera, joint angles averaged over cameras that found the shirt
+    q_dbs, win_qs, tiny_patch, win_dbs, okq = [], [], [], [], []
+    for i in range(n_cams):
+        ids = cls[i].ids
+        win_c = window_from_mask(ids > 0)
+        tiny = resample_ids(ids, win_c, TINY_SIZE)
+        q_db = estimate_pose(params.db, tiny)[0].astype(dt)
+        hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
+        q_dbs.append(q_db)
+        win_qs.append(_crop_to_image(win_c, windows[i], n))
+        tiny_patch.append(hits.patch)
+        win_dbs.append(win_db)
+        okq.append(found[i] & (jnp.sum(ids > 0) > 0))
+    okq = jnp.stack(okq)
+    wq = okq.astype(dt) / jnp.maximum(jnp.sum(okq), 1)
+    joints = sum(wq[i] * q_dbs[i][6:] for i in range(n_cams))
+
+    # step 2 (global): 2D constraints = centroids of r^b's patches in each query window
+    cons = [
+        patch_centroids(tiny_patch[i], P, win_qs[i], min_pixels=2, dtype=dt) for i in range(n_cams)
+    ]
+    c_xy = jnp.stack([c.xy for c in cons])
+    c_vis = jnp.stack([c.valid for c in cons]) & okq[:, None]
+    best = jnp.argmax(okq)  # first camera that found the shirt
+    guesses = jnp.stack(
+        [_root_guess(params, q_dbs[i], win_dbs[i], win_qs[i], i) for i in range(n_cams)]
+    )
+    q_b = jnp.concatenate([jnp.zeros(6, dt), joints])
+    root0, _ = initial_root(
+        cams, params.body.chain, params.anchors, c_xy, c_vis, q_b, guesses[best]
+    )
+    glob = solve_global(
+        params.body.chain, cams, params.anchors, c_xy, c_vis, q_b, root0, params.cov.centroid
+    )
+    q_g = glob.q
+
+    # step 3: pose-assisted classification on r^b rendered in each crop, centroids
+    meas, colour_fracs = [], []
+    for i in range(n_cams):
+        uv = crop_uv(windows[i], n)
+        rb = render_uv(params.body, params.garment, q_g, cam_i[i], uv).patch
+        dist = patch_distance_maps(rb, P, dt)
+        W_i = cls[i].W
+        if params.pose_prior:
+            weight = PRIOR_SCALE / s_found[i] * (windows[i][2] / n)  # C = 6/s', d in image px
+            pa = pose_assisted_classify(
+                params.color, W_i, crops[i], dist, patch_colour, weight, fgs[i], POSE_THRESHOLD
+            )
+        else:
+            pa = pose_assisted_classify(
+                params.color, W_i, crops[i], dist, patch_colour, TIE_BREAK_WEIGHT, fgs[i],
+                THRESHOLD,
+            )  # fmt: skip
+        c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
+        meas.append(PatchCentroids(c.xy, c.count, c.valid & okq[i]))
+    c_obs = jnp.stack([m.xy for m in meas])
+    v_obs = jnp.stack([m.valid for m in meas])
+    valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+
+    # step 4: IK with the blend and temporal priors
+    q_h = jnp.where(state.valid, state.q, q_g)
+    sol = solve_ik(params.body.chain, cams, params.anchors, c_obs, v_obs, q_g, q_h, params.cov, q_g)
+    q_star = jnp.where(valid, sol.q, state.q)
+
+    # step 5: white balance for the next frame from r* (q* rendered in each crop)
+    W_new, refs_new, added = [], [], []
+    for i in range(n_cams):
+        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
+        if params.adaptive_white_balance:
+            uv = crop_uv(windows[i], n)
+            r_star = _erode(render_uv(params.body, params.garment, q_star, cam_i[i], uv).colour)
+            W_star = white_balance_from_ids(
+                params.color, crops[i], r_star, cls[i].W, fgs[i], min_pixels=REFERENCE_PIXELS
+            )
+            ok = valid & okq[i] & jnp.all(jnp.isfinite(W_star))
+            W_star = jnp.where(ok, W_star, cls[i].W)
+            refs_i2, add = maybe_add_reference(refs_i, W_star)
+            refs_i = jax.tree.map(lambda a, b: jnp.where(ok, a, b), refs_i2, refs_i)
+            W_new.append(W_star), added.append(add & ok)
+        else:
+            W_new.append(state.W[i]), added.append(jnp.array(False))
+        refs_new.append(refs_i)
+    refs = jax.tree.map(lambda *a: jnp.stack(a), *refs_new)
+    new_state = ShirtState(W=jnp.stack(W_new), refs=refs, q=q_star, valid=valid)
+    out = ShirtOutput(
+        q=q_star,
+        q_blend=q_g,
+        valid=valid,
+        window=jnp.stack(windows),
+        fraction=jnp.stack([c.fraction for c in cls]),
+        used_reference=jnp.stack([c.used_reference for c in cls]),
+        added_reference=jnp.stack(added),
+        centroids=c_obs,
+        visible=v_obs,
+    )
+    return new_state, out
+
+
+TRACE_COUNT = {"step": 0}  # incremented each time ``step`` is traced (tests count recompiles)
+
+
+@eqx.filter_jit
+def _step_jit(params, state, frames, masks):
+    TRACE_COUNT["step"] += 1
+    return _step(params, state, frames, masks)
+
+
+def step(
+    params: ShirtParams,
+    state: ShirtState,
+    frames: UInt8[Array, "n_cams h w 3"],
+    masks: Bool[Array, "n_cams h w"] | None = None,
+) -> tuple[ShirtState, ShirtOutput]:
+    """One frame of Wang et al. §4–5 for every camera (module docstring); jit-compiled once
+    per camera count, image size and settings. ``frames`` RGB ``uint8``; ``masks`` optional
+    foreground masks (e.g. :class:`jaxmocap.color.BackgroundSubtractor`)."""
+    frames = jnp.asarray(frames)
+    if frames.ndim != 4 or frames.shape[0] != params.n_cams or frames.shape[-1] != 3:
+        raise ValueError(f"step: frames must be ({params.n_cams}, H, W, 3) RGB, got {frames.shape}")
+    if frames.dtype != jnp.uint8:
+        raise ValueError(f"step: frames must be uint8, got {frames.dtype}")
+    if masks is not None:
+        masks = jnp.asarray(masks, bool)
+        if masks.shape != frames.shape[:3]:
+            raise ValueError(f"step: masks must be {frames.shape[:3]}, got {masks.shape}")
+    return _step_jit(params, state, frames, masks)
+
+
+def run(
+    params: ShirtParams,
+    state: ShirtState,
+    frames: UInt8[np.ndarray, "t n_cams h w 3"],
+    background: bool = False,
+) -> tuple[ShirtState, ShirtOutput]:
+    """Track a sequence frame by frame (the live loop). With ``background`` each camera gets
+    an OpenCV MOG2 subtractor on the host. Outputs are stacked over frames."""
+    from jaxmocap.color import BackgroundSubtractor
+
+    subs = [BackgroundSubtractor() for _ in range(params.n_cams)] if background else None
+    outs = []
+    for t in range(frames.shape[0]):
+        masks = None
+        if subs is not None:
+            masks = np.stack([s.apply(np.asarray(frames[t, i])) for i, s in enumerate(subs)])
+        state, out = step(params, state, frames[t], masks)
+        outs.append(out)
+    return state, jax.tree.map(lambda *a: jnp.stack(a), *outs)
+
+
+@eqx.filter_jit
+def run_scan(
+    params: ShirtParams,
+    state: ShirtState,
+    frames: UInt8[Array, "t n_cams h w 3"],
+    masks: Bool[Array, "t n_cams h w"] | None = None,
+) -> tuple[ShirtState, ShirtOutput]:
+    """Track a whole sequence under ``jax.lax.scan`` (offline; masks precomputed if any)."""
+    if masks is None:
+        return jax.lax.scan(lambda s, f: _step(params, s, f, None), state, frames)
+    return jax.lax.scan(lambda s, fm: _step(params, s, fm[0], fm[1]), state, (frames, masks))
+
+
+# ----------------------------------------------------------------------------- set-up (§5.1)
+
+SCRIBBLE_EROSION = 2  # pixels removed from every colour region to make "scribbles"
+
+
+def scribbles(colour_ids: Int[np.ndarray, "h w"], erosion: int = SCRIBBLE_EROSION) -> np.ndarray:
+    """Scribble labels from a colour-id map: every colour region eroded by ``erosion`` pixels
+    (OpenCV, 3x3 cross), so labels stay well inside the patches as a user's strokes would."""
+    import cv2
+
+    ids = np.asarray(colour_ids)
+    out = np.zeros(ids.shape, np.int32)
+    kernel = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for k in np.unique(ids[ids > 0]):
+        m = cv2.erode((ids == k).astype(np.uint8), kernel, iterations=int(erosion))
+        out[m > 0] = k
+    return out
+
+
+SCRIBBLE_INTENSITIES = (0.7, 0.85, 1.0, 1.15, 1.3)  # light levels of the five model images
+SCRIBBLE_NOISE = 0.02  # sensor noise of the model images (fraction of 255)
+
+
+def fit_color_model_from_renders(
+    body: BodyModel,
+    garment: Garment,
+    poses: Float[np.ndarray, "n n_dof"],
+    cam: Camera,
+    erosion: int = SCRIBBLE_EROSION,
+    intensities: Sequence[float] = SCRIBBLE_INTENSITIES,
+    noise_sigma: float = SCRIBBLE_NOISE,
+    background: int = 128,
+    seed: int = 0,
+) -> ColorModel:
+    """The offline colour model (Wang §5.1, Fig. 5): "scribbles" on white-balanced images.
+
+    Pose ``i`` is rendered by ``cam`` under white light (identity illuminant) of intensity
+    ``intensities[i % len]`` with sensor noise, over a grey background (the paper's five
+    images are photographs; the varied light level stands in for their exposure and shading
+    differences); its ground-truth colour-id map eroded by ``erosion`` pixels
+    (:func:`scribbles`) labels the pixels; the Gaussians are their ML fit
+    (:func:`jaxmocap.color.fit_color_model`).
+    """
+    from jaxmocap.color import fit_color_model
+    from jaxmocap.render import default_lighting, render_rgb
+
+    dt = cam.K.dtype
+    bg = jnp.full((cam.height, cam.width, 3), background, jnp.uint8)
+
+    @jax.jit
+    def render(q, intensity, key):
+        light = eqx.tree_at(lambda lt: lt.intensity, default_lighting(dt), intensity)
+        return render_rgb(body, garment, q, cam, bg, light, noise_sigma=noise_sigma, key=key)
+
+    images, labels = [], []
+    for i, q in enumerate(np.asarray(poses)):
+        level = jnp.asarray(intensities[i % len(intensities)], dt)
+        rgb, hits = render(jnp.asarray(q, dt), level, jax.random.fold_in(jax.random.key(seed), i))
+        images.append(np.asarray(rgb))
+        labels.append(scribbles(np.asarray(hits.colour), erosion))
+    return fit_color_model(images, labels, garment.n_colours, garment.colour_names)
+
+
+def initial_white_balance(
+    color: ColorModel,
+    frames: UInt8[np.ndarray, "n_cams h w 3"],
+    labels: Int[np.ndarray, "n_cams h w"],
+) -> Float[Array, "n_cams 3 3"]:
+    """``W0`` per camera from one scribbled frame of the capture's light (Wang §5.1):
+    ``labels`` 0 = unlabelled, ``1..k`` colour ids (e.g. :func:`scribbles` of a ground-truth
+    map)."""
+    from jaxmocap.color import white_balance_from_scribbles
+
+    return jnp.stack(
+        [
+            white_balance_from_scribbles(color, [f], [lab])
+            for f, lab in zip(frames, labels, strict=True)
+        ]
+    )
