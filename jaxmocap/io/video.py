@@ -1,0 +1,294 @@
+"""Frame sources (video files, folders of frames, live cameras) and synchronised reading of
+several cameras, with the checks a capture needs before tracking starts.
+
+A *source spec* (one per camera, as given on the command line) is
+
+* a **video file** (anything OpenCV's FFmpeg backend reads: ``.mp4``, ``.avi``, ...);
+* a **folder of frames**: image files (``.png``, ``.jpg``, ``.jpeg``, ``.bmp``, ``.tif``,
+  ``.tiff``) read in sorted name order, one per frame;
+* a **camera index** (``0``, ``1``, ...; a spec made of digits that is not an existing path):
+  a live camera, read frame by frame until stopped.
+
+Frames come out as ``uint8`` (H, W, 3) **RGB** (the library's convention; BGR only inside
+OpenCV). :class:`SyncReader` reads frame ``t`` of every camera together and checks up front
+that all sources have the resolution their camera in ``cameras.json`` declares and (for
+files and folders) the same number of frames; it refuses (:class:`VideoError`, an
+:class:`~jaxmocap.errors.InputError`) a missing or unopenable source, a camera index that does
+not open, mixed live and recorded sources, and sources with no frames.
+
+**Damaged input is tracked as far as it is readable.** A frame that cannot be decoded (a
+corrupt or empty image file, a frame of another size, a video that ends before the number of
+frames its header declares — a truncated file) is yielded as ``None`` for that instant and
+recorded; :meth:`SyncReader.problems` sums them up in one line for the user.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from jaxmocap.errors import InputError
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "FrameSource",
+    "SyncReader",
+    "VideoError",
+    "open_source",
+    "quiet_ffmpeg",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class VideoError(InputError):
+    """A frame source that cannot be used (missing, unreadable, inconsistent with the others)."""
+
+
+def quiet_ffmpeg() -> None:
+    """Silence FFmpeg's and OpenCV's own console messages about damaged files (we report
+    damaged frames ourselves, in one line)."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
+class FrameSource:
+    """One camera's frames. ``n_frames`` is None for a live camera; :meth:`read` returns the
+    next frame as RGB uint8 (H, W, 3), ``None`` for an unreadable frame, and raises
+    ``StopIteration`` at the end."""
+
+    name: str
+    width: int
+    height: int
+    n_frames: int | None
+
+    def read(self) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    @property
+    def live(self) -> bool:
+        return self.n_frames is None
+
+
+class _Folder(FrameSource):
+    def __init__(self, path: Path):
+        self.name = str(path)
+        self.files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+                            and p.is_file())
+        if not self.files:
+            raise VideoError(f"{path}: folder holds no image frames "
+                             f"({', '.join(IMAGE_SUFFIXES)})")
+        self.n_frames = len(self.files)
+        self.errors: list[str] = []
+        first = next((im for im in map(self._load, self.files[:8]) if im is not None), None)
+        if first is None:
+            raise VideoError(f"{path}: none of the first frames can be read as an image "
+                             f"(e.g. {self.files[0].name})")
+        self.height, self.width = first.shape[:2]
+        self._next = 0
+
+    @staticmethod
+    def _load(p: Path) -> np.ndarray | None:
+        if p.stat().st_size == 0:
+            return None
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        return None if img is None or img.size == 0 else img
+
+    def read(self) -> np.ndarray | None:
+        if self._next >= self.n_frames:
+            raise StopIteration
+        p = self.files[self._next]
+        self._next += 1
+        img = self._load(p)
+        if img is None:
+            self.errors.append(f"{p.name} empty or not decodable")
+            return None
+        if img.shape[:2] != (self.height, self.width):
+            self.errors.append(f"{p.name} is {img.shape[1]}x{img.shape[0]}")
+            return None
+        return np.ascontiguousarray(img[..., ::-1])
+
+
+class _Capture(FrameSource):
+    def __init__(self, spec: str | int, name: str, live: bool):
+        self.name = name
+        self.cap = cv2.VideoCapture(spec, cv2.CAP_ANY if live else cv2.CAP_FFMPEG)
+        if not self.cap.isOpened():
+            self.cap.release()
+            if live:
+                raise VideoError(f"camera index {spec}: cannot be opened (no such camera, or "
+                                 "it is in use); list cameras with e.g. `v4l2-ctl --list-devices`")
+            raise VideoError(f"{name}: not a readable video (unknown format, or a damaged or "
+                             "truncated file without its index)")
+        self.width = int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        self.height = int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.n_frames = None if live else count
+        if not live and count <= 0:
+            self.cap.release()
+            raise VideoError(f"{name}: the video declares no frames (empty file?)")
+        self._t = 0
+        self.ended_at: int | None = None
+        self.errors: list[str] = []
+
+    def read(self) -> np.ndarray | None:
+        if self.n_frames is not None and self._t >= self.n_frames:
+            raise StopIteration
+        self._t += 1
+        if self.ended_at is not None:
+            return None
+        ok, img = self.cap.read()
+        if not ok or img is None or img.size == 0:
+            if self.n_frames is None:
+                raise StopIteration  # a live camera stopped delivering
+            self.ended_at = self._t - 1
+            return None
+        if img.shape[:2] != (self.height, self.width):
+            self.errors.append(f"frame {self._t - 1} is {img.shape[1]}x{img.shape[0]}")
+            return None
+        return np.ascontiguousarray(img[..., ::-1])
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def open_source(spec: str | os.PathLike) -> FrameSource:
+    """Open one source spec (module docstring); raises :class:`VideoError`."""
+    text = str(spec)
+    path = Path(text)
+    if path.is_dir():
+        return _Folder(path)
+    if path.is_file():
+        if path.stat().st_size == 0:
+            raise VideoError(f"{path}: empty file (0 bytes)")
+        return _Capture(text, text, live=False)
+    if text.isdigit():
+        return _Capture(int(text), f"camera {text}", live=True)
+    raise VideoError(f"{text}: no such video file, frame folder or camera index")
+
+
+class SyncReader:
+    """Frame ``t`` of every source at once: ``for t, frames in reader`` gives ``frames`` uint8
+    (n_cams, H, W, 3) RGB, or ``None`` when some camera's frame ``t`` is unreadable.
+
+    ``sizes`` — the (width, height) each source must have (from ``cameras.json``).
+    ``max_frames`` — stop after this many instants (needed to end a live capture, or to
+    track a prefix of a recording).
+    """
+
+    def __init__(self, specs: Sequence[str | os.PathLike], names: Sequence[str] | None = None,
+                 sizes: Sequence[tuple[int, int]] | None = None, max_frames: int | None = None):
+        if not specs:
+            raise VideoError("no input given: pass one video, frame folder or camera index "
+                             "per camera")
+        names = [f"cam{i}" for i in range(len(specs))] if names is None else list(names)
+        if len(names) != len(specs):
+            raise VideoError(f"{len(specs)} inputs given for {len(names)} cameras "
+                             f"({', '.join(names)}); give one input per camera, in that order")
+        if max_frames is not None and max_frames < 1:
+            raise VideoError(f"--max-frames must be >= 1, got {max_frames}")
+        self.names = names
+        self.sources: list[FrameSource] = []
+        try:
+            for s in specs:
+                self.sources.append(open_source(s))
+            self._check(sizes)
+        except BaseException:
+            self.close()
+            raise
+        counts = [s.n_frames for s in self.sources]
+        self.n_frames = None if counts[0] is None else counts[0]
+        if max_frames is not None:
+            self.n_frames = max_frames if self.n_frames is None else min(self.n_frames, max_frames)
+        self.missing: list[int] = []
+        self.n_read = 0
+
+    def _check(self, sizes) -> None:
+        src = self.sources
+        live = [s.live for s in src]
+        if any(live) and not all(live):
+            raise VideoError("mixed live cameras and recorded files: use either camera indices "
+                             "or videos/frame folders for all cameras")
+        if sizes is not None:
+            for s, name, (w, h) in zip(src, self.names, sizes, strict=True):
+                if (s.width, s.height) != (int(w), int(h)):
+                    raise VideoError(f"{s.name}: frames are {s.width}x{s.height} but camera "
+                                     f"{name!r} in cameras.json is {w}x{h}; give the inputs in "
+                                     "the cameras' order, at the calibrated resolution")
+        else:
+            res = {(s.width, s.height) for s in src}
+            if len(res) > 1:
+                listing = ", ".join(f"{s.name} {s.width}x{s.height}" for s in src)
+                raise VideoError(f"inputs have different resolutions: {listing}")
+        counts = [s.n_frames for s in src]
+        if not any(live) and len(set(counts)) > 1:
+            listing = ", ".join(f"{s.name} {n} frames" for s, n in zip(src, counts, strict=True))
+            raise VideoError(f"inputs have different lengths: {listing}; cut them to the same "
+                             "synchronised frames")
+
+    @property
+    def live(self) -> bool:
+        return self.sources[0].live
+
+    def __iter__(self) -> Iterator[tuple[int, np.ndarray | None]]:
+        t = 0
+        while self.n_frames is None or t < self.n_frames:
+            frames = []
+            try:
+                for s in self.sources:
+                    frames.append(s.read())
+            except StopIteration:
+                return
+            if any(f is None for f in frames):
+                self.missing.append(t)
+                yield t, None
+            else:
+                self.n_read += 1
+                yield t, np.stack(frames)
+            t += 1
+
+    def problems(self) -> str | None:
+        """One line describing the unreadable frames so far, or None if all were read."""
+        if not self.missing:
+            return None
+        parts = []
+        for s in self.sources:
+            if isinstance(s, _Capture) and s.ended_at is not None:
+                parts.append(f"{s.name} ends after {s.ended_at} of {s.n_frames} declared frames "
+                             "(truncated or corrupt)")
+            errors = getattr(s, "errors", [])
+            if errors:
+                more = f" (+{len(errors) - 3} more)" if len(errors) > 3 else ""
+                parts.append(f"{s.name}: {'; '.join(errors[:3])}{more}")
+        return (f"{len(self.missing)} of {self.n_read + len(self.missing)} frames unreadable "
+                f"({_ranges(self.missing)}): " + "; ".join(parts))
+
+    def close(self) -> None:
+        for s in self.sources:
+            s.close()
+
+    def __enter__(self) -> SyncReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _ranges(ts: Sequence[int]) -> str:
+    """'3, 7-9' for [3, 7, 8, 9]."""
+    out, start = [], None
+    for i, t in enumerate(ts):
+        if start is None:
+            start = t
+        if i + 1 == len(ts) or ts[i + 1] != t + 1:
+            out.append(str(start) if start == t else f"{start}-{t}")
+            start = None
+    return "frames " + ", ".join(out)

@@ -1,0 +1,110 @@
+"""Frame sources and synchronised reading: frames equal to what was written (lossless PNG,
+MJPG within compression error), refusals of inconsistent inputs, damaged input read as far
+as it goes with the rest reported."""
+
+import cv2
+import numpy as np
+import pytest
+
+from jaxmocap.io.video import SyncReader, VideoError, open_source, quiet_ffmpeg
+
+H, W = 24, 32
+
+
+def frames(n, seed=0):
+    rng = np.random.default_rng(seed)
+    out = np.zeros((n, H, W, 3), np.uint8)
+    for t in range(n):
+        out[t] = rng.integers(0, 60, 3, dtype=np.uint8)
+        out[t, 4:12, 2 + 3 * t:10 + 3 * t] = (250, 40, 30)  # a moving red block
+    return out
+
+
+def png_folder(path, fr):
+    path.mkdir()
+    for t, f in enumerate(fr):
+        cv2.imwrite(str(path / f"{t:04d}.png"), f[..., ::-1])
+    return path
+
+
+def avi(path, fr):
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (fr.shape[2], fr.shape[1]))
+    for f in fr:
+        w.write(np.ascontiguousarray(f[..., ::-1]))
+    w.release()
+    return path
+
+
+def test_folder_and_video_read_in_sync(tmp_path):
+    quiet_ffmpeg()
+    fr = frames(4)
+    folder = png_folder(tmp_path / "cam0", fr)
+    video = avi(tmp_path / "cam1.avi", fr)
+    with SyncReader([folder, video], sizes=[(W, H), (W, H)]) as r:
+        assert r.n_frames == 4 and not r.live
+        got = list(r)
+    assert [t for t, _ in got] == [0, 1, 2, 3]
+    for t, f in got:
+        np.testing.assert_array_equal(f[0], fr[t])  # PNG: lossless, RGB order kept
+        assert np.abs(f[1].astype(int) - fr[t]).mean() < 6  # MJPG: lossy
+        assert f[1, 8, 6 + 3 * t, 0] > 180 and f[1, 8, 6 + 3 * t, 2] < 90  # red stays red
+    assert r.problems() is None
+    with SyncReader([folder], max_frames=2) as r:
+        assert [t for t, _ in r] == [0, 1]
+
+
+def test_refusals(tmp_path):
+    quiet_ffmpeg()
+    a = png_folder(tmp_path / "a", frames(3))
+    b = png_folder(tmp_path / "b", frames(2))
+    with pytest.raises(VideoError, match="different lengths: .*a 3 frames, .*b 2 frames"):
+        SyncReader([a, b])
+    big = tmp_path / "big"
+    big.mkdir()
+    cv2.imwrite(str(big / "0.png"), np.zeros((H + 2, W, 3), np.uint8))
+    with pytest.raises(VideoError, match=f"frames are {W}x{H + 2} but camera 'cam0'"):
+        SyncReader([big], sizes=[(W, H)])
+    with pytest.raises(VideoError, match="different resolutions"):
+        SyncReader([a, big])
+    with pytest.raises(VideoError, match="no such video file, frame folder or camera index"):
+        open_source(tmp_path / "missing.mp4")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(VideoError, match="holds no image frames"):
+        open_source(tmp_path / "empty")
+    (tmp_path / "zero.mp4").write_bytes(b"")
+    with pytest.raises(VideoError, match="empty file"):
+        open_source(tmp_path / "zero.mp4")
+    (tmp_path / "junk.mp4").write_bytes(b"this is not a video" * 10)
+    with pytest.raises(VideoError, match="not a readable video"):
+        open_source(tmp_path / "junk.mp4")
+    with pytest.raises(VideoError, match="camera index 97: cannot be opened"):
+        open_source("97")
+    with pytest.raises(VideoError, match="2 inputs given for 1 cameras"):
+        SyncReader([a, a], names=["cam0"])
+
+
+def test_damaged_input_read_as_far_as_possible(tmp_path):
+    quiet_ffmpeg()
+    fr = frames(12, seed=3)
+    folder = png_folder(tmp_path / "f", fr)
+    (folder / "0002.png").write_bytes(b"")  # an empty frame
+    (folder / "0005.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")  # a corrupt one
+    with SyncReader([folder]) as r:
+        got = dict(r)
+        msg = r.problems()
+    assert [t for t, f in got.items() if f is None] == [2, 5]
+    np.testing.assert_array_equal(got[3][0], fr[3])
+    assert msg.startswith("2 of 12 frames unreadable (frames 2, 5)") and "0002.png" in msg
+
+    # a truncated AVI: the header declares 12 frames, the data hold fewer
+    rng = np.random.default_rng(0)
+    noisy = rng.integers(0, 255, (12, H, W, 3), dtype=np.uint8)  # incompressible: even sizes
+    data = avi(tmp_path / "v.avi", noisy).read_bytes()
+    (tmp_path / "t.avi").write_bytes(data[: int(len(data) * 0.7)])
+    with SyncReader([tmp_path / "t.avi"]) as r:
+        got = dict(r)
+        msg = r.problems()
+    n_ok = sum(f is not None for f in got.values())
+    assert len(got) == 12 and 3 <= n_ok < 12
+    assert all(got[t] is not None for t in range(n_ok))  # a readable prefix
+    assert f"ends after {n_ok} of 12 declared frames (truncated or corrupt)" in msg
