@@ -69,7 +69,7 @@ COV_FILE_VERSION = 1
 
 # Solution of the normal equations in the implicit adjoint: SVD (pseudo-inverse), so that a DOF
 # saturated at a joint limit simply has zero sensitivity.
-_OPTIONS = {"jac": __import__('os').environ.get('IKJAC','fwd')}
+_OPTIONS = {"jac": __import__("os").environ.get("IKJAC", "fwd")}
 _ADJOINT = optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
 
 
@@ -264,8 +264,10 @@ def _whiten(W: Array, x: Array) -> Array:
 def _zero_tangent(t):
     if not isinstance(t, SymbolicZero):
         return t
-    return np.zeros(t.aval.shape, t.aval.dtype) if t.aval.dtype == float0 else jnp.zeros(
-        t.aval.shape, t.aval.dtype
+    return (
+        np.zeros(t.aval.shape, t.aval.dtype)
+        if t.aval.dtype == float0
+        else jnp.zeros(t.aval.shape, t.aval.dtype)
     )
 
 
@@ -302,7 +304,6 @@ def _dense_jacobian(f):
         return out, tout
 
     return g
-
 
 
 class _Terms(eqx.Module):
@@ -419,7 +420,12 @@ def _free_index(free_dofs: tuple[int, ...] | None, n_dof: int) -> np.ndarray:
     if free_dofs is None:
         return np.arange(n_dof)
     idx = np.asarray(free_dofs, dtype=np.int64).reshape(-1)
-    if idx.size == 0 or np.any(idx < 0) or np.any(idx >= n_dof) or len(set(idx.tolist())) != idx.size:
+    if (
+        idx.size == 0
+        or np.any(idx < 0)
+        or np.any(idx >= n_dof)
+        or len(set(idx.tolist())) != idx.size
+    ):
         raise ValueError(
             f"solve_ik: free_dofs must be distinct indices in [0, {n_dof}), got {free_dofs}"
         )
@@ -499,7 +505,7 @@ def _solve_ik(
 # ----------------------------------------------------------------------------- global 6-DOF solve
 
 
-def so3_log(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
+def so3_log(R: Float[Array, "3 3"]) -> Float[Array, 3]:
     """Rotation vector (rad) of a rotation matrix; the inverse of ``so3_exp`` on |w| <= pi.
 
     Through the unit quaternion by Shepperd's method (largest diagonal pivot), so it is
@@ -507,14 +513,16 @@ def so3_log(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
     """
     m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
     tr = m00 + m11 + m22
+    a, b, c = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]  # antisymmetric part
+    d, e, f = R[0, 1] + R[1, 0], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1]  # symmetric part
     cands = jnp.stack(
         [
-            jnp.stack([1 + tr, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]),
-            jnp.stack([R[2, 1] - R[1, 2], 1 + m00 - m11 - m22, R[0, 1] + R[1, 0], R[0, 2] + R[2, 0]]),
-            jnp.stack([R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1 - m00 + m11 - m22, R[1, 2] + R[2, 1]]),
-            jnp.stack([R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1 - m00 - m11 + m22]),
+            jnp.stack([1 + tr, a, b, c]),
+            jnp.stack([a, 1 + m00 - m11 - m22, d, e]),
+            jnp.stack([b, d, 1 - m00 + m11 - m22, f]),
+            jnp.stack([c, e, f, 1 - m00 - m11 + m22]),
         ]
-    )  # fmt: skip
+    )
     quat = cands[jnp.argmax(jnp.stack([tr, m00, m11, m22]))]
     quat = quat / jnp.linalg.norm(quat)
     quat = jnp.where(quat[0] < 0, -quat, quat)
@@ -555,8 +563,8 @@ def initial_root(
     centroids: Float[Array, "n_cams n_patches 2"],
     visible: Bool[Array, "n_cams n_patches"],
     q_b: Float[Array, " n_dof"],
-    root_prev: Float[Array, "6"],
-) -> tuple[Float[Array, "6"], Bool[Array, ""]]:
+    root_prev: Float[Array, 6],
+) -> tuple[Float[Array, 6], Bool[Array, ""]]:
     """Initial root (translation m, rotation vector rad) for the global solve (step 2).
 
     With 2+ cameras, patches seen by at least two of them are triangulated (N-view DLT,
@@ -587,7 +595,7 @@ def solve_global(
     centroids: Float[Array, "n_cams n_patches 2"],
     visible: Bool[Array, "n_cams n_patches"],
     q_b: Float[Array, " n_dof"],
-    root_init: Float[Array, "6"],
+    root_init: Float[Array, 6],
     centroid_cov: Float[Array, "*patches 2 2"] | None = None,
     *,
     rtol: float | Float[Array, ""] = DEFAULT_RTOL,
@@ -617,7 +625,7 @@ def _solve_global(
     centroids: Float[Array, "n_cams n_patches 2"],
     visible: Bool[Array, "n_cams n_patches"],
     q_b: Float[Array, " n_dof"],
-    root_init: Float[Array, "6"],
+    root_init: Float[Array, 6],
     centroid_cov: Float[Array, "*patches 2 2"] | None,
     rtol: Float[Array, ""],
     atol: Float[Array, ""],
@@ -654,7 +662,14 @@ def _solve_global(
     args = (X, R0, t0, cams, obs, vis, Wc)
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(
-        fn, solver, jnp.zeros(6, dt), args, max_steps=max_steps, throw=False, adjoint=_ADJOINT, options=_OPTIONS
+        fn,
+        solver,
+        jnp.zeros(6, dt),
+        args,
+        max_steps=max_steps,
+        throw=False,
+        adjoint=_ADJOINT,
+        options=_OPTIONS,
     )
     R, t = place(sol.value, R0, t0)
     q = q_b.at[0:3].set(t).at[3:6].set(so3_log(R))

@@ -62,7 +62,10 @@ class Oracle:
         T = self.transforms(q)
         names = self.model.chain.link_names
         return np.stack(
-            [T[names[li]][:3, :3] @ o + T[names[li]][:3, 3] for li, o in zip(links, offsets)]
+            [
+                T[names[li]][:3, :3] @ o + T[names[li]][:3, 3]
+                for li, o in zip(links, offsets, strict=True)
+            ]
         )
 
     def anchors(self, q):
@@ -346,13 +349,15 @@ def test_grad_wrt_log_covariances_matches_finite_differences(scene, frame, rng):
     n = q_b.size
 
     def loss(theta):
-        cov = ik.IKCovariances(centroid=jnp.diag(jnp.exp(theta[:2])),
-                               blend=jnp.exp(theta[2:2 + n]), prior=jnp.exp(theta[2 + n:]))  # fmt: skip
+        cov = ik.IKCovariances(
+            centroid=jnp.diag(jnp.exp(theta[:2])),
+            blend=jnp.exp(theta[2 : 2 + n]),
+            prior=jnp.exp(theta[2 + n :]),
+        )
         sol = ik.solve_ik(chain, cams, anchors, c_noisy, vis, q_b, q_h, cov, rtol=1e-13, atol=1e-15)
         return jnp.sum((sol.q - q_gt) ** 2)
 
-    theta = jnp.concatenate([jnp.log(jnp.array([1.5, 2.5])),
-                             jnp.log(rng.uniform(0.01, 0.05, n)), jnp.log(rng.uniform(0.01, 0.05, n))])  # fmt: skip
+    theta = jnp.log(jnp.concatenate([jnp.array([1.5, 2.5]), rng.uniform(0.01, 0.05, 2 * n)]))
     g = jax.jit(jax.grad(loss))(theta)
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 1e-6
     h = 1e-3  # central differences: O(h^2) ~ 1e-6 relative; smaller h meets solver noise
@@ -403,3 +408,12 @@ def test_estimate_covariances_and_file_round_trip(scene, rng, tmp_path):
     np.savez(tmp_path / "missing.npz", centroid=np.eye(2))
     with pytest.raises(ValueError, match="missing.npz: missing field 'blend'"):
         ik.IKCovariances.load(tmp_path / "missing.npz")
+
+
+def test_so3_log_matches_scipy_near_zero_and_pi(rng):
+    vecs = [rng.normal(size=3), [0.0, 0.0, np.pi - 1e-9], [1e-10, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    vecs += [u / np.linalg.norm(u) * 3.1 for u in rng.normal(size=(3, 3))]
+    for v in vecs:
+        R = Rotation.from_rotvec(v).as_matrix()
+        ours = np.asarray(jax.jit(ik.so3_log)(jnp.asarray(R)))
+        np.testing.assert_allclose(ours, Rotation.from_matrix(R).as_rotvec(), atol=1e-9)
