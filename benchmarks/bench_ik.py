@@ -142,7 +142,9 @@ def main() -> None:
     frames = [frame() for _ in range(BATCH)]
     bargs = (jnp.asarray(np.stack([f[1] for f in frames])), jnp.asarray(np.stack([vis] * BATCH)),
              jnp.asarray(np.stack([f[2] for f in frames])))  # fmt: skip
-    batched = jax.jit(jax.vmap(lambda c_, v_, qb_: ik.solve_ik(chain, cams, anchors, c_, v_, qb_, qb_, cov)))
+    batched = jax.jit(
+        jax.vmap(lambda c_, v_, qb_: ik.solve_ik(chain, cams, anchors, c_, v_, qb_, qb_, cov))
+    )
     bcompile_ms = time_compile(lambda: batched(*bargs))
     b_ms, b_min = time_call(lambda: batched(*bargs), n=5)
     bsol = batched(*bargs)
