@@ -1,0 +1,394 @@
+"""Likelihood cues of the stereo particle filter (Azad et al. 2007, §II-A, §II-B, §III-B–D).
+
+Every cue is a *log*-likelihood of one configuration (pure JAX; the filter vmaps it over the
+particles, :mod:`jaxmocap.pf.filter`); cues are fused by product, i.e. by summing their
+log-likelihoods (§II-C), and the two cameras by the same rule ("implicit stereo", §III-C).
+
+**Limb contour model.** A limb is a cylinder of radius r (m) around the segment A B fixed in
+one link of the body (the capsules / cylinders of :class:`jaxmocap.body.Geometry`; the torso
+is approximated by one vertical cylinder between the abdomen and thorax centres). In a camera
+with focal length f its projected contour is the two silhouette lines
+
+    a +- n r_a  ->  b +- n r_b,      r_a = f r / z_a,   r_b = f r / z_b,
+
+with a, b the projected axis end points (pixels), z their depths (m) and n the unit normal of
+the projected axis b - a. Each line is sampled at ``M`` points ``t_m = (m + 1/2) / M``, and the
+edge map g (Azad §IV: blurred gradient of the foreground, remapped to [0, 1],
+:func:`jaxmocap.segment.edge_map`) is read by bilinear interpolation (0 outside the image).
+With M_g = (limbs x 2 lines x M) samples g_m per camera:
+
+* edge cue, SSD form (§II-A):  log p_g  = -1 / (2 sigma_g^2 M_g) sum_m (1 - g_m)^2
+* edge cue, SAD form (§III-D): log p_g' = -1 / (2 sigma_g^2) (1 - (1 / M_g) sum_m g_m)
+* distance cue (§III-D):       log p_d' = -1 / (2 sigma_d^2) sum_i valid_i |f_i(s) - c_i|^2
+  for i = head, left hand, right hand (the triangulated skin blobs of :mod:`jaxmocap.blobs`;
+  Azad mark a missing c_i by c_i = 0, we carry an explicit ``valid`` mask instead);
+* region cue, Eq. (1):         log p_r  = -1 / (2 sigma_r^2 M_r) sum_m (1 - r_m)^2
+  with r_m the foreground mask at M_r points spread over the projected limb regions
+  (kept for the comparison of §III-B; the final likelihood leaves it out, §III-D).
+
+The fused likelihood of the tracker is :class:`StereoLikelihood` (edge cue in both cameras x
+distance cue, optionally x region cue). Constants: the named defaults below (the paper gives no
+values; ours are chosen for 320x240 images of a person ~2.3 m from the cameras).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from jaxmocap.body import CAPSULE, CYLINDER, ELLIPSOID, BodyModel, fk, keypoint_index
+from jaxmocap.camera import Camera, to_camera
+
+__all__ = [
+    "DEFAULT_LIMBS",
+    "DISTANCE_NAMES",
+    "POINTS_PER_LINE",
+    "REGION_ACROSS",
+    "SIGMA_D",
+    "SIGMA_G",
+    "SIGMA_R",
+    "LimbModel",
+    "Observation",
+    "StereoLikelihood",
+    "distance_loglik",
+    "distance_points",
+    "edge_loglik",
+    "edge_samples",
+    "limb_endpoints",
+    "limb_model",
+    "pose_transforms",
+    "project_limbs",
+    "region_loglik",
+    "region_samples",
+    "sample_bilinear",
+    "sample_nearest",
+]
+
+# sigma_g: with the SAD form a particle whose contour sees a mean edge value 0.1 lower than
+# another's is exp(0.1 / (2 * 0.1^2)) = e^5 times less likely: sharp enough for N = 1000 to
+# lock on, soft enough that a 1-2 px misfit (g ~ 0.7 at 1.5 px with the default edge blur)
+# keeps weight.
+SIGMA_G = 0.1
+# sigma_d (m): the triangulated blob centroid lies within a few cm of the model's hand / head
+# point (blob centroid vs. the model's hand centre, 1-2 px stereo disparity noise at 2.3 m);
+# 4 cm gives a hand 10 cm off a weight exp(-0.1^2 / (2 * 0.04^2)) = e^-3.1.
+SIGMA_D = 0.04
+SIGMA_R = 0.1  # region cue, same role as sigma_g
+POINTS_PER_LINE = 12  # M samples per contour line (5 limbs x 2 lines x 12 = 120 per camera)
+REGION_ACROSS = 3  # region-cue samples across a limb (x POINTS_PER_LINE along it)
+# the entities of the distance cue, in the order of jaxmocap.blobs.ENTITY_NAMES
+DISTANCE_NAMES = ("head", "l_hand", "r_hand")
+# The bundled body's limbs: capsule geoms by name, and the torso (see module docstring).
+DEFAULT_LIMBS = ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm", ("abdomen", "thorax"))
+
+
+class LimbModel(eqx.Module):
+    """Cylinders of the contour model: axis end points ``p0``, ``p1`` (m) in the frame of link
+    ``link``, radius ``radius`` (m). ``link`` is static (the FK is unrolled over it)."""
+
+    p0: Float[Array, "n_limbs 3"]
+    p1: Float[Array, "n_limbs 3"]
+    radius: Float[Array, " n_limbs"]
+    link: tuple[int, ...] = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def n_limbs(self) -> int:
+        return len(self.link)
+
+
+def limb_model(
+    model: BodyModel, limbs: Sequence[str | tuple[str, str]] = DEFAULT_LIMBS
+) -> LimbModel:
+    """Contour model from the body geometry.
+
+    An entry ``"name"`` is a capsule or cylinder geom: its axis (geom z, +-half length) and
+    radius. An entry ``("a", "b")`` is two ellipsoid geoms of the same link (a torso): the
+    segment between their centres, radius the mean of their half-widths along the link's y
+    axis (the body's left-right axis, the silhouette width seen from the front).
+    """
+    geo = model.geometry
+    pose = np.asarray(geo.pose, np.float64)
+    size = np.asarray(geo.size, np.float64)
+    kind = np.asarray(geo.kind)
+    glink = np.asarray(geo.link)
+
+    def geom(name: str) -> int:
+        if name not in geo.names:
+            raise ValueError(f"limb_model: unknown geom {name!r}; the model has {geo.names}")
+        return geo.names.index(name)
+
+    p0, p1, rad, link, names = [], [], [], [], []
+    for entry in limbs:
+        if isinstance(entry, str):
+            g = geom(entry)
+            if kind[g] not in (CAPSULE, CYLINDER):
+                raise ValueError(f"limb_model: geom {entry!r} is not a capsule or cylinder")
+            r, h = size[g, 0], size[g, 1]
+            p0.append(pose[g, :3, :3] @ [0, 0, -h] + pose[g, :3, 3])
+            p1.append(pose[g, :3, :3] @ [0, 0, h] + pose[g, :3, 3])
+            rad.append(r)
+            link.append(int(glink[g]))
+            names.append(entry)
+        else:
+            ga, gb = (geom(n) for n in entry)
+            if not (kind[ga] == kind[gb] == ELLIPSOID and glink[ga] == glink[gb]):
+                raise ValueError(f"limb_model: {entry} must be two ellipsoids of one link")
+            p0.append(pose[ga, :3, 3])
+            p1.append(pose[gb, :3, 3])
+            width = [
+                np.linalg.norm(pose[g, :3, :3] @ np.diag(size[g]), axis=1)[1] for g in (ga, gb)
+            ]
+            rad.append(float(np.mean(width)))
+            link.append(int(glink[ga]))
+            names.append("+".join(entry))
+    return LimbModel(
+        p0=jnp.asarray(np.array(p0)),
+        p1=jnp.asarray(np.array(p1)),
+        radius=jnp.asarray(np.array(rad)),
+        link=tuple(link),
+        names=tuple(names),
+    )
+
+
+def limb_endpoints(
+    limbs: LimbModel, transforms: Float[Array, "n_links 4 4"]
+) -> tuple[Float[Array, "n_limbs 3"], Float[Array, "n_limbs 3"]]:
+    """World end points A, B (m) of every limb axis, given the links' transforms from ``fk``."""
+    t = transforms[np.asarray(limbs.link)]
+    rot, trans = t[:, :3, :3], t[:, :3, 3]
+    dt = transforms.dtype
+    a = (rot @ limbs.p0.astype(dt)[:, :, None])[..., 0] + trans
+    b = (rot @ limbs.p1.astype(dt)[:, :, None])[..., 0] + trans
+    return a, b
+
+
+def _unit(v: Array) -> Array:
+    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    ok = n2 > jnp.finfo(v.dtype).tiny
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), jnp.zeros_like(v))
+
+
+def project_limbs(
+    cam: Camera,
+    a: Float[Array, "n_limbs 3"],
+    b: Float[Array, "n_limbs 3"],
+    radius: Float[Array, " n_limbs"],
+) -> tuple[Float[Array, "n_limbs 2 2"], Float[Array, "n_limbs 2 2"]]:
+    """The two projected silhouette lines of every limb in ``cam`` (pixels).
+
+    Returns ``(starts, ends)``, each (n_limbs, 2 lines, 2): line k runs from
+    ``a + s_k n r_a`` to ``b + s_k n r_b`` with s = (+1, -1). A pinhole projection (lens
+    distortion is left out: over a limb's width it is a sub-pixel effect); radii in pixels
+    use the mean focal length and each end point's depth.
+    """
+    dt = a.dtype
+    K = cam.K.astype(dt)
+    xa, xb = to_camera(cam, a), to_camera(cam, b)
+    za, zb = xa[:, 2], xb[:, 2]
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    c = K[:2, 2]
+    pa = f * xa[:, :2] / za[:, None] + c[None, :]
+    pb = f * xb[:, :2] / zb[:, None] + c[None, :]
+    d = _unit(pb - pa)
+    n = jnp.stack([-d[:, 1], d[:, 0]], axis=-1)
+    ra = (f * radius.astype(dt) / za)[:, None, None]
+    rb = (f * radius.astype(dt) / zb)[:, None, None]
+    s = jnp.asarray([1.0, -1.0], dt)[None, :, None]
+    starts = pa[:, None, :] + s * n[:, None, :] * ra
+    ends = pb[:, None, :] + s * n[:, None, :] * rb
+    return starts, ends
+
+
+def _line_points(starts: Array, ends: Array, m: int) -> Array:
+    t = (jnp.arange(m, dtype=starts.dtype) + 0.5) / m
+    t = t.reshape((1,) * (starts.ndim - 1) + (m, 1))
+    return starts[..., None, :] * (1 - t) + ends[..., None, :] * t
+
+
+def edge_samples(
+    starts: Float[Array, "*l 2"], ends: Float[Array, "*l 2"], m: int = POINTS_PER_LINE
+) -> Float[Array, "*l m 2"]:
+    """``m`` points ``(1 - t) start + t end`` at ``t = (k + 1/2) / m`` on every line."""
+    return _line_points(starts, ends, m)
+
+
+def region_samples(
+    starts: Float[Array, "n_limbs 2 2"],
+    ends: Float[Array, "n_limbs 2 2"],
+    m: int = POINTS_PER_LINE,
+    across: int = REGION_ACROSS,
+) -> Float[Array, "n_limbs q m 2"]:
+    """A grid of ``across x m`` points inside each projected limb quadrilateral (the region
+    between its two silhouette lines), at fractions ``(j + 1/2) / across`` across."""
+    u = (jnp.arange(across, dtype=starts.dtype) + 0.5) / across
+    u = u[None, :, None]
+    s = starts[:, 0:1, :] * (1 - u) + starts[:, 1:2, :] * u
+    e = ends[:, 0:1, :] * (1 - u) + ends[:, 1:2, :] * u
+    return _line_points(s, e, m)
+
+
+def sample_bilinear(image: Float[Array, "h w"], uv: Float[Array, "*n 2"]) -> Float[Array, "*n"]:
+    """Bilinear interpolation of ``image`` at pixel positions ``uv = (x, y)`` (pixel centres at
+    integers); a neighbour outside the image counts 0 (no edge / background)."""
+    h, w = image.shape
+    x, y = uv[..., 0], uv[..., 1]
+    x0f, y0f = jnp.floor(x), jnp.floor(y)
+    fx, fy = (x - x0f).astype(image.dtype), (y - y0f).astype(image.dtype)
+    x0 = jnp.clip(x0f, -2, w + 1).astype(jnp.int32)
+    y0 = jnp.clip(y0f, -2, h + 1).astype(jnp.int32)
+    flat = image.reshape(-1)
+
+    def at(xi, yi):
+        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+        idx = jnp.clip(yi, 0, h - 1) * w + jnp.clip(xi, 0, w - 1)
+        return jnp.where(inside, flat[idx], jnp.zeros((), image.dtype))
+
+    top = at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx
+    bottom = at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def sample_nearest(image: Array, uv: Float[Array, "*n 2"]) -> Array:
+    """``image`` at the nearest pixel of ``uv`` (0 / False outside the image)."""
+    h, w = image.shape
+    xi = jnp.round(jnp.clip(uv[..., 0], -1, w)).astype(jnp.int32)
+    yi = jnp.round(jnp.clip(uv[..., 1], -1, h)).astype(jnp.int32)
+    inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    v = image.reshape(-1)[jnp.clip(yi, 0, h - 1) * w + jnp.clip(xi, 0, w - 1)]
+    return jnp.where(inside, v, jnp.zeros((), image.dtype))
+
+
+def edge_loglik(
+    g: Float[Array, "*m"], sigma_g: Float[ArrayLike, ""] = SIGMA_G, form: str = "sad"
+) -> Float[Array, ""]:
+    """log p_g (``form="ssd"``, §II-A) or log p_g' (``form="sad"``, §III-D) of the edge values
+    g_m in [0, 1] sampled along one camera's projected contour (all limbs: M_g = g.size)."""
+    g = g.reshape(-1)
+    s2 = 2 * jnp.square(jnp.asarray(sigma_g, g.dtype))
+    if form == "ssd":
+        return -jnp.mean(jnp.square(1 - g)) / s2
+    if form == "sad":
+        return -(1 - jnp.mean(g)) / s2
+    raise ValueError(f"edge_loglik: form must be 'sad' or 'ssd', got {form!r}")
+
+
+def region_loglik(
+    r: Float[Array, "*m"], sigma_r: Float[ArrayLike, ""] = SIGMA_R
+) -> Float[Array, ""]:
+    """log p_r of Eq. (1): r_m the foreground values (0 / 1) at the region samples."""
+    r = r.reshape(-1)
+    return -jnp.mean(jnp.square(1 - r)) / (2 * jnp.square(jnp.asarray(sigma_r, r.dtype)))
+
+
+def distance_loglik(
+    points: Float[Array, "k 3"],
+    targets: Float[Array, "k 3"],
+    valid: Bool[Array, " k"],
+    sigma_d: Float[ArrayLike, ""] = SIGMA_D,
+) -> Float[Array, ""]:
+    """log p_d' (§III-D): -1 / (2 sigma_d^2) sum_i d_i, d_i = |f_i(s) - c_i|^2 (m^2) where
+    ``valid[i]``, 0 for a missing c_i."""
+    d = jnp.sum(jnp.square(points - targets.astype(points.dtype)), axis=-1)
+    d = jnp.where(valid, d, jnp.zeros_like(d))
+    return -jnp.sum(d) / (2 * jnp.square(jnp.asarray(sigma_d, points.dtype)))
+
+
+def distance_points(
+    model: BodyModel, transforms: Float[Array, "n_links 4 4"], names: Sequence[str] = DISTANCE_NAMES
+) -> Float[Array, "k 3"]:
+    """f_i(s): world positions (m) of the named keypoints given the links' transforms."""
+    idx = keypoint_index(model, names)
+    link = np.asarray(model.keypoint_link)[idx]
+    off = model.keypoint_offset[idx].astype(transforms.dtype)
+    t = transforms[link]
+    return (t[:, :3, :3] @ off[:, :, None])[..., 0] + t[:, :3, 3]
+
+
+def pose_transforms(model: BodyModel, q: Float[Array, " n_dof"]) -> Float[Array, "n_links 4 4"]:
+    """The links' world transforms (3x3 + t forward kinematics of :mod:`jaxmocap.body`; links
+    no cue reads are removed by XLA's dead-code elimination)."""
+    return fk(model.chain, q)
+
+
+class Observation(eqx.Module):
+    """What the likelihood reads of one stereo frame (leading time axis for a sequence).
+
+    ``edges`` g (n_cams, h, w) in [0, 1]; ``points`` c_i (3, 3) m and ``valid`` (3,) of the
+    triangulated head, left hand, right hand; ``foreground`` (n_cams, h, w) the foreground
+    mask as 0 / 1 floats (read by the region cue only).
+    """
+
+    edges: Float[Array, "*t n_cams h w"]
+    points: Float[Array, "*t 3 3"]
+    valid: Bool[Array, "*t 3"]
+    foreground: Float[Array, "*t n_cams h w"]
+
+
+class StereoLikelihood(eqx.Module):
+    """The fused likelihood p(z | s) of a configuration s (the filter's DOF subset ``dofs``;
+    the other DOFs held at ``default_q``), as a log-likelihood (Azad §III-D):
+
+        log p = sum_cams log p_g'(cam) [+ log p_d'] [+ sum_cams log p_r(cam)].
+
+    ``edge_form`` "sad" (p_g', the paper's final choice) or "ssd" (p_g); ``use_distance``,
+    ``use_edges``, ``use_region`` switch the cues (static). sigmas are traced (no recompile).
+    """
+
+    model: BodyModel
+    limbs: LimbModel
+    cams: Camera  # stacked (n_cams,)
+    default_q: Float[Array, " n_dof"]
+    sigma_g: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    sigma_d: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    sigma_r: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    dofs: tuple[int, ...] = eqx.field(static=True)
+    points_per_line: int = eqx.field(static=True, default=POINTS_PER_LINE)
+    edge_form: str = eqx.field(static=True, default="sad")
+    use_edges: bool = eqx.field(static=True, default=True)
+    use_distance: bool = eqx.field(static=True, default=True)
+    use_region: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if self.edge_form not in ("sad", "ssd"):
+            raise ValueError(f"StereoLikelihood.edge_form: 'sad' or 'ssd', got {self.edge_form!r}")
+        if self.default_q.shape != (self.model.n_dof,):
+            raise ValueError(
+                f"StereoLikelihood.default_q: expected shape ({self.model.n_dof},), "
+                f"got {self.default_q.shape}"
+            )
+
+    def full_q(self, s: Float[Array, " d"]) -> Float[Array, " n_dof"]:
+        return self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
+
+    def __call__(self, s: Float[Array, " d"], z: Observation) -> Float[Array, ""]:
+        tr = pose_transforms(self.model, self.full_q(s))
+        ll = jnp.zeros((), s.dtype)
+        if self.use_edges or self.use_region:
+            a, b = limb_endpoints(self.limbs, tr)
+
+            def per_cam(cam, edges, fg):
+                starts, ends = project_limbs(cam, a, b, self.limbs.radius)
+                out = jnp.zeros((), s.dtype)
+                if self.use_edges:
+                    g = sample_bilinear(
+                        edges.astype(s.dtype), edge_samples(starts, ends, self.points_per_line)
+                    )
+                    out = out + edge_loglik(g, self.sigma_g.astype(s.dtype), self.edge_form)
+                if self.use_region:
+                    r = sample_nearest(
+                        fg.astype(s.dtype), region_samples(starts, ends, self.points_per_line)
+                    )
+                    out = out + region_loglik(r, self.sigma_r.astype(s.dtype))
+                return out
+
+            ll = ll + jnp.sum(jax.vmap(per_cam)(self.cams, z.edges, z.foreground))
+        if self.use_distance:
+            f = distance_points(self.model, tr)
+            ll = ll + distance_loglik(f, z.points, z.valid, self.sigma_d.astype(s.dtype))
+        return ll

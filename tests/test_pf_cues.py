@@ -1,0 +1,263 @@
+"""Tests of the stereo particle filter's likelihood cues (Azad et al. 2007 §II–III)."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmocap import camera as camlib
+from jaxmocap.body import default_body, fk, keypoint_index, stereo_dofs
+from jaxmocap.pf import cues
+
+SIGMA = 0.2
+
+
+def _front_camera(w=100, h=100, f=100.0):
+    """Camera at the origin looking along world +z (R = I): x right, y down."""
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    return camlib.Camera(K=K, R=np.eye(3), t=np.zeros(3), dist=np.zeros(5), width=w, height=h)
+
+
+def _one_cylinder():
+    """A vertical cylinder 2 m in front of the camera: axis x = 49.5 px, v in [39.5, 59.5],
+    radius 0.1 m -> 5 px: silhouette lines on columns x = 44.5 and x = 54.5."""
+    a = jnp.array([[0.0, -0.2, 2.0]])
+    b = jnp.array([[0.0, 0.2, 2.0]])
+    return a, b, jnp.array([0.1])
+
+
+def test_project_limbs_hand_computed():
+    cam = _front_camera()
+    starts, ends = cues.project_limbs(cam, *_one_cylinder())
+    # d = (0, 1) -> n = (-1, 0): line 0 at x - 5, line 1 at x + 5
+    np.testing.assert_allclose(starts[0], [[44.5, 39.5], [54.5, 39.5]], atol=1e-12)
+    np.testing.assert_allclose(ends[0], [[44.5, 59.5], [54.5, 59.5]], atol=1e-12)
+    # the axis end points agree with OpenCV's projection
+    a, b, _ = _one_cylinder()
+    ref, _ = cv2.projectPoints(
+        np.concatenate([a, b]), np.zeros(3), np.zeros(3), np.asarray(cam.K), np.zeros(5)
+    )
+    np.testing.assert_allclose((starts[0].mean(0), ends[0].mean(0)), ref[:, 0], atol=1e-9)
+
+
+def test_edge_cue_known_lines():
+    """Exact p_g / p_g' on an edge map holding the cylinder's contour with known values."""
+    cam = _front_camera()
+    starts, ends = cues.project_limbs(cam, *_one_cylinder())
+    pts = cues.edge_samples(starts, ends, 8)
+    assert pts.shape == (1, 2, 8, 2)
+    g = np.zeros((100, 100))
+    # samples sit at x = 44.5 / 54.5: half-way between two columns -> bilinear mean of both
+    g[:, 44] = g[:, 45] = 1.0  # line 0 on an edge: g_m = 1
+    g[:, 54], g[:, 55] = 0.2, 0.6  # line 1: g_m = 0.4
+    gm = cues.sample_bilinear(jnp.asarray(g), pts)
+    np.testing.assert_allclose(gm[0, 0], 1.0, atol=1e-12)
+    np.testing.assert_allclose(gm[0, 1], 0.4, atol=1e-12)
+    sad = cues.edge_loglik(gm, SIGMA, "sad")
+    ssd = cues.edge_loglik(gm, SIGMA, "ssd")
+    # SAD: -(1 - mean g) / (2 sigma^2), mean g = 0.7; SSD: -mean (1 - g)^2 / (2 sigma^2)
+    np.testing.assert_allclose(sad, -(1 - 0.7) / (2 * SIGMA**2), rtol=1e-12)
+    np.testing.assert_allclose(ssd, -(0.5 * 0.36) / (2 * SIGMA**2), rtol=1e-12)
+    # perfect match: p = 1
+    assert cues.edge_loglik(jnp.ones(16), SIGMA, "ssd") == 0.0
+    with pytest.raises(ValueError, match="form"):
+        cues.edge_loglik(gm, SIGMA, "abs")
+
+
+def test_sample_bilinear_vs_opencv_remap(rng):
+    img = rng.random((30, 40)).astype(np.float32)
+    uv = rng.uniform(-3, 43, size=(500, 2))
+    uv[:, 1] = rng.uniform(-3, 33, size=500)
+    ours = np.asarray(cues.sample_bilinear(jnp.asarray(img, jnp.float64), jnp.asarray(uv)))
+    ref = cv2.remap(
+        img.astype(np.float64),
+        uv[:, 0].astype(np.float32)[None],
+        uv[:, 1].astype(np.float32)[None],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )[0]
+    # OpenCV quantises the sub-pixel fraction to 1/32
+    np.testing.assert_allclose(ours, ref, atol=1.5 / 32)
+    inner = (uv[:, 0] > 0) & (uv[:, 0] < 39) & (uv[:, 1] > 0) & (uv[:, 1] < 29)
+    x0, y0 = np.floor(uv[inner, 0]).astype(int), np.floor(uv[inner, 1]).astype(int)
+    fx, fy = uv[inner, 0] - x0, uv[inner, 1] - y0
+    exact = (
+        img[y0, x0] * (1 - fx) * (1 - fy)
+        + img[y0, x0 + 1] * fx * (1 - fy)
+        + img[y0 + 1, x0] * (1 - fx) * fy
+        + img[y0 + 1, x0 + 1] * fx * fy
+    )
+    np.testing.assert_allclose(ours[inner], exact, rtol=1e-6)
+
+
+def test_distance_cue_missing_points():
+    f = jnp.array([[0.0, 0.0, 1.7], [0.3, 0.2, 1.0], [0.3, -0.2, 1.0]])
+    c = jnp.array([[0.0, 0.0, 1.6], [0.3, 0.2, 1.0], [0.0, 0.0, 0.0]])
+    valid = jnp.array([True, True, False])
+    ll = cues.distance_loglik(f, c, valid, 0.05)
+    np.testing.assert_allclose(ll, -(0.1**2) / (2 * 0.05**2), rtol=1e-12)
+    # a missing c_i contributes nothing, whatever its value (Azad: c_i = 0)
+    ll_other = cues.distance_loglik(f, c.at[2].set(jnp.array([5.0, 5.0, 5.0])), valid, 0.05)
+    assert ll_other == ll
+    assert cues.distance_loglik(f, c, jnp.zeros(3, bool), 0.05) == 0.0
+
+
+def test_region_cue_fraction():
+    cam = _front_camera()
+    starts, ends = cues.project_limbs(cam, *_one_cylinder())
+    pts = cues.region_samples(starts, ends, m=10, across=4)
+    assert pts.shape == (1, 4, 10, 2)
+    fg = np.zeros((100, 100))
+    fg[35:65, 40:60] = 1.0  # covers the whole projected cylinder (x 44.5..54.5, y 39.5..59.5)
+    r = cues.sample_nearest(jnp.asarray(fg), pts)
+    assert cues.region_loglik(r, SIGMA) == 0.0
+    fg[:, 50:] = 0.0  # only the left half of the region (across fractions 1/8, 3/8) on it
+    r = cues.sample_nearest(jnp.asarray(fg), pts)
+    np.testing.assert_allclose(np.asarray(r).mean(), 0.5)
+    np.testing.assert_allclose(cues.region_loglik(r, SIGMA), -0.5 / (2 * SIGMA**2), rtol=1e-12)
+
+
+# --------------------------------------------------------------------- the fused likelihood
+
+
+@pytest.fixture(scope="module")
+def setup():
+    model = default_body()
+    cams = [
+        camlib.look_at(
+            jnp.array([2.3, y, 1.6]), jnp.array([0.0, y, 1.15]), width=80, height=60, fx=77.0
+        )
+        for y in (-0.055, 0.055)
+    ]
+    rng = np.random.default_rng(1)
+    edges = cv2.GaussianBlur(rng.random((2, 60, 80)).transpose(1, 2, 0), (0, 0), 2.0)
+    edges = edges.transpose(2, 0, 1)
+    edges = (edges - edges.min()) / (edges.max() - edges.min())
+    fg = (rng.random((2, 60, 80)) > 0.5).astype(np.float64)
+    obs = cues.Observation(
+        edges=jnp.asarray(edges),
+        points=jnp.array([[0.0, 0.0, 1.6], [0.2, 0.25, 1.0], [0.0, 0.0, 0.0]]),
+        valid=jnp.array([True, True, False]),
+        foreground=jnp.asarray(fg),
+    )
+    dofs = stereo_dofs(model)
+    lik = cues.StereoLikelihood(
+        model=model,
+        limbs=cues.limb_model(model),
+        cams=camlib.stack_cameras(cams),
+        default_q=jnp.zeros(model.n_dof),
+        sigma_g=SIGMA,
+        sigma_d=0.05,
+        sigma_r=SIGMA,
+        dofs=tuple(int(i) for i in dofs),
+        use_region=True,
+        edge_form="ssd",
+    )
+    s = np.zeros((5, len(dofs)))
+    s[:, 2] = 0.85
+    s += rng.normal(0, 0.3, s.shape) * (np.arange(len(dofs)) >= 3)
+    return model, cams, obs, lik, jnp.asarray(s)
+
+
+def _reference_loglik(model, cams, obs, lik, tr):
+    """Independent NumPy/OpenCV evaluation (cv2.projectPoints, explicit bilinear weights) given
+    the links' transforms ``tr`` (body.fk is checked against pytorch-kinematics elsewhere)."""
+    limbs = lik.limbs
+    p0s, p1s, radii = (np.asarray(x) for x in (limbs.p0, limbs.p1, limbs.radius))
+    edges, fg = np.asarray(obs.edges), np.asarray(obs.foreground)
+    ll = 0.0
+    m = lik.points_per_line
+    for c, cam in enumerate(cams):
+        g_all, r_all = [], []
+        for k, link in enumerate(limbs.link):
+            T = tr[link]
+            ends3 = [T[:3, :3] @ np.asarray(p[k]) + T[:3, 3] for p in (p0s, p1s)]
+            rvec, _ = cv2.Rodrigues(np.asarray(cam.R))
+            uv, _ = cv2.projectPoints(
+                np.array(ends3), rvec, np.asarray(cam.t), np.asarray(cam.K), np.zeros(5)
+            )
+            a, b = uv[:, 0]
+            depth = [(np.asarray(cam.R) @ e + np.asarray(cam.t))[2] for e in ends3]
+            d = (b - a) / np.linalg.norm(b - a)
+            n = np.array([-d[1], d[0]])
+            f = float(cam.K[0, 0])
+            ra, rb = (f * radii[k] / z for z in depth)
+            lines = [(a + sgn * n * ra, b + sgn * n * rb) for sgn in (1, -1)]
+            for p0, p1 in lines:
+                for j in range(m):
+                    t = (j + 0.5) / m
+                    x, y = p0 * (1 - t) + p1 * t
+                    x0, y0 = int(np.floor(x)), int(np.floor(y))
+                    val = 0.0
+                    for xi, yi, wgt in (
+                        (x0, y0, (1 - x + x0) * (1 - y + y0)),
+                        (x0 + 1, y0, (x - x0) * (1 - y + y0)),
+                        (x0, y0 + 1, (1 - x + x0) * (y - y0)),
+                        (x0 + 1, y0 + 1, (x - x0) * (y - y0)),
+                    ):
+                        if 0 <= xi < 80 and 0 <= yi < 60:
+                            val += wgt * edges[c, yi, xi]
+                    g_all.append(val)
+            for u in (np.arange(3) + 0.5) / 3:
+                p0 = lines[0][0] * (1 - u) + lines[1][0] * u
+                p1 = lines[0][1] * (1 - u) + lines[1][1] * u
+                for j in range(m):
+                    t = (j + 0.5) / m
+                    x, y = np.round(p0 * (1 - t) + p1 * t).astype(int)
+                    inside = 0 <= x < 80 and 0 <= y < 60
+                    r_all.append(fg[c, y, x] if inside else 0.0)
+        g_all, r_all = np.array(g_all), np.array(r_all)
+        ll += -np.mean((1 - g_all) ** 2) / (2 * SIGMA**2)
+        ll += -np.mean((1 - r_all) ** 2) / (2 * SIGMA**2)
+    kp = tr
+    idx = keypoint_index(model, cues.DISTANCE_NAMES)
+    for kpi, ci, vi in zip(idx, np.asarray(obs.points), np.asarray(obs.valid), strict=True):
+        link = int(model.keypoint_link[kpi])
+        f = kp[link, :3, :3] @ np.asarray(model.keypoint_offset[kpi]) + kp[link, :3, 3]
+        if vi:
+            ll += -np.sum((f - ci) ** 2) / (2 * 0.05**2)
+    return ll
+
+
+def test_stereo_likelihood_vs_reference_jit_vmap(setup):
+    model, cams, obs, lik, s = setup
+    q = jnp.zeros((s.shape[0], model.n_dof)).at[:, np.asarray(lik.dofs)].set(s)
+    trs = np.asarray(jax.jit(jax.vmap(lambda x: fk(model.chain, x)))(q))
+    ref = np.array([_reference_loglik(model, cams, obs, lik, tr) for tr in trs])
+    single = float(jax.jit(lambda x: lik(x, obs))(s[0]))
+    batched = jax.jit(jax.vmap(lambda x: lik(x, obs)))(s)
+    np.testing.assert_allclose(single, ref[0], rtol=1e-9)
+    np.testing.assert_allclose(batched, ref, rtol=1e-9)
+    assert np.all(np.isfinite(ref)) and np.ptp(ref) > 1.0  # distinct particles, distinct values
+
+
+def test_stereo_likelihood_grad_vs_finite_differences(setup):
+    _, _, obs, lik, s = setup
+    lik_e = eqx_replace(lik, use_region=False)  # the region cue reads a binary map: piecewise const
+    f = jax.jit(lambda x: lik_e(x, obs))
+    g = jax.jit(jax.grad(lambda x: lik_e(x, obs)))(s[0])
+    eps = 1e-6
+    e = np.eye(s.shape[1])
+    fd = np.array(
+        [(f(s[0] + eps * ei) - f(s[0] - eps * ei)) / (2 * eps) for ei in e[[0, 3, 6, 12]]]
+    )
+    np.testing.assert_allclose(np.asarray(g)[[0, 3, 6, 12]], fd, rtol=1e-4, atol=1e-5)
+
+
+def eqx_replace(module, **kw):
+    import dataclasses
+
+    return dataclasses.replace(module, **kw)
+
+
+def test_limb_model_errors():
+    model = default_body()
+    with pytest.raises(ValueError, match="unknown geom"):
+        cues.limb_model(model, ("l_shin",))
+    with pytest.raises(ValueError, match="capsule or cylinder"):
+        cues.limb_model(model, ("thorax",))
+    limbs = cues.limb_model(model)
+    assert limbs.names[-1] == "abdomen+thorax"
+    np.testing.assert_allclose(np.asarray(limbs.radius), [0.05, 0.04, 0.05, 0.04, 0.16])
