@@ -155,7 +155,8 @@ def mirror_table(model: BodyModel) -> Mirror:
 
 def mirror_pose(mirror: Mirror, q: Float[Array, "*b n_dof"]) -> Float[Array, "*b n_dof"]:
     """The left/right mirror image of pose(s) ``q`` (see :func:`mirror_table`)."""
-    return q[..., mirror.perm] * jnp.asarray(mirror.sign, q.dtype)
+    sign = jnp.asarray(mirror.sign, q.dtype).reshape((1,) * (q.ndim - 1) + (-1,))
+    return q[..., mirror.perm] * sign
 
 
 # ----------------------------------------------------------------------------- sampling

@@ -14,19 +14,23 @@ Euclidean distance, ``d = 1/2 ||E(r) - E(r')||^2`` where ``E`` one-hot encodes e
 colour and maps background to the zero vector; the fast search below relies on it.
 
 **Exact search** (the reference). Maps are packed once into 4-bit codes, eight pixels per
-``uint32`` word (200 words), plus a 1-bit silhouette (50 words). For a query code ``c`` and a
+``uint32`` word (200 words), plus a 1-bit silhouette (52 words). For a query code ``c`` and a
 database code ``a``, a nibble of ``x = a ^ c`` is nonzero iff the pixel differs; folding the
-nibble's bits (``x | x >> 1 | x >> 2 ...``) and summing nibbles counts ``n_diff``, and the
-popcount of the silhouettes' XOR counts the background/colour mismatches ``n_sil``, so
-``2 d = 2 n_diff - n_sil``: integers, no multiplications by the 16-colour one-hot. The database is
-stored word-major in chunks, ``(n_chunks, 250, chunk)``; each chunk's distances accumulate word
-by word (a ``fori_loop``, vectorised across the chunk's poses), its 10 best are kept, and the
-chunks' winners are merged. Ties are broken by the lower database index everywhere.
+nibble's bits (``x | x >> 1 | x >> 2``) and summing nibbles counts ``n_diff``, and the popcount
+of the silhouettes' XOR counts the colour/background mismatches ``n_sil``, so
+``2 d = 2 n_diff - n_sil``: integer operations on 1 KB per pose, no one-hot vectors. The
+database is stored word-major in chunks, ``(n_chunks, 252, chunk)``; each chunk's distances
+accumulate word by word (a ``fori_loop``, vectorised across the chunk's poses), its ``k`` best
+are kept and the chunks' winners merged. Ties go to the lower database index everywhere.
 
-**Fast search.** Each map becomes a coarse histogram ``h``: per colour, the pixel counts in
-the 8x8 grid of 5x5-pixel cells (640 values for 10 colours) — a pooling of ``E`` — reduced by
-PCA to ``DESC_DIM`` numbers. One GEMV gives ``||D_i - D_q||^2`` for every pose; the
-``N_CANDIDATES`` best are re-ranked with the exact distance.
+**Fast search** (coarse-to-fine, no extra memory). The pixels are packed in polyphase order:
+first the quarter-resolution grid of even rows and even columns (50 nibble words + 13
+silhouette words), then the odd/odd, even/odd and odd/even grids. The distance restricted to
+the first ``phases`` grids is an unbiased estimate of ``phases / 4`` times the full one; it
+is computed over the whole database from the leading words only (a quarter of the memory
+traffic for ``phases = 1``), its ``N_CANDIDATES`` best are re-ranked with the full distance.
+(Coarse colour histograms projected by PCA, the other classic compact descriptor, recalled
+the exact neighbours far less often at equal cost: measured in benchmarks/bench_posedb.py.)
 
 **Blend.** The pose estimate ``q_b`` weighs the neighbours' poses ``q^i`` by a Gaussian of how
 much farther they are than the best, ``w_i ∝ exp(-(d_i - d_1)^2 / (2 sigma^2))``: joint angles
@@ -43,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float, Int, UInt8, UInt32
+from jaxtyping import Array, Float, Int, Integer, UInt8, UInt32
 
 from ..body import ROOT_DOFS
 from ..errors import InputError
@@ -53,13 +57,16 @@ from ..synth._rotations import quat_to_rotvec
 K_NEIGHBOURS = 10  # Wang et al. §5.2: "the ten nearest neighbors"
 BACKGROUND_WEIGHT = 0.5  # cost of a colour/background mismatch (module docstring)
 PIXELS = TINY_SIZE * TINY_SIZE
-NIBBLE_WORDS = PIXELS // 8  # 4-bit colour codes, 8 per uint32
-SIL_WORDS = PIXELS // 32  # 1-bit silhouette, 32 per uint32
+PHASES = 4  # polyphase grids (even/odd rows x even/odd columns)
+PHASE_PIXELS = PIXELS // PHASES
+PHASE_NIBBLE_WORDS = PHASE_PIXELS // 8  # 4-bit colour codes, 8 per uint32
+PHASE_SIL_WORDS = -(-PHASE_PIXELS // 32)  # 1-bit silhouette, 32 per uint32 (zero-padded)
+NIBBLE_WORDS = PHASES * PHASE_NIBBLE_WORDS
+SIL_WORDS = PHASES * PHASE_SIL_WORDS
 CODE_WORDS = NIBBLE_WORDS + SIL_WORDS
 MAX_COLOURS = 15  # colour ids must fit in 4 bits
-GRID = 8  # histogram cells per side (5x5 pixels each)
-DESC_DIM = 64  # PCA dimensions of the fast-search descriptor
 N_CANDIDATES = 200  # candidates of the fast search re-ranked exactly
+COARSE_PHASES = 1  # grids of the fast search's first stage (1: quarter resolution)
 SEARCH_CHUNK = 8192  # database poses per chunk of the exact search
 BLEND_SIGMA = 8.0  # distance units (pixels), width of the blend weights
 _UNROLL = 4
@@ -78,21 +85,15 @@ class Neighbours(NamedTuple):
 
 
 class PoseDB(eqx.Module):
-    """A pose database ready to query: poses, packed maps and fast-search descriptors.
+    """A pose database ready to query: poses and packed maps.
 
     ``poses[i]`` (n, n_dof) is pose ``q^i`` in the canonical world (root at the origin, see
     :mod:`jaxmocap.posedb`); ``codes[c, :, j]`` the packed map of pose ``c * chunk + j``
-    (module docstring; padding columns are all zero and never returned); ``descriptors`` the
-    PCA descriptors (n_pad, DESC_DIM) and ``sqnorms`` their squared norms (``inf`` on padding);
-    ``hist_mean``/``hist_basis`` the PCA of the 640-d histograms.
+    (module docstring; padding columns are never returned).
     """
 
     poses: Float[Array, "n n_dof"]
     codes: UInt32[Array, "c w chunk"]
-    descriptors: Float[Array, "m d"]
-    sqnorms: Float[Array, " m"]
-    hist_mean: Float[Array, " f"]
-    hist_basis: Float[Array, "f d"]
     n_colours: int = eqx.field(static=True)
     key: str = eqx.field(static=True, default="")
 
@@ -108,23 +109,39 @@ class PoseDB(eqx.Module):
 # ----------------------------------------------------------------------------- codes
 
 
-def pack_map(tiny: Int[Array, "n n"]) -> UInt32[Array, " w"]:
-    """Packed code of one tiny map: 200 words of 4-bit colours (pixel ``p`` in word ``p // 8``
-    at bit ``4 (p % 8)``) then 50 words of silhouette bits (pixel ``p`` at bit ``p % 32`` of
-    word ``p // 32``)."""
-    v = tiny.reshape(-1).astype(jnp.uint32)
-    nib = v.reshape(NIBBLE_WORDS, 8) << (4 * jnp.arange(8, dtype=jnp.uint32))
-    sil = (v > 0).astype(jnp.uint32).reshape(SIL_WORDS, 32) << jnp.arange(32, dtype=jnp.uint32)
+def _polyphase_order() -> np.ndarray:
+    """Pixel indices (row-major) in polyphase order: grids (even, even), (odd, odd),
+    (even, odd), (odd, even), each row-major."""
+    i, j = np.meshgrid(np.arange(TINY_SIZE), np.arange(TINY_SIZE), indexing="ij")
+    flat = i * TINY_SIZE + j
+    return np.concatenate([flat[a::2, b::2].ravel() for a, b in ((0, 0), (1, 1), (0, 1), (1, 0))])
+
+
+POLYPHASE = _polyphase_order()
+
+
+def pack_map(tiny: Integer[Array, "n n"]) -> UInt32[Array, " w"]:
+    """Packed code of one tiny map (pixels in :data:`POLYPHASE` order): 200 words of 4-bit
+    colours (pixel ``p`` of phase ``g`` in word ``50 g + p // 8`` at bit ``4 (p % 8)``), then
+    52 words of silhouette bits (13 per phase, pixel ``p`` at bit ``p % 32`` of word
+    ``13 g + p // 32``)."""
+    v = tiny.reshape(-1)[POLYPHASE].astype(jnp.uint32)
+    nib = v.reshape(NIBBLE_WORDS, 8) << (4 * jnp.arange(8, dtype=jnp.uint32))[None]
+    fg = (v > 0).astype(jnp.uint32).reshape(PHASES, PHASE_PIXELS)
+    fg = jnp.pad(fg, ((0, 0), (0, PHASE_SIL_WORDS * 32 - PHASE_PIXELS)))
+    sil = fg.reshape(SIL_WORDS, 32) << jnp.arange(32, dtype=jnp.uint32)[None]
     return jnp.concatenate([jnp.sum(nib, axis=1, dtype=jnp.uint32),
                             jnp.sum(sil, axis=1, dtype=jnp.uint32)])
 
 
-def unpack_codes(db: PoseDB) -> UInt8[np.ndarray, "n n2 n3"]:
+def unpack_codes(db: PoseDB) -> UInt8[np.ndarray, "n s s"]:
     """The database's tiny maps (n, 40, 40) ``uint8`` recovered from its packed codes."""
     words = np.asarray(db.codes)[:, :NIBBLE_WORDS, :].transpose(0, 2, 1)
     words = words.reshape(-1, NIBBLE_WORDS)[: db.size]
     nibbles = (words[:, :, None] >> (4 * np.arange(8, dtype=np.uint32))) & 15
-    return nibbles.reshape(-1, TINY_SIZE, TINY_SIZE).astype(np.uint8)
+    maps = np.zeros((db.size, PIXELS), np.uint8)
+    maps[:, POLYPHASE] = nibbles.reshape(db.size, PIXELS)
+    return maps.reshape(-1, TINY_SIZE, TINY_SIZE)
 
 
 def _fold(x: Array) -> Array:
@@ -139,8 +156,11 @@ def _nibble_sum(f: Array) -> Array:
     return ((f * jnp.uint32(0x11111111)) >> 28).astype(jnp.int32)
 
 
-def _chunk_distances(codes: UInt32[Array, "w c"], q: UInt32[Array, " w"]) -> Int[Array, " c"]:
-    """``2 d`` between the query code and every column of a word-major chunk."""
+def _chunk_distances(
+    codes: UInt32[Array, "w c"], q: UInt32[Array, " w"], phases: int = PHASES
+) -> Int[Array, " c"]:
+    """``2 d`` (over the first ``phases`` polyphase grids) between the query code and every
+    column of a word-major chunk."""
     zero = jnp.zeros(codes.shape[1], jnp.int32)
 
     def nib(i, acc):
@@ -150,20 +170,20 @@ def _chunk_distances(codes: UInt32[Array, "w c"], q: UInt32[Array, " w"]) -> Int
         j = NIBBLE_WORDS + i
         return acc + lax.population_count(codes[j] ^ q[j]).astype(jnp.int32)
 
-    n_diff = lax.fori_loop(0, NIBBLE_WORDS, nib, zero, unroll=_UNROLL)
-    n_sil = lax.fori_loop(0, SIL_WORDS, sil, zero, unroll=_UNROLL)
+    n_diff = lax.fori_loop(0, phases * PHASE_NIBBLE_WORDS, nib, zero, unroll=_UNROLL)
+    n_sil = lax.fori_loop(0, phases * PHASE_SIL_WORDS, sil, zero, unroll=_UNROLL)
     return 2 * n_diff - n_sil
 
 
 def _row_distances(codes: UInt32[Array, "m w"], q: UInt32[Array, " w"]) -> Int[Array, " m"]:
     """``2 d`` between the query code and a few codes stored row-major."""
-    x = codes ^ q
+    x = codes ^ q[None]
     n_diff = jnp.sum(_nibble_sum(_fold(x[:, :NIBBLE_WORDS])), axis=1)
     n_sil = jnp.sum(lax.population_count(x[:, NIBBLE_WORDS:]).astype(jnp.int32), axis=1)
     return 2 * n_diff - n_sil
 
 
-def map_distance(a: Int[Array, "n n"], b: Int[Array, "n n"]) -> Float[Array, ""]:
+def map_distance(a: Integer[Array, "n n"], b: Integer[Array, "n n"]) -> Float[Array, ""]:
     """The distance ``d(a, b)`` of the module docstring, directly on two id maps."""
     fg_a, fg_b = a > 0, b > 0
     colour = jnp.sum((a != b) & fg_a & fg_b)
@@ -179,63 +199,55 @@ def _check_query(db: PoseDB, tiny: Array, k: int) -> None:
         raise ValueError(f"pose database query: k = {k} must lie in 1..{db.size}")
 
 
-@eqx.filter_jit
-def query_exact(db: PoseDB, tiny: Int[Array, "n n"], k: int = K_NEIGHBOURS) -> Neighbours:
-    """The ``k`` nearest database maps of the tiny id map ``tiny`` (40x40 colour ids), exactly:
-    brute force over the packed codes, chunk by chunk (module docstring). jit/vmap."""
-    _check_query(db, tiny, k)
-    q = pack_map(tiny)
+def _all_distances(db: PoseDB, q: Array, phases: int, k: int) -> tuple[Array, Array]:
+    """The ``k`` smallest ``2 d`` (as negated float32) and their indices, chunk by chunk."""
     n, chunk = db.size, db.chunk
     kc = min(k, chunk)
-    base = jnp.arange(db.codes.shape[0], dtype=jnp.int32)[:, None] * chunk
+    offsets = jnp.arange(db.codes.shape[0], dtype=jnp.int32) * chunk
 
     def one(args):
         codes, offset = args
-        d2 = _chunk_distances(codes, q).astype(jnp.float32)
+        d2 = _chunk_distances(codes, q, phases).astype(jnp.float32)
         idx = offset + jnp.arange(chunk, dtype=jnp.int32)
-        d2 = jnp.where(idx < n, d2, jnp.inf)
-        v, i = lax.top_k(-d2, kc)
+        v, i = lax.top_k(-jnp.where(idx < n, d2, jnp.inf), kc)
         return v, idx[i]
 
-    v, i = lax.map(one, (db.codes, base[:, 0]))
+    v, i = lax.map(one, (db.codes, offsets))
     v, j = lax.top_k(v.reshape(-1), k)
-    return Neighbours(index=i.reshape(-1)[j], distance=-v / 2)
+    return v, i.reshape(-1)[j]
 
 
-# ----------------------------------------------------------------------------- fast search
-
-
-def histogram(tiny: Int[Array, "n n"], n_colours: int) -> Float[Array, " f"]:
-    """Per-colour pixel counts of a tiny map in the ``GRID x GRID`` cells, flattened
-    (cell-major, colour last): ``GRID^2 n_colours`` values (640 for the shirt), float32."""
-    cell = TINY_SIZE // GRID
-    onehot = tiny[..., None] == jnp.arange(1, n_colours + 1, dtype=tiny.dtype)
-    counts = onehot.reshape(GRID, cell, GRID, cell, n_colours).sum(axis=(1, 3))
-    return counts.reshape(-1).astype(jnp.float32)
-
-
-def describe(db: PoseDB, tiny: Int[Array, "n n"]) -> Float[Array, " d"]:
-    """The fast-search descriptor of a tiny map: PCA coordinates of its histogram."""
-    return (histogram(tiny, db.n_colours) - db.hist_mean) @ db.hist_basis
+@eqx.filter_jit
+def query_exact(db: PoseDB, tiny: Integer[Array, "n n"], k: int = K_NEIGHBOURS) -> Neighbours:
+    """The ``k`` nearest database maps of the tiny id map ``tiny`` (40x40 colour ids), exactly:
+    brute force over the packed codes, chunk by chunk (module docstring). jit/vmap."""
+    _check_query(db, tiny, k)
+    v, i = _all_distances(db, pack_map(tiny), PHASES, k)
+    return Neighbours(index=i, distance=-v / 2)
 
 
 @eqx.filter_jit
 def query_fast(
-    db: PoseDB, tiny: Int[Array, "n n"], k: int = K_NEIGHBOURS, candidates: int = N_CANDIDATES
+    db: PoseDB,
+    tiny: Integer[Array, "n n"],
+    k: int = K_NEIGHBOURS,
+    candidates: int = N_CANDIDATES,
+    phases: int = COARSE_PHASES,
 ) -> Neighbours:
-    """The ``k`` nearest database maps of ``tiny``, fast: the ``candidates`` nearest
-    descriptors (one GEMV), re-ranked with the exact distance (module docstring). Equals
-    :func:`query_exact` whenever the exact neighbours are among the candidates. jit/vmap."""
+    """The ``k`` nearest database maps of ``tiny``, coarse to fine: the ``candidates`` nearest
+    on the first ``phases`` polyphase grids, re-ranked with the full distance (module
+    docstring). Equals :func:`query_exact` whenever the exact neighbours are among the
+    candidates. jit/vmap."""
     _check_query(db, tiny, k)
-    m = min(max(candidates, k), db.size)
-    d = describe(db, tiny)
-    score = db.sqnorms - 2.0 * (db.descriptors @ d)
-    _, cand = lax.top_k(-score, m)
+    if not 1 <= phases <= PHASES:
+        raise ValueError(f"query_fast: phases = {phases} must lie in 1..{PHASES}")
+    q = pack_map(tiny)
+    _, cand = _all_distances(db, q, phases, min(max(candidates, k), db.size))
     cand = jnp.sort(cand)  # ties of the exact distance go to the lower index
     codes = db.codes[cand // db.chunk, :, cand % db.chunk]
-    d2 = _row_distances(codes, pack_map(tiny)).astype(jnp.float32)
+    d2 = _row_distances(codes, q).astype(jnp.float32)
     v, j = lax.top_k(-d2, k)
-    return Neighbours(index=cand[j].astype(jnp.int32), distance=-v / 2)
+    return Neighbours(index=cand[j], distance=-v / 2)
 
 
 # ----------------------------------------------------------------------------- blend
@@ -279,7 +291,7 @@ def blend(db: PoseDB, neighbours: Neighbours, sigma: float = BLEND_SIGMA) -> Flo
 @eqx.filter_jit
 def estimate_pose(
     db: PoseDB,
-    tiny: Int[Array, "n n"],
+    tiny: Integer[Array, "n n"],
     k: int = K_NEIGHBOURS,
     sigma: float | Float[Array, ""] = BLEND_SIGMA,
     exact: bool = False,
@@ -290,7 +302,7 @@ def estimate_pose(
     return blend(db, nb, sigma), nb
 
 
-def tiny_from_classified(ids: Int[Array, "h w"]) -> Int[Array, "n n"]:
+def tiny_from_classified(ids: Integer[Array, "h w"]) -> Int[Array, "n n"]:
     """A classified crop (colour ids, 0 = background/unclassified) normalised to the tiny
     40x40 map the same way the database's maps are (:mod:`jaxmocap.render`)."""
     return resample_ids(ids, window_from_mask(ids > 0))
@@ -301,19 +313,18 @@ def tiny_from_classified(ids: Int[Array, "h w"]) -> Int[Array, "n n"]:
 
 @jax.jit
 def _pack_batch(maps: Array) -> Array:
-    return jax.vmap(pack_map)(maps)
+    return jax.vmap(pack_map)(maps).T
 
 
 def make_posedb(
-    maps: UInt8[np.ndarray, "n s s"],
-    poses: Float[np.ndarray, "n n_dof"],
+    maps: np.ndarray | Array,
+    poses: np.ndarray | Array,
     n_colours: int,
     key: str = "",
-    desc_dim: int = DESC_DIM,
     chunk: int = SEARCH_CHUNK,
 ) -> PoseDB:
-    """Pack ``maps`` (n, 40, 40) ``uint8`` and fit the descriptors' PCA (NumPy, float64) into
-    a queryable :class:`PoseDB`; ``poses`` (n, n_dof) are stored as float32."""
+    """Pack ``maps`` (n, 40, 40) ``uint8`` into a queryable :class:`PoseDB` with chunks of
+    ``chunk`` poses (rounded to the database size); ``poses`` (n, n_dof) are stored float32."""
     maps = np.asarray(maps)
     poses = np.asarray(poses)
     if maps.ndim != 3 or maps.shape[1:] != (TINY_SIZE, TINY_SIZE) or maps.dtype != np.uint8:
@@ -326,34 +337,10 @@ def make_posedb(
         raise DatabaseError(f"pose database maps: colour ids must lie in 0..{n_colours} "
                             f"(at most {MAX_COLOURS} colours), found {int(maps.max())}")
     chunk = int(min(chunk, -(-n // 256) * 256))
-    n_chunks = -(-n // chunk)
-    n_pad = n_chunks * chunk
+    n_pad = -(-n // chunk) * chunk
     padded = np.zeros((n_pad, TINY_SIZE, TINY_SIZE), np.uint8)
     padded[:n] = maps
-    codes, hists = [], []
-    hist_batch = jax.jit(jax.vmap(lambda t: histogram(t, n_colours)))
-    for s in range(0, n_pad, chunk):
-        block = jnp.asarray(padded[s:s + chunk])
-        codes.append(np.asarray(_pack_batch(block)).T)
-        hists.append(np.asarray(hist_batch(block), np.float64))
-    h = np.concatenate(hists)[:n]
-    mean = h.mean(axis=0)
-    cov = (h - mean).T @ (h - mean) / max(n - 1, 1)
-    evals, evecs = np.linalg.eigh(cov)
-    dim = min(desc_dim, h.shape[1])
-    basis = evecs[:, ::-1][:, :dim]
-    basis = basis * np.where(basis[np.argmax(np.abs(basis), axis=0), np.arange(dim)] < 0, -1, 1)
-    desc = np.zeros((n_pad, dim), np.float32)
-    desc[:n] = ((h - mean) @ basis).astype(np.float32)
-    sq = np.full(n_pad, np.inf, np.float32)
-    sq[:n] = np.sum(desc[:n].astype(np.float64) ** 2, axis=1)
-    return PoseDB(
-        poses=jnp.asarray(poses.astype(np.float32)),
-        codes=jnp.asarray(np.stack(codes)),
-        descriptors=jnp.asarray(desc),
-        sqnorms=jnp.asarray(sq),
-        hist_mean=jnp.asarray(mean.astype(np.float32)),
-        hist_basis=jnp.asarray(basis.astype(np.float32)),
-        n_colours=int(n_colours),
-        key=key,
-    )
+    codes = [np.asarray(_pack_batch(jnp.asarray(padded[s:s + chunk])))
+             for s in range(0, n_pad, chunk)]
+    return PoseDB(poses=jnp.asarray(poses.astype(np.float32)), codes=jnp.asarray(np.stack(codes)),
+                  n_colours=int(n_colours), key=key)

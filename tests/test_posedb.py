@@ -1,0 +1,300 @@
+"""Tests of the pose database (Wang et al. 2011 §5.2, Step 2).
+
+Oracles: a NumPy brute-force k-NN on the raw maps (``np.lexsort``), the ray caster's own
+renders, the body model's keypoints (mirror symmetry, camera frames), SciPy's rotation mean.
+One small database (2,000 poses) is built once per session in a temporary cache.
+"""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxmocap import posedb
+from jaxmocap.body import default_body, keypoint_index, keypoints
+from jaxmocap.camera import look_at, to_camera
+from jaxmocap.cli import main
+from jaxmocap.errors import InputError
+from jaxmocap.garment import default_garment, single_colour_garment
+from jaxmocap.posedb import _build
+from jaxmocap.synth import HELDOUT_CLIPS, TRAIN_CLIPS
+
+DB_SIZE = 2000
+N_QUERIES = 64
+CONFIG = posedb.SamplingConfig(size=DB_SIZE, seed=3)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("posedb")
+
+
+@pytest.fixture(scope="module")
+def db(cache):
+    return posedb.load_or_build(CONFIG, cache=cache, progress=False)
+
+
+@pytest.fixture(scope="module")
+def maps(db):
+    return posedb.unpack_codes(db)
+
+
+@pytest.fixture(scope="module")
+def heldout():
+    """Held-out poses (punch, dance_b, left turns) at random orientations, rendered by the
+    canonical camera, then corrupted: 3% of pixels set to a random id, shifted by <= 1 px."""
+    model = default_body()
+    pool = posedb.source_pool(model, HELDOUT_CLIPS)
+    cfg = posedb.SamplingConfig(size=N_QUERIES, seed=11, p_real=1.0, joint_noise=0.0,
+                                clips=HELDOUT_CLIPS)
+    poses = posedb.sample_poses(cfg, model, pool)
+    clean = posedb.render_maps(model, default_garment(model), poses, progress=False)
+    rng = np.random.default_rng(5)
+    noisy = clean.copy()
+    flip = rng.uniform(size=noisy.shape) < 0.03
+    noisy[flip] = rng.integers(0, 11, flip.sum())
+    for i in range(len(noisy)):
+        noisy[i] = np.roll(noisy[i], tuple(rng.integers(-1, 2, 2)), axis=(0, 1))
+    return poses, clean, noisy
+
+
+def reference_knn(maps, query, k=10):
+    """NumPy oracle: the distance of the posedb docstring on raw maps, stable order."""
+    a = maps.reshape(len(maps), -1).astype(np.int16)
+    q = query.reshape(-1).astype(np.int16)
+    fg_a, fg_q = a > 0, q > 0
+    d = ((a != q) & fg_a & fg_q).sum(1) + 0.5 * (fg_a != fg_q).sum(1)
+    order = np.lexsort((np.arange(len(d)), d))[:k]
+    return order, d[order]
+
+
+BATCH = 16  # every batched query uses this shape: one compilation per function
+
+
+def _vmapped(fn, **kw):
+    return jax.jit(jax.vmap(lambda db, t: fn(db, t, **kw), in_axes=(None, 0)))
+
+
+EXACT = _vmapped(posedb.query_exact)
+FAST = _vmapped(posedb.query_fast, candidates=100)
+ESTIMATE = _vmapped(posedb.estimate_pose)
+KEYPOINTS = jax.jit(jax.vmap(lambda q: keypoints(default_body(), q)))
+
+
+def batched(fn, db, tinies):
+    """``fn`` over the queries in batches of ``BATCH`` (the last one padded)."""
+    tinies = np.asarray(tinies)
+    n = len(tinies)
+    pad = np.concatenate([tinies, np.repeat(tinies[-1:], -n % BATCH, axis=0)])
+    outs = [fn(db, jnp.asarray(pad[s:s + BATCH])) for s in range(0, len(pad), BATCH)]
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n], *outs)
+
+
+# ----------------------------------------------------------------------------- building
+
+
+def test_build_cached_deterministic_and_versioned(db, maps, cache, monkeypatch):
+    model, garment = default_body(), default_garment()
+    assert db.size == DB_SIZE and maps.shape == (DB_SIZE, 40, 40) and maps.dtype == np.uint8
+    assert maps.max() <= garment.n_colours and 0.15 < (maps > 0).mean() < 0.6
+    key = posedb.database_key(CONFIG, model, garment)
+    path = posedb.cache_path(key, cache)
+    assert db.key == key and path.exists()
+    with np.load(path) as f:
+        np.testing.assert_array_equal(f["maps"], maps)  # codes round-trip to the maps
+        assert json.loads(str(f["meta"]))["config"]["size"] == DB_SIZE
+
+    def no_build(*a, **k):
+        raise AssertionError("the second call must load the cache, not build")
+
+    monkeypatch.setattr(_build, "build_arrays", no_build)
+    again = posedb.load_or_build(CONFIG, cache=cache, progress=False)
+    np.testing.assert_array_equal(np.asarray(again.codes), np.asarray(db.codes))
+    np.testing.assert_array_equal(np.asarray(again.poses), np.asarray(db.poses))
+    monkeypatch.undo()
+    # any setting that changes the content changes the key; the default clips are TRAIN_CLIPS
+    keys = {key, posedb.database_key(CONFIG._replace(seed=4), model, garment),
+            posedb.database_key(CONFIG._replace(size=DB_SIZE + 1), model, garment),
+            posedb.database_key(CONFIG._replace(yaw_range=1.0), model, garment),
+            posedb.database_key(CONFIG, model, single_colour_garment(model, (0.8, 0.1, 0.1)))}
+    assert len(keys) == 5
+    assert key == posedb.database_key(CONFIG._replace(clips=TRAIN_CLIPS), model, garment)
+    # building is deterministic
+    small = posedb.SamplingConfig(size=40, seed=9)
+    a, b = (_build.build_arrays(small, model, garment, progress=False) for _ in range(2))
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_sampling_and_mirror():
+    model = default_body()
+    pool = posedb.source_pool(model, TRAIN_CLIPS)
+    cfg = posedb.SamplingConfig(size=300, seed=1)
+    q = posedb.sample_poses(cfg, model, pool)
+    lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+    assert np.all(q[:, 6:] >= lo[6:] - 1e-6) and np.all(q[:, 6:] <= hi[6:] + 1e-6)
+    assert np.all(q[:, :3] == 0)
+    # camera-relative orientation: yaw all around, small pitch/roll (ZYX Euler, SciPy)
+    ypr = Rotation.from_rotvec(q[:, 3:6].astype(np.float64)).as_euler("ZYX")
+    assert ypr[:, 0].min() < -2.8 and ypr[:, 0].max() > 2.8
+    assert np.abs(ypr[:, 1]).max() <= cfg.pitch_range + 1e-5
+    assert np.abs(ypr[:, 2]).max() <= cfg.roll_range + 1e-5
+    # real frames only, no mirror, no jitter: every pose's joints are a pool frame's
+    real = posedb.sample_poses(cfg._replace(p_real=1.0, p_mirror=0.0, joint_noise=0.0),
+                               model, pool)
+    gap = np.abs(real[:, None, 6:] - pool[None, :, 6:]).max(-1).min(-1)
+    assert gap.max() < 1e-6
+    # the mirror reflects keypoints in the sagittal plane y -> -y, swapping l_ and r_
+    mirror = posedb.mirror_table(model)
+    qj = jnp.asarray(q[:20].astype(np.float64)).at[:, :3].set(jnp.asarray([0.1, 0.2, 0.9]))
+    kp = np.asarray(KEYPOINTS(qj))
+    kpm = np.asarray(KEYPOINTS(posedb.mirror_pose(mirror, qj)))
+    names = model.keypoint_names
+    swap = keypoint_index(model, [n.replace("l_", "#").replace("r_", "l_").replace("#", "r_")
+                                  for n in names])
+    np.testing.assert_allclose(kpm, kp[:, swap] * np.array([1.0, -1.0, 1.0]), atol=1e-9)
+    np.testing.assert_allclose(posedb.mirror_pose(mirror, posedb.mirror_pose(mirror, qj)), qj)
+    with pytest.raises(InputError, match="size"):
+        posedb.SamplingConfig(size=0).validate()
+    with pytest.raises(InputError, match="clips"):
+        posedb.source_pool(model, ("no_such_clip",))
+
+
+# ----------------------------------------------------------------------------- search
+
+
+def test_exact_search_equals_numpy(db, maps, heldout):
+    _, _, noisy = heldout
+    queries = np.concatenate([maps[[0, 7, 1999]], noisy[:13]])
+    got = batched(EXACT, db, queries)
+    for i, q in enumerate(queries):
+        idx, dist = reference_knn(maps, q)
+        np.testing.assert_array_equal(np.asarray(got.index[i]), idx)
+        np.testing.assert_array_equal(np.asarray(got.distance[i]), dist)
+    # the distance on maps, directly (float32 distance of pixel counts)
+    d = posedb.map_distance(jnp.asarray(queries[3]), jnp.asarray(maps[5]))
+    assert float(d) == reference_knn(maps[5:6], queries[3], 1)[1][0]
+    # jit and plain calls, chunked layout (several chunks, padding) give the same neighbours
+    small = posedb.make_posedb(maps[:700], np.asarray(db.poses[:700]), 10, chunk=256)
+    assert small.codes.shape == (3, 252, 256)
+    np.testing.assert_array_equal(posedb.unpack_codes(small), maps[:700])
+    nb = posedb.query_exact(small, jnp.asarray(queries[4]), k=12)
+    idx, dist = reference_knn(maps[:700], queries[4], 12)
+    np.testing.assert_array_equal(np.asarray(nb.index), idx)
+    np.testing.assert_array_equal(np.asarray(nb.distance), dist)
+
+
+def test_fast_search_agrees_with_exact(db, heldout):
+    _, clean, noisy = heldout
+    queries = np.concatenate([clean, noisy])
+    exact = batched(EXACT, db, queries)
+    # first stage on the quarter-resolution grid, 100 candidates of 2,000 re-ranked exactly
+    fast = batched(FAST, db, queries)
+    same = np.all(np.asarray(exact.index) == np.asarray(fast.index), axis=1)
+    assert same.mean() >= 0.99
+    np.testing.assert_array_equal(np.asarray(exact.distance)[same], np.asarray(fast.distance)[same])
+
+
+def test_member_query_returns_itself(db, maps):
+    members = np.array([3, 250, 1024, 1999])
+    unique = [i for i in members if np.sum(np.all(maps == maps[i], axis=(1, 2))) == 1]
+    assert len(unique) >= 3
+    for fn in (EXACT, FAST):
+        nb = batched(fn, db, maps[unique])
+        np.testing.assert_array_equal(np.asarray(nb.index[:, 0]), unique)
+        np.testing.assert_array_equal(np.asarray(nb.distance[:, 0]), 0.0)
+        assert np.all(np.asarray(nb.distance[:, 1]) > 0)
+
+
+# ----------------------------------------------------------------------------- blend
+
+
+def test_blend(db, maps):
+    q = np.asarray(db.poses[123], np.float64)
+    same = posedb.blend_poses(jnp.asarray(np.tile(q, (10, 1))), jnp.arange(10.0))
+    np.testing.assert_allclose(same, q, atol=1e-12)
+    # two poses at equal distance: joints average, root rotation at the geodesic midpoint
+    q2 = np.asarray(db.poses[456], np.float64)
+    r1, r2 = Rotation.from_rotvec(q[3:6]), Rotation.from_rotvec(q2[3:6])
+    if (r1.inv() * r2).magnitude() > 2.5:
+        q2[3:6] = (r1 * Rotation.from_rotvec([0.0, 0.0, 1.0])).as_rotvec()
+        r2 = Rotation.from_rotvec(q2[3:6])
+    mid = posedb.blend_poses(jnp.asarray(np.stack([q, q2])), jnp.asarray([4.0, 4.0]))
+    np.testing.assert_allclose(mid[6:], (q[6:] + q2[6:]) / 2, atol=1e-12)
+    ref = Rotation.concatenate([r1, r2]).mean()  # SciPy's chordal L2 mean
+    err = (Rotation.from_rotvec(np.array(mid[3:6])).inv() * ref).magnitude()
+    assert err < 1e-9
+    # the weights favour the nearest: a far second neighbour barely moves the blend
+    far = posedb.blend_poses(jnp.asarray(np.stack([q, q2])), jnp.asarray([0.0, 80.0]))
+    np.testing.assert_allclose(far, q, atol=1e-6)
+    # estimate_pose of a member is that member's pose, plain, jit and vmap alike
+    qb, nb = posedb.estimate_pose(db, jnp.asarray(maps[77]))
+    assert int(nb.index[0]) == 77
+    qv, nbv = batched(ESTIMATE, db, maps[[77, 78]])
+    np.testing.assert_allclose(qv[0], qb, atol=1e-6)
+    np.testing.assert_array_equal(nbv.index[0], nb.index)
+    nb78 = jax.tree.map(lambda a: jnp.asarray(a[1]), nbv)
+    np.testing.assert_allclose(qv[1], posedb.blend(db, nb78), atol=1e-6)
+
+
+def test_heldout_pose_accuracy(db, heldout):
+    """Blended held-out estimates beat the database's mean pose (root-aligned joint error)."""
+    poses, _, noisy = heldout
+    qb, _ = batched(ESTIMATE, db, noisy)
+    truth = np.asarray(KEYPOINTS(jnp.asarray(poses, jnp.float64)))
+    est = np.asarray(KEYPOINTS(jnp.asarray(qb, jnp.float64)))
+    mean_pose = np.asarray(db.poses, np.float64).mean(0)
+    base = np.asarray(KEYPOINTS(jnp.asarray(np.tile(mean_pose, (len(poses), 1)))))
+    err = np.linalg.norm(est - truth, axis=-1).mean() * 100
+    err_base = np.linalg.norm(base - truth, axis=-1).mean() * 100
+    assert err < 0.6 * err_base, (err, err_base)
+
+
+# ----------------------------------------------------------------------------- cameras
+
+
+def test_pose_in_camera(db):
+    model = default_body()
+    q = jnp.asarray(db.poses[42], jnp.float64)
+    canon = posedb.canonical_camera(jnp.float64)
+    cam = look_at((1.0, -2.5, 1.8), (0.3, 0.4, 1.0), width=640, height=480, fx=600.0)
+    x_canon = to_camera(canon, keypoints(model, q))
+    # default: the root where the canonical camera sees it: same camera-frame keypoints
+    qw = posedb.pose_in_camera(q, cam)
+    np.testing.assert_allclose(to_camera(cam, keypoints(model, qw)), x_canon, atol=1e-9)
+    # another line of sight: the body turns with it, R_x (x_canon - t_canon) + x
+    x = jnp.asarray([0.4, -0.2, 2.2])
+    qw = jax.jit(posedb.pose_in_camera)(q, cam, x)
+    t_c = np.asarray(canon.t)
+    a, b = t_c / np.linalg.norm(t_c), np.asarray(x) / np.linalg.norm(x)
+    axis = np.cross(a, b)
+    r_x = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arccos(a @ b)).as_matrix()
+    expect = (np.asarray(x_canon) - t_c) @ r_x.T + np.asarray(x)
+    np.testing.assert_allclose(to_camera(cam, keypoints(model, qw)), expect, atol=1e-9)
+    # gradients flow (no NaN at the default, where R_x is the identity)
+    g = jax.grad(lambda w: jnp.sum(posedb.pose_in_camera(q.at[3:6].set(w), cam)))(q[3:6])
+    assert np.all(np.isfinite(g))
+
+
+# ----------------------------------------------------------------------------- files and CLI
+
+
+def test_files_and_cli(tmp_path, capsys):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, nothing=np.zeros(3))
+    with pytest.raises(InputError, match="bad.npz"):
+        posedb.load_database(bad)
+    with pytest.raises(InputError, match="maps"):
+        posedb.make_posedb(np.zeros((3, 40, 40), np.int32), np.zeros((3, 24)), 10)
+    assert main(["build-db", "--size", "0"]) == 2
+    assert main(["build-db", "--size", "5", "--out", str(tmp_path / "db.txt")]) == 2
+    assert "expected a path ending in .npz" in capsys.readouterr().err
+    out = tmp_path / "db.npz"
+    assert main(["build-db", "--size", "12", "--seed", "2", "--out", str(out), "--quiet"]) == 0
+    loaded = posedb.load_database(out)
+    assert loaded.size == 12 and "12 poses" in capsys.readouterr().out
+    cfg = posedb.SamplingConfig(size=12, seed=2)
+    assert loaded.key == posedb.database_key(cfg, default_body(), default_garment())
