@@ -1,0 +1,255 @@
+"""``jaxmocap colors``: scribbled images -> the shirt's colour model ``colors.json`` (Wang §5.1),
+or with ``--white-balance`` one scribbled frame per camera of the capture's light -> the
+initial white balance ``W0`` per camera (``white_balance.json``).
+
+Scribbles are a label image beside each photo: a single-channel PNG (8 or 16 bit) of the
+photo's size where pixel value ``k`` marks colour ``k`` (1..K) and 0 marks "no label".
+
+``white_balance.json``::
+
+    {"format": "jaxmocap.white_balance", "version": 1,
+     "cameras": {"cam0": [[w00, w01, w02], [w10, ...], [...]], "cam1": ...}}
+
+``W`` maps a camera's RGB (0..255) to the colour model's: ``W rgb_observed ~ mu_k``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from jaxmocap.color import (
+    ColorModel,
+    fit_color_model,
+    load_color_model,
+    save_color_model,
+    white_balance_from_scribbles,
+)
+from jaxmocap.errors import InputError
+from jaxmocap.io.atomic import check_output_file, write_text
+
+__all__ = [
+    "MIN_COLORS_FOR_W",
+    "MIN_SCRIBBLE_PIXELS",
+    "WhiteBalanceFileError",
+    "add_parser",
+    "load_white_balance",
+    "read_label_mask",
+    "read_rgb",
+    "run",
+    "save_white_balance",
+]
+
+WB_FORMAT = "jaxmocap.white_balance"
+WB_VERSION = 1
+MIN_SCRIBBLE_PIXELS = 20  # labelled pixels a colour needs (cf. color.whitebalance.MIN_PIXELS)
+MIN_COLORS_FOR_W = 3  # a 3x3 W is determined by >= 3 colours (fewer: only the prior decides)
+
+EPILOG = """examples:
+  # colour model from scribbled photos of the shirt (label k = colour k, 0 = none)
+  jaxmocap colors --images shirt1.png shirt2.png --masks shirt1_labels.png shirt2_labels.png \\
+      --names red green blue yellow --out colors.json
+  # initial white balance of each camera from one scribbled frame of the capture
+  jaxmocap colors --white-balance --colors colors.json --images cam0.png cam1.png \\
+      --masks cam0_labels.png cam1_labels.png --out white_balance.json
+"""
+
+
+class WhiteBalanceFileError(InputError):
+    """A ``white_balance.json`` that is missing or malformed (file and field named)."""
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """An image file as uint8 (H, W, 3) RGB; raises InputError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such image file")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None or img.size == 0:
+        raise InputError(f"{path}: not a readable image (empty or corrupt)")
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def read_label_mask(path: str | os.PathLike) -> np.ndarray:
+    """A label PNG as int32 (H, W): single-channel 8/16-bit, or 3 equal channels."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such label mask file")
+    lab = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if lab is None or lab.size == 0:
+        raise InputError(f"{path}: not a readable label image (empty or corrupt)")
+    if lab.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{path}: label mask must be 8- or 16-bit integers, got {lab.dtype}")
+    if lab.ndim == 3:
+        if lab.shape[2] == 4:
+            lab = lab[..., :3]
+        if not (np.all(lab[..., 0] == lab[..., 1]) and np.all(lab[..., 0] == lab[..., 2])):
+            raise InputError(f"{path}: label mask must be single-channel (grey values 0..K), got "
+                             "a colour image")
+        lab = lab[..., 0]
+    return lab.astype(np.int32)
+
+
+def _read_pairs(args) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    if not args.images:
+        raise InputError("--images: give at least one image")
+    if len(args.masks or []) != len(args.images):
+        raise InputError(f"--masks: need one label mask per image, got {len(args.images)} images "
+                         f"and {len(args.masks or [])} masks")
+    images, labels = [], []
+    for ip, mp in zip(args.images, args.masks, strict=True):
+        img, lab = read_rgb(ip), read_label_mask(mp)
+        if lab.shape != img.shape[:2]:
+            raise InputError(f"{mp}: label mask is {lab.shape[1]}x{lab.shape[0]} but image {ip} "
+                             f"is {img.shape[1]}x{img.shape[0]}; they must be the same size")
+        images.append(img)
+        labels.append(lab)
+    return images, labels
+
+
+def _check_labels(masks: list[str], labels: list[np.ndarray], n_colors: int,
+                  need_all: bool) -> np.ndarray:
+    """Per-colour pixel counts; refuse labels > n_colors and (``need_all``) colours with too
+    few pixels."""
+    for mp, lab in zip(masks, labels, strict=True):
+        bad = np.unique(lab[(lab < 0) | (lab > n_colors)])
+        if bad.size:
+            raise InputError(f"{mp}: labels {bad[:5].tolist()} out of range: expected 0 (none) "
+                             f"or a colour 1..{n_colors}")
+    counts = np.zeros(n_colors + 1, np.int64)
+    for lab in labels:
+        counts += np.bincount(lab.reshape(-1), minlength=n_colors + 1)
+    if need_all:
+        few = [k for k in range(1, n_colors + 1) if counts[k] < MIN_SCRIBBLE_PIXELS]
+        if few:
+            k = few[0]
+            raise InputError(f"colour {k} has {counts[k]} labelled pixels in the masks (need >= "
+                             f"{MIN_SCRIBBLE_PIXELS}): scribble more of colour {k}, or lower "
+                             "--n-colors if the shirt has fewer colours")
+    return counts[1:]
+
+
+def save_white_balance(path: str | os.PathLike, W: dict[str, np.ndarray]) -> Path:
+    """Write ``white_balance.json`` (module docstring) atomically."""
+    doc = {"format": WB_FORMAT, "version": WB_VERSION,
+           "cameras": {n: np.asarray(w, np.float64).tolist() for n, w in W.items()}}
+    return write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def load_white_balance(path: str | os.PathLike, names: list[str]) -> np.ndarray:
+    """The (n_cams, 3, 3) W0 of the cameras ``names`` from ``white_balance.json``."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as e:
+        raise WhiteBalanceFileError(f"{path}: cannot read: {e.strerror}") from None
+    except json.JSONDecodeError as e:
+        raise WhiteBalanceFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    if not isinstance(doc, dict) or doc.get("format") != WB_FORMAT:
+        raise WhiteBalanceFileError(f"{path}: field 'format': expected {WB_FORMAT!r}")
+    if doc.get("version") != WB_VERSION:
+        raise WhiteBalanceFileError(f"{path}: field 'version': expected {WB_VERSION}, got "
+                                    f"{doc.get('version')!r}")
+    cams = doc.get("cameras")
+    if not isinstance(cams, dict):
+        raise WhiteBalanceFileError(f"{path}: field 'cameras': expected an object name -> 3x3")
+    out = []
+    for n in names:
+        if n not in cams:
+            raise WhiteBalanceFileError(f"{path}: field 'cameras': no entry for camera {n!r} "
+                                        f"(has {sorted(cams)})")
+        try:
+            w = np.asarray(cams[n], np.float64)
+        except (TypeError, ValueError):
+            w = np.zeros(0)
+        if w.shape != (3, 3) or not np.all(np.isfinite(w)):
+            raise WhiteBalanceFileError(f"{path}: field 'cameras.{n}': expected a finite 3x3 "
+                                        "matrix")
+        out.append(w)
+    return np.stack(out)
+
+
+def _run_model(args, out: Path) -> int:
+    images, labels = _read_pairs(args)
+    n = args.n_colors or int(max(lab.max() for lab in labels))
+    if n < 1:
+        raise InputError("the label masks hold no labels (all 0): scribble each shirt colour "
+                         "with its label value 1..K")
+    if args.names and len(args.names) != n:
+        raise InputError(f"--names: {len(args.names)} names for {n} colours")
+    counts = _check_labels(args.masks, labels, n, need_all=True)
+    model = fit_color_model(images, labels, n, tuple(args.names or ()))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_color_model(out, model)
+    names = model.names or tuple(f"color{k + 1}" for k in range(n))
+    mean = np.asarray(model.mean)
+    for k in range(n):
+        sd = np.sqrt(np.diag(np.asarray(model.cov[k])))
+        print(f"colour {k + 1} {names[k]}: {counts[k]} px, mean RGB "
+              f"({mean[k, 0]:.0f}, {mean[k, 1]:.0f}, {mean[k, 2]:.0f}), sd "
+              f"({sd[0]:.1f}, {sd[1]:.1f}, {sd[2]:.1f})")
+    print(f"wrote {out}")
+    return 0
+
+
+def _run_white_balance(args, out: Path) -> int:
+    if not args.colors:
+        raise InputError("--white-balance needs --colors colors.json (the colour model)")
+    model: ColorModel = load_color_model(args.colors)
+    images, labels = _read_pairs(args)
+    names = args.names or [f"cam{i}" for i in range(len(images))]
+    if len(names) != len(images) or len(set(names)) != len(names):
+        raise InputError(f"--names: need {len(images)} distinct camera names, got {names}")
+    W = {}
+    for name, mp, img, lab in zip(names, args.masks, images, labels, strict=True):
+        counts = _check_labels([mp], [lab], model.n_colors, need_all=False)
+        usable = int((counts >= MIN_SCRIBBLE_PIXELS).sum())
+        if usable < MIN_COLORS_FOR_W:
+            raise InputError(f"{mp}: {usable} colours have >= {MIN_SCRIBBLE_PIXELS} labelled "
+                             f"pixels, need >= {MIN_COLORS_FOR_W} to determine W: scribble "
+                             "more colours of the shirt in this frame")
+        W[name] = np.asarray(white_balance_from_scribbles(model, [img], [lab]), np.float64)
+        print(f"{name}: W from {usable} colours, diag ({W[name][0, 0]:.3f}, "
+              f"{W[name][1, 1]:.3f}, {W[name][2, 2]:.3f})")
+    save_white_balance(out, W)
+    print(f"wrote {out}")
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "colors", help="fit the shirt's colour model (colors.json) or an initial white balance "
+        "from scribbled images",
+        description="Fit one Gaussian per shirt colour from labelled pixels (Wang et al. 2011 "
+        "§5.1): each image comes with a single-channel label PNG of the same size where value k "
+        "marks colour k and 0 marks nothing. With --white-balance, fit instead each camera's "
+        "initial white balance W from one scribbled frame of the capture environment.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--images", nargs="+", metavar="IMAGE", required=True,
+                   help="photos (PNG/JPEG); with --white-balance one frame per camera")
+    p.add_argument("--masks", nargs="+", metavar="MASK", required=True,
+                   help="label PNGs, one per image, same size (0 = none, k = colour k)")
+    p.add_argument("--out", help="output file (default: colors.json, or white_balance.json "
+                   "with --white-balance)")
+    p.add_argument("--names", nargs="+", help="colour names (model) or camera names "
+                   "(--white-balance; default cam0 cam1 ... as in cameras.json)")
+    p.add_argument("--n-colors", type=int, metavar="K",
+                   help="number of colours (default: the largest label)")
+    p.add_argument("--white-balance", action="store_true",
+                   help="fit the initial white balance W0 per camera instead of the model")
+    p.add_argument("--colors", metavar="COLORS_JSON",
+                   help="the colour model (required with --white-balance)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    default = "white_balance.json" if args.white_balance else "colors.json"
+    out = check_output_file(args.out or default)
+    if args.n_colors is not None and args.n_colors < 1:
+        raise InputError(f"--n-colors must be >= 1, got {args.n_colors}")
+    return _run_white_balance(args, out) if args.white_balance else _run_model(args, out)
