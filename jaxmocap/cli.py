@@ -19,6 +19,8 @@ SUBCOMMANDS = (
     "jaxmocap.demo",
     "jaxmocap.posedb",
     "jaxmocap.synth.dataset",
+    "jaxmocap.commands.calibrate",
+    "jaxmocap.commands.colors",
 )
 
 
