@@ -350,7 +350,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     q_g = glob.q
 
     # step 3: pose-assisted classification on r^b rendered in each crop, centroids
-    meas, colour_fracs = [], []
+    meas = []
     for i in range(n_cams):
         uv = crop_uv(windows[i], n)
         rb = render_uv(params.body, params.garment, q_g, cam_i[i], uv).patch
@@ -390,7 +390,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
             ok = valid & okq[i] & jnp.all(jnp.isfinite(W_star))
             W_star = jnp.where(ok, W_star, cls[i].W)
             refs_i2, add = maybe_add_reference(refs_i, W_star)
-            refs_i = jax.tree.map(lambda a, b: jnp.where(ok, a, b), refs_i2, refs_i)
+            refs_i = jax.tree.map(lambda a, b, ok=ok: jnp.where(ok, a, b), refs_i2, refs_i)
             W_new.append(W_star), added.append(add & ok)
         else:
             W_new.append(state.W[i]), added.append(jnp.array(False))
@@ -423,8 +423,8 @@ def _step_jit(params, state, frames, masks):
 def step(
     params: ShirtParams,
     state: ShirtState,
-    frames: UInt8[Array, "n_cams h w 3"],
-    masks: Bool[Array, "n_cams h w"] | None = None,
+    frames: UInt8[Array, "n_cams h w 3"] | UInt8[np.ndarray, "n_cams h w 3"],
+    masks: Bool[Array, "n_cams h w"] | Bool[np.ndarray, "n_cams h w"] | None = None,
 ) -> tuple[ShirtState, ShirtOutput]:
     """One frame of Wang et al. §4–5 for every camera (module docstring); jit-compiled once
     per camera count, image size and settings. ``frames`` RGB ``uint8``; ``masks`` optional
