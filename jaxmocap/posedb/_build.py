@@ -4,7 +4,8 @@ A database file is a ``.npz`` with ``maps`` (n, 40, 40) ``uint8`` colour ids, ``
 (n, n_dof) float32 and ``meta`` (JSON: key, sampling settings, DOF and colour names). It is
 cached as ``<cache>/posedb/posedb-<key>.npz`` (cache: :func:`jaxmocap._config.cache_dir`),
 where the key hashes the body model, the garment, the sampling settings, the canonical camera,
-the tiny-map settings and :data:`CODE_VERSION`, so that any change builds a new database.
+the tiny-map settings, :data:`CODE_VERSION` and the source of the renderer, garment and
+sampler, so that any change builds a new database.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from ._sample import (
 from ._search import DatabaseError, PoseDB, make_posedb
 
 CODE_VERSION = "posedb-1"  # bump when sampling or rendering code changes the database
-RENDER_BATCH = 512  # poses per jitted render call (one compiled shape, last batch padded)
+RENDER_BATCH = 256  # poses per jitted render call (one compiled shape, last batch padded)
 
 
 def database_key(config: SamplingConfig, model: BodyModel, garment: Garment) -> str:
@@ -45,10 +46,25 @@ def database_key(config: SamplingConfig, model: BodyModel, garment: Garment) -> 
     clips = config.clips or TRAIN_CLIPS
     h = hashlib.sha256()
     h.update(CODE_VERSION.encode())
+    h.update(_source_digest().encode())
     h.update(repr(config._replace(clips=tuple(clips))).encode())
     h.update(model_digest(model, garment, canonical_camera(jnp.float32)).encode())
     h.update(f"{render.TINY_SIZE} {render.TINY_MARGIN}".encode())
     return h.hexdigest()[:20]
+
+
+def _source_digest() -> str:
+    """SHA-256 of the code that determines a database's content: the renderer, the garment and
+    the pose sampler (so that an edit there never loads a stale cache)."""
+    from .. import garment as garment_module
+    from . import _sample
+
+    files = sorted(Path(render.__file__).parent.glob("*.py"))
+    files += [Path(garment_module.__file__), Path(_sample.__file__)]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.read_bytes())
+    return h.hexdigest()
 
 
 @jax.jit

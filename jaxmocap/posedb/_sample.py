@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..body import ROOT_DOFS, BodyModel, fk, so3_exp
+from ..body import ROOT_DOFS, BodyModel, so3_exp
 from ..camera import Camera, look_at
 from ..errors import InputError
 from ..synth._rotations import matrix_to_rotvec
@@ -126,11 +126,14 @@ def mirror_table(model: BodyModel) -> Mirror:
     """
     chain = model.chain
     names = chain.dof_names
-    rest = np.asarray(fk(chain, jnp.zeros(chain.n_dof, chain.joint_axis.dtype)))
+    origin = np.asarray(chain.joint_origin, np.float64)[:, :3, :3]
+    rest = []  # world rotation of every joint frame at q = 0 (the root: identity)
+    for link, (parent, _, _) in enumerate(chain.topology):
+        rest.append(origin[link] if parent < 0 else rest[parent] @ origin[link])
     axis_world = {}
     for link, (_, _, dof) in enumerate(chain.topology):
         if dof >= ROOT_DOFS:
-            axis_world[dof] = rest[link, :3, :3] @ np.asarray(chain.joint_axis[link])
+            axis_world[dof] = rest[link] @ np.asarray(chain.joint_axis[link], np.float64)
     m = np.array([1.0, -1.0, 1.0])
     perm = np.arange(len(names))
     sign = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0] + [1.0] * (len(names) - ROOT_DOFS))
