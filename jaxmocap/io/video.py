@@ -66,6 +66,7 @@ class FrameSource:
     width: int
     height: int
     n_frames: int | None
+    fps: float | None = None  # frames per second, when the source knows it
 
     def read(self) -> np.ndarray | None:
         raise NotImplementedError
@@ -131,6 +132,8 @@ class _Capture(FrameSource):
         self.width = int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         self.height = int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(self.cap.get(cv2.CAP_PROP_FPS))
+        self.fps = fps if np.isfinite(fps) and 0 < fps < 1000 else None
         self.n_frames = None if live else count
         if not live and count <= 0:
             self.cap.release()
@@ -210,6 +213,7 @@ class SyncReader:
             self.n_frames = max_frames if self.n_frames is None else min(self.n_frames, max_frames)
         self.missing: list[int] = []
         self.n_read = 0
+        self.fps = next((s.fps for s in self.sources if s.fps), None)
 
     def _check(self, sizes) -> None:
         src = self.sources

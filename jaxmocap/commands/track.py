@@ -1,0 +1,485 @@
+"""``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, CSV, NPZ),
+per-frame diagnostics and an optional overlay video.
+
+The command drives any tracker through a small **frame protocol** (:class:`FrameTracker`):
+
+* ``start(frames)`` — called once with the first readable frame (uint8 (n_cams, H, W, 3)
+  RGB) before it is stepped: set up the state (white balance, particle set, ...);
+* ``step(frames) -> FrameResult`` — one frame: the pose ``q`` (n_dof,) of the body model
+  (:mod:`jaxmocap.body` layout), whether it is ``valid`` (the tracker found the subject) and a
+  flat ``diagnostics`` dict of floats (classified fraction, white balance, particle spread,
+  ...), whose keys are fixed by ``diagnostic_names``;
+* ``draw(frames, result) -> frames`` — RGB images with what the tracker saw drawn over them.
+
+Two adapters implement it: :class:`ShirtFrameTracker` (Wang et al. 2011,
+:mod:`jaxmocap.trackers.shirt`) and :class:`StereoPFFrameTracker` (Azad et al. 2007,
+:mod:`jaxmocap.trackers.stereo_pf`). Frames that cannot be read are not stepped: their row
+is NaN (``valid`` 0) in every output and the command reports them in one line (exit code 1).
+All outputs are written to temporaries and renamed into place only at the end, together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmocap.body import BodyModel, default_body, keypoints
+from jaxmocap.camera import Camera, load_cameras, stack_cameras
+from jaxmocap.errors import InputError
+from jaxmocap.io.atomic import AtomicFiles, check_output_folder
+from jaxmocap.io.export import FORMATS, pose_track, write_exports
+from jaxmocap.io.video import SyncReader, quiet_ffmpeg
+
+__all__ = [
+    "BONES",
+    "FrameResult",
+    "FrameTracker",
+    "ShirtFrameTracker",
+    "StereoPFFrameTracker",
+    "add_parser",
+    "draw_skeleton",
+    "run",
+    "track_frames",
+]
+
+DEFAULT_FPS = 30.0  # frame folders and live cameras that do not say
+# Skeleton drawn on the overlay: pairs of keypoint names of the body model.
+BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
+         ("neck", "l_shoulder"), ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"),
+         ("l_wrist", "l_hand"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"),
+         ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
+OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
+OVERLAY_CODEC = "mp4v"
+# IK covariances of the shirt tracker when no --ik-cov file is given (the values its tests
+# use): centroid std 2 px, blend std 0.3, temporal prior std 0.5 (units of q).
+IK_CENTROID_PX, IK_BLEND_STD, IK_PRIOR_STD = 2.0, 0.3, 0.5
+
+EPILOG = """examples:
+  # the colour shirt, two recorded cameras
+  jaxmocap track --method shirt --cameras cameras.json --colors colors.json \\
+      --white-balance white_balance.json cam0.mp4 cam1.mp4 --out results --overlay
+  # the stereo particle filter on folders of frames, 500 particles
+  jaxmocap track --method pf --cameras cameras.json left/ right/ --particles 500 --out results
+  # live from camera 0 (one camera), 300 frames, pose drawn in a window
+  jaxmocap track --method shirt --cameras cameras.json --colors colors.json 0 \\
+      --max-frames 300 --show
+
+outputs in --out: poses.bvh poses.trc poses.csv poses.npz (see --formats), diagnostics.csv,
+overlay.mp4 (--overlay). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
+2 bad input (nothing written).
+"""
+
+
+class FrameResult(NamedTuple):
+    """One frame's answer of a tracker (module docstring)."""
+
+    q: np.ndarray
+    valid: bool
+    diagnostics: dict[str, float]
+
+
+@runtime_checkable
+class FrameTracker(Protocol):
+    """The frame protocol the command drives (module docstring)."""
+
+    body: BodyModel
+    diagnostic_names: tuple[str, ...]
+
+    def start(self, frames: np.ndarray) -> None: ...
+
+    def step(self, frames: np.ndarray) -> FrameResult: ...
+
+    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray: ...
+
+
+# ----------------------------------------------------------------------------- drawing
+
+
+def _project_np(cam: Camera, X: np.ndarray) -> np.ndarray:
+    R = np.asarray(cam.R, np.float64)
+    uv, _ = cv2.projectPoints(np.asarray(X, np.float64), cv2.Rodrigues(R)[0],
+                              np.asarray(cam.t, np.float64), np.asarray(cam.K, np.float64),
+                              np.asarray(cam.dist, np.float64))
+    return uv.reshape(-1, 2)
+
+
+def draw_skeleton(image: np.ndarray, cam: Camera, keypoints: np.ndarray,
+                  names: Sequence[str]) -> np.ndarray:
+    """Draw the bones (:data:`BONES`) of world keypoints (n, 3) projected by ``cam`` on a
+    copy of ``image`` (RGB uint8). Points behind the camera are skipped."""
+    out = np.ascontiguousarray(image.copy())
+    if not np.all(np.isfinite(keypoints)):
+        return out
+    depth = keypoints @ np.asarray(cam.R, np.float64)[2] + float(cam.t[2])
+    uv = _project_np(cam, keypoints)
+    idx = {n: i for i, n in enumerate(names)}
+    for a, b in BONES:
+        if a in idx and b in idx and depth[idx[a]] > 0 and depth[idx[b]] > 0:
+            pa, pb = (tuple(int(round(v)) for v in uv[idx[k]]) for k in (a, b))
+            cv2.line(out, pa, pb, (255, 255, 255), 2, cv2.LINE_AA)
+            cv2.line(out, pa, pb, (20, 20, 20), 1, cv2.LINE_AA)
+    for i in range(len(names)):
+        if depth[i] > 0:
+            cv2.circle(out, tuple(int(round(v)) for v in uv[i]), 2, (255, 220, 0), -1)
+    return out
+
+
+_keypoints_jit = jax.jit(keypoints)
+
+
+# ----------------------------------------------------------------------------- shirt
+
+
+class ShirtFrameTracker:
+    """Wang et al. 2011 through the frame protocol (see :mod:`jaxmocap.trackers.shirt`).
+
+    Diagnostics per camera ``c``: ``fraction_c`` (classified fraction of step 1),
+    ``W_c_rr/gg/bb`` (the diagonal of the current white balance), ``reference_used_c``,
+    ``reference_added_c``; and ``patches`` (measured patch centroids, all cameras)."""
+
+    def __init__(self, cams: list[Camera], names: list[str], color, W0: np.ndarray | None,
+                 db, cov=None, work_size: int | None = None):
+        from jaxmocap.garment import default_garment
+        from jaxmocap.ik import IKCovariances, anchors_from_garment
+        from jaxmocap.trackers import shirt
+
+        self._shirt = shirt
+        self.body = default_body()
+        garment = default_garment(self.body)
+        if color.n_colors != garment.n_colours:
+            raise InputError(f"--colors: the colour model has {color.n_colors} colours, the "
+                             f"shirt has {garment.n_colours}; fit one colour per shirt colour")
+        cov = cov or IKCovariances.isotropic(IK_CENTROID_PX, IK_BLEND_STD, IK_PRIOR_STD,
+                                             self.body.n_dof)
+        kw = {} if work_size is None else {"work_size": work_size}
+        self.params = shirt.make_params(color, self.body, garment, stack_cameras(cams),
+                                        anchors_from_garment(self.body, garment), cov, db, **kw)
+        self.color, self.cams, self.names = color, cams, names
+        self.W0 = np.stack([np.eye(3)] * len(cams)) if W0 is None else W0
+        self.diagnostic_names = tuple(
+            [f"fraction_{n}" for n in names]
+            + [f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")]
+            + [f"reference_used_{n}" for n in names]
+            + [f"reference_added_{n}" for n in names] + ["patches"])
+        self.state = None
+        from jaxmocap.color import classify
+
+        self._classify = jax.jit(lambda W, im: classify(color, W, im)[0])
+
+    def start(self, frames: np.ndarray) -> None:
+        dt = self.params.cams.K.dtype
+        self.state = self._shirt.init(self.params, jnp.asarray(self.W0, dt),
+                                      jnp.zeros(self.body.n_dof, dt))
+
+    def step(self, frames: np.ndarray) -> FrameResult:
+        self.state, out = self._shirt.step(self.params, self.state, frames)
+        out, W = jax.device_get((out, self.state.W))
+        d = {}
+        for c, n in enumerate(self.names):
+            d[f"fraction_{n}"] = float(out.fraction[c])
+            for i, k in enumerate(("rr", "gg", "bb")):
+                d[f"W_{n}_{k}"] = float(W[c, i, i])
+            d[f"reference_used_{n}"] = float(out.used_reference[c])
+            d[f"reference_added_{n}"] = float(out.added_reference[c])
+        d["patches"] = float(np.sum(out.visible))
+        return FrameResult(np.asarray(out.q, np.float64), bool(out.valid), d)
+
+    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
+        """Classified pixels tinted with their colour's mean (current W), then the skeleton."""
+        mean = np.clip(np.asarray(self.color.mean), 0, 255).astype(np.float64)
+        kp = np.asarray(_keypoints_jit(self.body, jnp.asarray(result.q)), np.float64) \
+            if result.valid else np.full((len(self.body.keypoint_names), 3), np.nan)
+        out = []
+        for c, cam in enumerate(self.cams):
+            ids = np.asarray(self._classify(self.state.W[c], jnp.asarray(frames[c])))
+            img = frames[c].astype(np.float64)
+            hit = ids > 0
+            img[hit] = (1 - OVERLAY_ALPHA) * img[hit] + OVERLAY_ALPHA * mean[ids[hit] - 1]
+            out.append(draw_skeleton(img.astype(np.uint8), cam, kp, self.body.keypoint_names))
+        return np.stack(out)
+
+
+# ----------------------------------------------------------------------------- stereo PF
+
+
+class StereoPFFrameTracker:
+    """Azad et al. 2007 through the frame protocol (see :mod:`jaxmocap.trackers.stereo_pf`):
+    automatic initialisation on the first frame, then one filter step per frame.
+
+    Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
+    ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
+    covariance), ``blobs`` (head/hands triangulated this frame, 0..3)."""
+
+    diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs")
+
+    def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default"):
+        from jaxmocap import blobs
+        from jaxmocap.segment import HSVInterval, SegmentParams
+        from jaxmocap.trackers import stereo_pf
+
+        if len(cams) != 2:
+            raise InputError(f"--method pf needs exactly 2 cameras (a stereo pair), "
+                             f"cameras.json has {len(cams)}")
+        if n_particles < 10:
+            raise InputError(f"--particles must be >= 10, got {n_particles}")
+        self._pf, self._blobs = stereo_pf, blobs
+        segment = None
+        if skin == "synth":
+            lo, hi = stereo_pf.SYNTH_SKIN_HSV
+            segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
+        self.params = stereo_pf.make_params(cams, n_particles=n_particles, segment=segment)
+        self.body = self.params.model
+        self.cams = cams
+        self.key = jax.random.PRNGKey(seed)
+        self.state = None
+        self._first = None
+
+    def start(self, frames: np.ndarray) -> None:
+        self.blob_state = self._blobs.init(self._blobs.BlobParams())
+        obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
+        self.state, est = self._pf.init(self.params, self.key, obs)
+        self._first = (est, obs)
+
+    def step(self, frames: np.ndarray) -> FrameResult:
+        if self._first is not None:
+            (est, obs), self._first = self._first, None
+        else:
+            obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
+            self.state, est = self._pf.filter_step(self.params, self.state, obs)
+        est, parts, valid = jax.device_get((est, self.state.particles.particles,
+                                            obs.valid))
+        root = np.asarray(parts[:, :3], np.float64)
+        d = {"ess": float(est.ess), "best_loglik": float(est.best_loglik),
+             "degenerate": float(est.degenerate),
+             "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
+             "blobs": float(np.sum(valid))}
+        q = np.asarray(est.q, np.float64)
+        return FrameResult(q, bool(np.all(np.isfinite(q))), d)
+
+    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
+        kp = np.asarray(_keypoints_jit(self.body, jnp.asarray(result.q)), np.float64) \
+            if result.valid else np.full((len(self.body.keypoint_names), 3), np.nan)
+        return np.stack([draw_skeleton(f, c, kp, self.body.keypoint_names)
+                         for f, c in zip(frames, self.cams, strict=True)])
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+def _has_display() -> bool:
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        return False
+    try:  # opencv-python-headless has no GUI: imshow raises
+        cv2.namedWindow("jaxmocap")
+        cv2.destroyWindow("jaxmocap")
+    except cv2.error:
+        return False
+    return True
+
+
+def _diagnostics_csv(names: Sequence[str], rows: list[tuple[int, bool, bool, dict]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "read", "valid", *names])
+    for t, read, valid, d in rows:
+        w.writerow([t, int(read), int(valid),
+                    *("" if k not in d or not np.isfinite(d[k]) else f"{d[k]:.6g}"
+                      for k in names)])
+    return buf.getvalue()
+
+
+def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, out: Path,
+                 fps: float, overlay: bool = False, show: bool = False,
+                 progress: bool = True) -> tuple[np.ndarray, np.ndarray, list]:
+    """Drive ``tracker`` over ``reader``; the overlay video (if asked) goes into ``files``.
+    Returns q (T, n_dof) (NaN rows where not tracked), valid (T,), diagnostics rows."""
+    from tqdm import tqdm
+
+    n_dof = tracker.body.n_dof
+    qs, valid, rows = [], [], []
+    writer, started, size = None, False, None
+    try:
+        for t, frames in tqdm(reader, total=reader.n_frames, disable=not progress,
+                              desc="tracking", unit="frame"):
+            if frames is None:
+                qs.append(np.full(n_dof, np.nan))
+                valid.append(False)
+                rows.append((t, False, False, {}))
+                view = None
+            else:
+                if not started:
+                    tracker.start(frames)
+                    started = True
+                res = tracker.step(frames)
+                qs.append(res.q if res.valid else np.full(n_dof, np.nan))
+                valid.append(res.valid)
+                rows.append((t, True, res.valid, res.diagnostics))
+                view = np.concatenate(list(tracker.draw(frames, res)), axis=1) \
+                    if (overlay or show) else None
+            if overlay:
+                if view is None:  # an unreadable instant: a dark frame keeps the timing
+                    view = None if size is None else np.full((size[1], size[0], 3), 30, np.uint8)
+                if view is not None:
+                    if writer is None:
+                        size = (view.shape[1], view.shape[0])
+                        path = files.path(out / "overlay.mp4")
+                        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(
+                            *OVERLAY_CODEC), float(fps), size)
+                        if not writer.isOpened():
+                            raise OSError(f"{out / 'overlay.mp4'}: OpenCV cannot open a "
+                                          f"{OVERLAY_CODEC} video writer")
+                    writer.write(np.ascontiguousarray(view[..., ::-1]))
+            if show and view is not None:
+                cv2.imshow("jaxmocap track", view[..., ::-1])
+                if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+                    break
+    except KeyboardInterrupt:  # a live capture is ended with Ctrl-C: keep what was tracked
+        print("interrupted: writing the frames tracked so far", file=sys.stderr)
+    finally:
+        if writer is not None:
+            writer.release()
+    return np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows
+
+
+def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
+    if args.method == "pf":
+        return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin)
+    from jaxmocap.color import load_color_model
+
+    if not args.colors:
+        raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
+    color = load_color_model(args.colors)
+    W0 = None
+    if args.white_balance:
+        from jaxmocap.commands.colors import load_white_balance
+
+        W0 = load_white_balance(args.white_balance, names)
+    cov = None
+    if args.ik_cov:
+        from jaxmocap.ik import IKCovariances
+
+        try:
+            cov = IKCovariances.load(args.ik_cov)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+    from jaxmocap.posedb import DatabaseError, load_database, load_or_build
+
+    if args.db:
+        try:
+            db = load_database(args.db)
+        except FileNotFoundError:
+            raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
+                             "build-db --out FILE.npz`)") from None
+        except DatabaseError as e:
+            raise InputError(str(e)) from None
+    else:
+        db = load_or_build(progress=not args.quiet)
+    return ShirtFrameTracker(cams, names, color, W0, db, cov, args.work_size)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "track", help="track poses in videos, frame folders or live cameras",
+        description="Track the upper body with the colour-shirt tracker (Wang et al. 2011, "
+        "--method shirt) or the stereo particle filter (Azad et al. 2007, --method pf). Give "
+        "one input per camera of cameras.json, in its order: a video file, a folder of "
+        "frames, or a camera index for live capture. Writes the poses (BVH, TRC, CSV, NPZ), "
+        "per-frame diagnostics and optionally an overlay video into --out.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="per camera: video file, folder of frames, or camera index (0, 1, ...)")
+    p.add_argument("--method", choices=("shirt", "pf"), default="shirt",
+                   help="tracker: shirt (Wang et al.) or pf (Azad et al.) (default: %(default)s)")
+    p.add_argument("--cameras", required=True, metavar="CAMERAS_JSON",
+                   help="calibrated cameras (from `jaxmocap calibrate`), required")
+    p.add_argument("--out", default="track_out", metavar="FOLDER",
+                   help="output folder (default: %(default)s)")
+    p.add_argument("--formats", default=",".join(FORMATS),
+                   help="pose formats to write, comma separated (default: %(default)s)")
+    p.add_argument("--overlay", action="store_true",
+                   help="also write overlay.mp4 (skeleton, classified colours for shirt)")
+    p.add_argument("--show", action="store_true",
+                   help="show the current pose in a window (needs a display)")
+    p.add_argument("--max-frames", type=int, metavar="N",
+                   help="stop after N frames (needed to end a live capture without Ctrl-C)")
+    p.add_argument("--fps", type=float,
+                   help=f"frame rate of the outputs (default: the video's, else {DEFAULT_FPS:g})")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("shirt (--method shirt)")
+    g.add_argument("--colors", metavar="COLORS_JSON",
+                   help="the shirt's colour model (from `jaxmocap colors`)")
+    g.add_argument("--white-balance", metavar="WB_JSON",
+                   help="initial white balance per camera (`jaxmocap colors --white-balance`); "
+                   "default: identity")
+    g.add_argument("--db", metavar="DB_NPZ",
+                   help="pose database (`jaxmocap build-db --out`); default: the cached "
+                   "80,000-pose database, built on first use")
+    g.add_argument("--ik-cov", metavar="COV_NPZ",
+                   help="IK covariances (.npz, jaxmocap.ik.IKCovariances.save); default: "
+                   f"isotropic {IK_CENTROID_PX:g} px / {IK_BLEND_STD:g} / {IK_PRIOR_STD:g}")
+    g.add_argument("--work-size", type=int, metavar="PX",
+                   help="side of the resampled crop the shirt is classified in (default: "
+                   "the tracker's, 128)")
+    g = p.add_argument_group("particle filter (--method pf)")
+    g.add_argument("--particles", type=int, default=1000,
+                   help="number of particles (default: %(default)s, Azad §V)")
+    g.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    g.add_argument("--skin", choices=("default", "synth"), default="default",
+                   help="skin colour interval: default, or synth for jaxmocap synth scenes "
+                   "(default: %(default)s)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    quiet_ffmpeg()
+    out = check_output_folder(args.out)
+    formats = [f.strip().lower() for f in args.formats.split(",") if f.strip()]
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise InputError(f"--formats {args.formats!r}: expected a comma-separated subset of "
+                         f"{','.join(FORMATS)}")
+    if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
+        raise InputError(f"--fps must be a positive number, got {args.fps}")
+    cams, names = load_cameras(args.cameras)
+    if len(args.inputs) != len(cams):
+        raise InputError(f"{len(args.inputs)} inputs given for the {len(cams)} cameras of "
+                         f"{args.cameras} ({', '.join(names)}); give one input per camera, in "
+                         "that order")
+    if args.show and not _has_display():
+        raise InputError("--show needs a display and OpenCV with GUI support (no DISPLAY, or "
+                         "opencv-python-headless); run without --show (use --overlay to get "
+                         "a video of the tracking)")
+    with SyncReader(args.inputs, names, [(c.width, c.height) for c in cams],
+                    args.max_frames) as reader:
+        fps = args.fps or reader.fps or DEFAULT_FPS
+        tracker = _make_tracker(args, cams, names)
+        with AtomicFiles() as files:
+            q, valid, rows = track_frames(tracker, reader, files, out, fps, args.overlay,
+                                          args.show, progress=not args.quiet)
+            if reader.n_read == 0:
+                raise InputError(f"no readable frames in the inputs: {reader.problems()}")
+            track = pose_track(tracker.body, q, valid, fps)
+            write_exports(files, out, tracker.body, track, formats)
+            files.path(out / "diagnostics.csv").write_text(
+                _diagnostics_csv(tracker.diagnostic_names, rows))
+            targets = files.targets
+        problems = reader.problems()
+    print(f"tracked {int(valid.sum())} of {len(valid)} frames ({reader.n_read} readable) -> "
+          + ", ".join(str(p) for p in targets))
+    if problems:
+        print(f"jaxmocap track: warning: {problems}; those frames are NaN in the outputs",
+              file=sys.stderr)
+        return 1
+    return 0
