@@ -21,6 +21,8 @@ SUBCOMMANDS = (
     "jaxmocap.synth.dataset",
     "jaxmocap.commands.calibrate",
     "jaxmocap.commands.colors",
+    "jaxmocap.commands.track",
+    "jaxmocap.commands.evaluate",
 )
 
 
