@@ -1,0 +1,367 @@
+"""The stereo particle-filter tracker of Azad, Ude, Asfour & Dillmann (2007).
+
+Per stereo frame (320x240 pair in the paper, §V):
+
+1. **image processing line** on the host (OpenCV, :func:`jaxmocap.segment.segment_cv`, both
+   images): blur, HSV, skin and shirt masks, gradient of the foreground, spread edge map g;
+2. **hands and head** (§IV): skin blobs matched across the pair, triangulated and tracked with
+   a linear motion model (:mod:`jaxmocap.blobs`) -> c_head, c_lhand, c_rhand and a valid mask;
+3. **particle filter** (§II, §III-D), one jitted call: resample, first-order motion model with
+   adaptive Gaussian noise (:mod:`jaxmocap.pf`), then weigh each of the N = 1000 particles
+   with p(z|s) = p_g'(left) p_g'(right) p_d' (:class:`jaxmocap.pf.cues.StereoLikelihood`).
+
+The state is the 14-DOF configuration of §I (root 6, shoulders 3+3, elbows 1+1;
+:func:`jaxmocap.body.stereo_dofs`); any subset of the body's DOFs can be filtered, the others
+are held at ``default_q``. Estimates are the weighted particle mean.
+
+**Automatic initialisation** (§V, Fig. 4: "no initial configuration is given"): particles are
+drawn from a broad prior -- the root placed so that the model's head lies on the triangulated
+head (the mean of the valid blobs when the head is missing), a random turn about the vertical
+in +-``INIT_YAW`` and small tilts, arm joints uniform in their limits -- and refined by
+``len(init_betas)`` annealing layers (Deutscher et al. 2000) on the first frame.
+
+Sequences with precomputed observations run as one ``lax.scan`` (:func:`run`); a live loop
+calls :func:`step` per frame (host image processing + one jitted filter step). Deterministic
+given the key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray, UInt8
+
+from jaxmocap import blobs as bloblib
+from jaxmocap import pf
+from jaxmocap.body import BodyModel, default_body, keypoint_index, keypoints, stereo_dofs
+from jaxmocap.body.chain import ROOT_DOFS, so3_exp
+from jaxmocap.camera import Camera, stack_cameras
+from jaxmocap.errors import InputError
+from jaxmocap.pf import cues
+from jaxmocap.pf.cues import Observation, StereoLikelihood
+from jaxmocap.segment import SegmentParams, segment_cv
+
+__all__ = [
+    "N_PARTICLES",
+    "SYNTH_SKIN_HSV",
+    "StereoEstimate",
+    "StereoPFParams",
+    "TrackerState",
+    "init",
+    "make_params",
+    "observe",
+    "observe_sequence",
+    "run",
+    "step",
+    "filter_step",
+    "track",
+]
+
+N_PARTICLES = 1000  # Azad §V
+# Adaptive noise range (std per frame at 25-30 Hz; Azad give none): root translation (m), root
+# rotation (rad), arm joints (rad). The minimum keeps the set alive, the maximum re-finds a
+# lost limb within a few frames.
+SIGMA_MIN = (0.004, 0.01, 0.02)
+SIGMA_MAX = (0.02, 0.05, 0.15)
+# Energy e = -max log p (both edge cues + distance cue) at which the noise is 63% of the way to
+# the maximum: a good fit of a 320x240 pair has a mean edge value ~0.6 per camera, i.e.
+# e ~ 2 x 0.4 / (2 sigma_g^2) = 10 with sigma_g = 0.2.
+ERROR_SCALE = 15.0
+DAMPING = 0.5  # first-order motion model: s_t = s_{t-1} + delta (s_{t-1} - s_{t-2}) + noise
+# Initialisation prior (radians / metres) and annealing schedule
+INIT_YAW = 0.8  # the subject roughly faces the cameras: turn about the vertical in +-0.8 rad
+INIT_TILT = 0.1  # std of the lean about the horizontal axes
+INIT_ROOT_STD = 0.03  # std of the root position around the head-derived one
+INIT_BETAS = tuple(float(b) for b in np.geomspace(0.02, 1.0, 12))  # 12 annealing layers
+FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in frame 0
+# A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
+# inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
+SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
+
+
+class StereoPFParams(eqx.Module):
+    """Everything fixed over a sequence: the likelihood (body, cameras, cues), the particle
+    filter's box and noise, the image pipeline's parameters and the initialisation prior."""
+
+    likelihood: StereoLikelihood
+    filter: pf.PFParams
+    segment: SegmentParams
+    prior_lower: Float[Array, " d"]  # uniform prior box of the joints (subset DOFs)
+    prior_upper: Float[Array, " d"]
+    init_betas: Float[Array, " m"]
+    head_rest: Float[Array, " 3"]  # head keypoint in the root frame at default_q
+    init_yaw: Float[Array, ""]
+    init_tilt: Float[Array, ""]
+    init_root_std: Float[Array, ""]
+    fallback_root: Float[Array, " 3"]
+    n_particles: int = eqx.field(static=True)
+
+    @property
+    def dofs(self) -> np.ndarray:
+        return np.asarray(self.likelihood.dofs)
+
+    @property
+    def model(self) -> BodyModel:
+        return self.likelihood.model
+
+    def full_q(self, s: Float[Array, "*b d"]) -> Float[Array, "*b n_dof"]:
+        base = jnp.broadcast_to(
+            self.likelihood.default_q.astype(s.dtype), s.shape[:-1] + (self.model.n_dof,)
+        )
+        return base.at[..., self.dofs].set(s)
+
+
+def make_params(
+    cams: Sequence[Camera] | Camera,
+    model: BodyModel | None = None,
+    dofs: Sequence[int] | np.ndarray | None = None,
+    n_particles: int = N_PARTICLES,
+    use_distance: bool = True,
+    use_region: bool = False,
+    edge_form: str = "sad",
+    sigma_g: float = cues.SIGMA_G,
+    sigma_d: float = cues.SIGMA_D,
+    sigma_r: float = cues.SIGMA_R,
+    points_per_line: int = cues.POINTS_PER_LINE,
+    default_q: ArrayLike | None = None,
+    segment: SegmentParams | None = None,
+    init_betas: Sequence[float] = INIT_BETAS,
+    error_scale: float = ERROR_SCALE,
+    damping: float = DAMPING,
+    dtype=jnp.float32,
+) -> StereoPFParams:
+    """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
+
+    ``dofs``: indices of the filtered DOFs (default the 14 of :func:`stereo_dofs`; the six root
+    DOFs must be among them); the others stay at ``default_q`` (default the rest pose).
+    """
+    model = default_body() if model is None else model
+    cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
+    if cams.K.ndim != 3:
+        raise InputError(
+            f"stereo_pf.make_params: cams: expected a list of cameras, got {cams.K.shape}"
+        )
+    dofs = stereo_dofs(model) if dofs is None else np.sort(np.asarray(dofs, dtype=np.int64))
+    if not set(range(ROOT_DOFS)) <= set(dofs.tolist()) or dofs.max() >= model.n_dof:
+        raise InputError(
+            f"stereo_pf.make_params: dofs: expected indices < {model.n_dof} including the root "
+            f"DOFs 0..5, got {dofs.tolist()}"
+        )
+    if n_particles < 2:
+        raise InputError(f"stereo_pf.make_params: n_particles: expected >= 2, got {n_particles}")
+    default_q = (
+        jnp.zeros(model.n_dof, dtype) if default_q is None else jnp.asarray(default_q, dtype)
+    )
+    if default_q.shape != (model.n_dof,):
+        raise InputError(
+            f"stereo_pf.make_params: default_q: expected shape ({model.n_dof},), got "
+            f"{default_q.shape}"
+        )
+    lik = StereoLikelihood(
+        model=model, limbs=cues.limb_model(model), cams=cams, default_q=default_q,
+        sigma_g=jnp.asarray(sigma_g, dtype), sigma_d=jnp.asarray(sigma_d, dtype),
+        sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
+        points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
+        use_region=use_region,
+    )  # fmt: skip
+    lower = np.asarray(model.chain.lower, np.float64)[dofs]
+    upper = np.asarray(model.chain.upper, np.float64)[dofs]
+    kind = np.where(dofs < 3, 0, np.where(dofs < ROOT_DOFS, 1, 2))
+    filt = pf.PFParams(
+        loglik=lik,
+        lower=jnp.asarray(lower, dtype),
+        upper=jnp.asarray(upper, dtype),
+        sigma_min=jnp.asarray(np.asarray(SIGMA_MIN)[kind], dtype),
+        sigma_max=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
+        damping=jnp.asarray(damping, dtype),
+        error_scale=jnp.asarray(error_scale, dtype),
+        boundary="reflect",
+    )
+    q0 = default_q.at[:ROOT_DOFS].set(0.0)
+    head_rest = keypoints(model, q0)[keypoint_index(model, "head")[0]]
+    return StereoPFParams(
+        likelihood=lik,
+        filter=filt,
+        segment=SegmentParams() if segment is None else segment,
+        prior_lower=jnp.asarray(np.where(np.isfinite(lower), lower, 0.0), dtype),
+        prior_upper=jnp.asarray(np.where(np.isfinite(upper), upper, 0.0), dtype),
+        init_betas=jnp.asarray(init_betas, dtype),
+        head_rest=head_rest.astype(dtype),
+        init_yaw=jnp.asarray(INIT_YAW, dtype),
+        init_tilt=jnp.asarray(INIT_TILT, dtype),
+        init_root_std=jnp.asarray(INIT_ROOT_STD, dtype),
+        fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
+        n_particles=int(n_particles),
+    )
+
+
+class TrackerState(eqx.Module):
+    """The particle set and the PRNG key of the next frame."""
+
+    particles: pf.PFState
+    key: PRNGKeyArray
+
+
+class StereoEstimate(eqx.Module):
+    """Per-frame output: full pose vectors (weighted mean and best particle), diagnostics."""
+
+    q: Float[Array, "*t n_dof"]
+    q_best: Float[Array, "*t n_dof"]
+    best_loglik: Float[Array, "*t"]
+    ess: Float[Array, "*t"]
+    degenerate: Bool[Array, "*t"]
+
+
+def _estimate(params: StereoPFParams, est: pf.PFEstimate) -> StereoEstimate:
+    return StereoEstimate(
+        q=params.full_q(est.mean),
+        q_best=params.full_q(est.best),
+        best_loglik=est.best_loglik,
+        ess=est.ess,
+        degenerate=est.degenerate,
+    )
+
+
+def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation) -> pf.PFState:
+    """Broad initial particle set around the triangulated head (module docstring)."""
+    n, dofs = params.n_particles, params.dofs
+    dt = params.prior_lower.dtype
+    k_yaw, k_tilt, k_root, k_joint = jax.random.split(key, 4)
+    yaw = jax.random.uniform(k_yaw, (n,), dt, -1.0, 1.0) * params.init_yaw
+    tilt = jax.random.normal(k_tilt, (n, 2), dt) * params.init_tilt
+    w = jnp.concatenate([tilt, yaw[:, None]], axis=1)
+    valid = obs.valid
+    pts = obs.points.astype(dt)
+    mean_valid = jnp.sum(jnp.where(valid[:, None], pts, 0), 0) / jnp.maximum(jnp.sum(valid), 1)
+    head = jnp.where(valid[0], pts[0], jnp.where(jnp.any(valid), mean_valid, jnp.nan))
+    anchored = jnp.any(valid)
+    rot = so3_exp(w)
+    root = jnp.where(
+        anchored,
+        head[None, :] - (rot @ params.head_rest[:, None])[..., 0],
+        params.fallback_root[None, :],
+    )
+    std = jnp.where(anchored, params.init_root_std, 10 * params.init_root_std)
+    root = root + std * jax.random.normal(k_root, (n, 3), dt)
+    u = jax.random.uniform(k_joint, (n, len(dofs)), dt)
+    lo, hi = params.prior_lower[None, :], params.prior_upper[None, :]
+    x = lo + (hi - lo) * u
+    x = x.at[:, :3].set(root).at[:, 3:6].set(w)
+    return pf.PFState(
+        particles=x,
+        previous=x,
+        log_weights=jnp.full((n,), -jnp.log(n), dt),
+        sigma=params.filter.sigma_max.astype(dt),
+    )
+
+
+@eqx.filter_jit
+def init(
+    params: StereoPFParams, key: PRNGKeyArray, first: Observation
+) -> tuple[TrackerState, StereoEstimate]:
+    """Automatic initialisation on the first frame's observation: prior + annealing layers.
+
+    Returns the state (ready for :func:`step` / :func:`run` from the first frame on) and the
+    first frame's estimate.
+    """
+    k_prior, k_anneal, k_next = jax.random.split(key, 3)
+    state = _prior(params, k_prior, first)
+    state, est = pf.anneal_step(params.filter, state, first, k_anneal, params.init_betas)
+    return TrackerState(state, k_next), _estimate(params, est)
+
+
+@eqx.filter_jit
+def filter_step(
+    params: StereoPFParams, state: TrackerState, obs: Observation
+) -> tuple[TrackerState, StereoEstimate]:
+    """One particle-filter frame on a precomputed observation (one jitted call)."""
+    k_step, k_next = jax.random.split(state.key)
+    ps, est = pf.step(params.filter, state.particles, obs, k_step)
+    return TrackerState(ps, k_next), _estimate(params, est)
+
+
+@eqx.filter_jit
+def run(
+    params: StereoPFParams, state: TrackerState, observations: Observation
+) -> tuple[TrackerState, StereoEstimate]:
+    """:func:`filter_step` over a sequence of observations (leading time axis), ``lax.scan``."""
+    return jax.lax.scan(lambda s, o: filter_step(params, s, o), state, observations)
+
+
+# ----------------------------------------------------------------------------- host edge
+
+
+def observe(
+    params: StereoPFParams,
+    frame_pair: UInt8[np.ndarray, "2 h w 3"],
+    blob_state: bloblib.BlobState | None,
+    blob_obs: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[Observation, bloblib.BlobState | None]:
+    """Host side of one frame: image processing line of both images (OpenCV) and the hand /
+    head tracker (unless ``blob_obs = (points3d (3, 3), valid (3,))`` is given)."""
+    frame_pair = np.asarray(frame_pair)
+    cams = params.likelihood.cams
+    if frame_pair.shape != (2, cams.height, cams.width, 3) or frame_pair.dtype != np.uint8:
+        raise InputError(
+            f"stereo_pf: frame_pair: expected uint8 (2, {cams.height}, {cams.width}, 3) RGB, "
+            f"got {frame_pair.dtype} {frame_pair.shape}"
+        )
+    seg = [segment_cv(params.segment, frame_pair[i]) for i in range(2)]
+    if blob_obs is None:
+        blob_state, points, valid = bloblib.update(blob_state, seg[0].skin, seg[1].skin, cams)
+    else:
+        points, valid = blob_obs
+    dt = params.prior_lower.dtype
+    obs = Observation(
+        edges=jnp.asarray(np.stack([s.edges for s in seg]), dt),
+        points=jnp.asarray(np.asarray(points), dt),
+        valid=jnp.asarray(np.asarray(valid, bool)),
+        foreground=jnp.asarray(np.stack([s.foreground for s in seg]), dt),
+    )
+    return obs, blob_state
+
+
+def observe_sequence(
+    params: StereoPFParams,
+    frames: UInt8[np.ndarray, "t 2 h w 3"],
+    blob_params: bloblib.BlobParams | None = None,
+) -> Observation:
+    """:func:`observe` over a sequence (one blob tracker through it), stacked on axis 0."""
+    blob_state = bloblib.init(blob_params or bloblib.BlobParams())
+    out = []
+    for t in range(len(frames)):
+        obs, blob_state = observe(params, frames[t], blob_state)
+        out.append(obs)
+    return jax.tree.map(lambda *a: jnp.stack(a), *out)
+
+
+def step(
+    params: StereoPFParams,
+    state: TrackerState,
+    frame_pair: UInt8[np.ndarray, "2 h w 3"],
+    blob_obs: tuple[np.ndarray, np.ndarray],
+) -> tuple[TrackerState, StereoEstimate]:
+    """One live frame: the image processing line on the host, then one jitted filter step.
+
+    ``blob_obs`` = (points3d (3, 3) m, valid (3,)) from :func:`jaxmocap.blobs.update`.
+    """
+    obs, _ = observe(params, frame_pair, None, blob_obs)
+    return filter_step(params, state, obs)
+
+
+def track(
+    params: StereoPFParams,
+    key: PRNGKeyArray,
+    frames: UInt8[np.ndarray, "t 2 h w 3"],
+    blob_params: bloblib.BlobParams | None = None,
+) -> StereoEstimate:
+    """Track a whole stereo sequence: observations on the host, automatic initialisation on
+    frame 0, then the filter over frames 0..T-1 in one ``lax.scan``. Estimates (T, ...)."""
+    obs = observe_sequence(params, frames, blob_params)
+    state, _ = init(params, key, jax.tree.map(lambda a: a[0], obs))
+    _, est = run(params, state, obs)
+    return est
