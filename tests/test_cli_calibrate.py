@@ -8,12 +8,11 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_cli_common import assert_refused, run_cli
 
 from jaxmocap.calibration import board_points, render_checkerboard
 from jaxmocap.camera import Camera, load_cameras, project
 from jaxmocap.commands.calibrate import bundle_adjust
-
-from test_cli_common import assert_refused, run_cli
 
 W, H = 200, 150
 PATTERN, SQUARE = (5, 4), 0.05

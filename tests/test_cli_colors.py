@@ -6,18 +6,18 @@ import json
 import cv2
 import numpy as np
 import pytest
+from test_cli_common import assert_refused, run_cli
 
 from jaxmocap.color.model import MIN_VARIANCE
 from jaxmocap.commands.colors import load_white_balance
-
-from test_cli_common import assert_refused, run_cli
 
 H, W = 30, 40
 COLOURS = np.array([[200, 40, 40], [40, 180, 60], [50, 60, 200], [210, 200, 50]], float)
 
 
-def shirt(rng, cast=np.eye(3)):
+def shirt(rng, cast=None):
     """Four vertical colour bands with noise (seen through ``cast``) and their labels."""
+    cast = np.eye(3) if cast is None else cast
     lab = np.zeros((H, W), np.uint8)
     img = np.full((H, W, 3), 128.0)
     for k in range(4):

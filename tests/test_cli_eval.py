@@ -4,11 +4,10 @@ import json
 
 import numpy as np
 import pytest
+from test_cli_common import assert_refused, run_cli
 
 from jaxmocap.body import default_body
 from jaxmocap.io.export import pose_track, write_csv, write_npz
-
-from test_cli_common import assert_refused, run_cli
 
 T = 6
 
@@ -32,7 +31,7 @@ def save_gt(path, tr, **override):
 
 
 def test_known_offset(gt_track, tmp_path, capsys):
-    gt = save_gt(tmp_path / "groundtruth.npz", gt_track)
+    save_gt(tmp_path / "groundtruth.npz", gt_track)
     offset = np.array([0.012, -0.016, 0.0])  # |offset| = 2 cm
     valid = np.ones(T, bool)
     valid[3] = False
@@ -87,7 +86,6 @@ def test_refusals(gt_track, tmp_path, capsys):
                    leaves=[out])
     assert_refused(capsys, "missing.npz: no such file", "eval", tmp_path / "missing.npz", gt)
     assert_refused(capsys, "field 'keypoints' missing", "eval", tmp_path / "p.npz",
-                   save_gt(tmp_path / "nokp.npz", gt_track, keypoints=None) if False else
                    _no_kp(tmp_path))
     assert_refused(capsys, "is a folder", "eval", tmp_path / "p.npz", gt, "--out", tmp_path)
 

@@ -11,12 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from bvh import Bvh
+from test_cli_common import assert_refused, run_cli
 
 from jaxmocap.body import default_body, keypoints
 from jaxmocap.camera import look_at, save_cameras
 from jaxmocap.commands import track as track_cmd
-
-from test_cli_common import assert_refused, run_cli
 
 W, H, T = 48, 36, 3
 
@@ -39,8 +38,8 @@ class LinearTracker:
         q = np.zeros(self.body.n_dof)
         q[0], q[2] = 0.1 * self.steps, 0.9
         self.steps += 1
-        return track_cmd.FrameResult(q, self.steps != 2, {"steps": float(self.steps),
-                                                           "mean_red": float(frames[..., 0].mean())})
+        diag = {"steps": float(self.steps), "mean_red": float(frames[..., 0].mean())}
+        return track_cmd.FrameResult(q, self.steps != 2, diag)
 
     def draw(self, frames, result):
         return frames

@@ -28,7 +28,8 @@ def png_folder(path, fr):
 
 
 def avi(path, fr):
-    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (fr.shape[2], fr.shape[1]))
+    size = (fr.shape[2], fr.shape[1])
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, size)
     for f in fr:
         w.write(np.ascontiguousarray(f[..., ::-1]))
     w.release()

@@ -60,7 +60,8 @@ def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:
     names = [n for n in gt.keypoint_names if n in pred.keypoint_names]
     if not names:
         raise InputError(f"{pred_path} and {gt_path} share no keypoint names "
-                         f"({list(pred.keypoint_names)[:4]}... vs {list(gt.keypoint_names)[:4]}...)")
+                         f"({list(pred.keypoint_names)[:4]}... vs "
+                         f"{list(gt.keypoint_names)[:4]}...)")
     ip = [pred.keypoint_names.index(n) for n in names]
     ig = [gt.keypoint_names.index(n) for n in names]
     xp, xg = pred.keypoints[:, ip] * 100.0, gt.keypoints[:, ig] * 100.0  # cm
