@@ -233,7 +233,7 @@ def test_blend(db, maps):
     err = (Rotation.from_rotvec(np.array(mid[3:6])).inv() * ref).magnitude()
     assert err < 1e-9
     # the weights favour the nearest: a far second neighbour barely moves the blend
-    far = posedb.blend_poses(jnp.asarray(np.stack([q, q2])), jnp.asarray([0.0, 80.0]))
+    far = posedb.blend_poses(jnp.asarray(np.stack([q, q2])), jnp.asarray([0.0, 120.0]))
     np.testing.assert_allclose(far, q, atol=1e-6)
     # estimate_pose of a member is that member's pose, plain, jit and vmap alike
     qb, nb = posedb.estimate_pose(db, jnp.asarray(maps[77]))
