@@ -88,7 +88,7 @@ def test_bundle_adjust_rms_matches_opencv_projection(rig):
         bt.append(t.ravel())
     start = [Camera(K0 * [[1.03], [1.03], [1]], np.eye(3), np.zeros(3), D0, W, H),
              Camera(K1, R1, T1 + [0.01, 0, 0], D1, W, H)]
-    res = bundle_adjust(start, det, np.array(bR), np.array(bt), PATTERN, SQUARE)
+    res = bundle_adjust(start, det, np.array(bR), np.array(bt), obj)
     assert res.converged and res.rms_after < 0.2 < res.rms_before
     sq = []
     for c, cam in enumerate(res.cameras):
@@ -128,3 +128,39 @@ def test_refusals(rig, tmp_path, capsys):
                    "5x4", "--square", SQUARE, "--out", tmp_path / "afile" / "c.json")
     assert_refused(capsys, "is a folder", "calibrate", root / "cam0", "--board", "5x4",
                    "--square", SQUARE, "--out", tmp_path)
+
+
+def test_charuco_partial_views(tmp_path, capsys):
+    """A ChArUco board (OpenCV's own image of it) warped into a known pinhole camera, one view
+    showing only part of the board: K is recovered."""
+    board = cv2.aruco.CharucoBoard((6, 5), 0.04, 0.03,
+                                   cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    ppm = 2500.0  # pixels per metre of the generated board image
+    flat = board.generateImage((int(6 * 0.04 * ppm), int(5 * 0.04 * ppm)), marginSize=0)
+    K = np.array([[300.0, 0, 161], [0, 305.0, 118], [0, 0, 1]])
+    rng = np.random.default_rng(5)
+    folder = tmp_path / "cam0"
+    folder.mkdir()
+    for v in range(6):
+        R = Rotation.from_rotvec(rng.uniform(-0.45, 0.45, 3) * [1, 1, 0.3]).as_matrix()
+        shift = 0.12 if v == 0 else 0.0  # view 0: the board runs off the image's right edge
+        t = np.array([shift - 0.12, -0.1, 0.55]) + rng.uniform(-0.02, 0.02, 3)
+        Hm = K @ np.column_stack([R[:, 0], R[:, 1], t]) @ np.diag([1 / ppm, 1 / ppm, 1.0])
+        img = cv2.warpPerspective(flat, Hm, (320, 240), flags=cv2.INTER_AREA,
+                                  borderValue=140)
+        cv2.imwrite(str(folder / f"{v}.png"), img)
+    out = tmp_path / "cameras.json"
+    rc, stdout, err = run_cli(capsys, "calibrate", folder, "--charuco", "DICT_4X4_50", "--board",
+                              "6x5", "--square", "0.04", "--marker", "0.03", "--fix-k3", "--out",
+                              out)
+    assert rc == 0 and err == [], err
+    assert "board found in 6 of 6 views" in stdout
+    cam = load_cameras(out, dtype=np.float64)[0][0]
+    np.testing.assert_allclose(np.asarray(cam.K)[[0, 1, 0, 1], [0, 1, 2, 2]],
+                               K[[0, 1, 0, 1], [0, 1, 2, 2]], rtol=0.02)
+    assert_refused(capsys, "found the ChArUco board in 0 of 6 images", "calibrate", folder,
+                   "--charuco", "DICT_5X5_50", "--board", "6x5", "--square", "0.04", "--marker",
+                   "0.03", "--out", tmp_path / "x.json", leaves=[tmp_path / "x.json"])
+    assert_refused(capsys, "--charuco 'DICT_NOPE': unknown dictionary", "calibrate", folder,
+                   "--charuco", "DICT_NOPE", "--board", "6x5", "--square", "0.04", "--marker",
+                   "0.03", "--out", tmp_path / "x.json", leaves=[tmp_path / "x.json"])

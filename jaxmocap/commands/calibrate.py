@@ -14,6 +14,7 @@ starting from these OpenCV estimates. Camera 0 fixes the gauge (its frame is the
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -27,6 +28,7 @@ from jaxmocap.body import so3_exp
 from jaxmocap.calibration import (
     MIN_VIEWS,
     CalibrationError,
+    CameraCalibration,
     board_points,
     calibrate_camera,
     find_corners,
@@ -41,13 +43,16 @@ __all__ = ["BundleResult", "add_parser", "bundle_adjust", "parse_board", "run"]
 BA_MAX_STEPS = 100  # Levenberg-Marquardt iterations of the joint refinement
 BA_TOL = 1e-10  # optimistix rtol/atol (float64)
 MIN_SQUARE, MAX_SQUARE = 0.002, 1.0  # metres: plausible checkerboard squares
+MIN_CHARUCO_CORNERS = 6  # ChArUco corners a view needs (a homography needs 4; margin for noise)
 
 EPILOG = """examples:
   jaxmocap calibrate calib/cam0 calib/cam1 --board 9x6 --square 0.025 --out cameras.json
   jaxmocap calibrate left.mp4 right.mp4 --board 9x6 --square 0.025 --every 10 --world board
+  jaxmocap calibrate cam0/ --charuco DICT_4X4_50 --board 7x5 --square 0.04 --marker 0.03
 
 Each input is one camera (a folder of images or a video); image/frame v of every camera must
-show the same instant. --board counts INNER corners (a board of 10x7 squares has 9x6).
+show the same instant. For a checkerboard --board counts INNER corners (a board of 10x7
+squares has 9x6); for a ChArUco board (--charuco) it counts squares.
 """
 
 
@@ -95,37 +100,75 @@ def bundle_adjust(
     detections: list[dict[int, np.ndarray]],
     board_R: np.ndarray,
     board_t: np.ndarray,
-    pattern_size: tuple[int, int],
-    square_size: float,
+    object_points: np.ndarray,
     *,
     fix_k3: bool = False,
     max_steps: int = BA_MAX_STEPS,
 ) -> BundleResult:
     """Joint refinement of all cameras and board poses (module docstring).
 
-    ``cameras[0]`` must be the world (R = I, t = 0); ``detections[c][v]`` are camera c's
-    corners (n, 2) at instant v (``0 <= v < len(board_R)``); ``board_R[v], board_t[v]`` the
-    initial board -> world poses. Minimises ``sum_{c,v,i} ||pi_c(R_v P_i + t_v) - u_cvi||^2``
-    over fx, fy, cx, cy, k1..k3, p1, p2 of every camera, (R_c, t_c) of cameras c > 0 and
-    (R_v, t_v) of every instant. Rotations are rotation vectors (:func:`so3_exp`).
+    ``cameras[0]`` must be the world (R = I, t = 0); ``object_points`` (n, 3) the board's
+    corners in its frame (metres); ``detections[c][v]`` camera c's corners (n, 2) at instant v
+    (``0 <= v < len(board_R)``), NaN where a corner was not detected (ChArUco views of part of
+    the board); ``board_R[v], board_t[v]`` the initial board -> world poses. Minimises
+    ``sum_{c,v,i} ||pi_c(R_v P_i + t_v) - u_cvi||^2`` over the detected corners, over fx, fy,
+    cx, cy, k1..k3, p1, p2 of every camera, (R_c, t_c) of cameras c > 0 and (R_v, t_v) of every
+    instant. Rotations are rotation vectors (:func:`so3_exp`).
     """
     with jax.enable_x64(True):
-        return _bundle_adjust(cameras, detections, board_R, board_t, pattern_size, square_size,
-                              fix_k3, max_steps)
+        return _bundle_adjust(cameras, detections, board_R, board_t, object_points, fix_k3,
+                              max_steps)
 
 
-def _bundle_adjust(cameras, detections, board_R, board_t, pattern_size, square_size, fix_k3,
-                   max_steps):
-    f64 = jnp.float64
+def _unpack(y, k3_fixed, fix_k3: bool):
+    """Stacked camera parameters (K, R, t, dist) of the solver's pytree, leading axis =
+    cameras; camera 0 is the world (R = I, t = 0)."""
+    f64 = y["f_c"].dtype
+    dist = y["dist"].at[:, 4].set(k3_fixed) if fix_k3 else y["dist"]
+    fx, fy, cx, cy = y["f_c"].T
+    zero, one = jnp.zeros_like(fx), jnp.ones_like(fx)
+    K = jnp.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], -1).reshape(-1, 3, 3)
+    R = jnp.concatenate([jnp.eye(3, dtype=f64)[None], so3_exp(y["cam_r"])])
+    t = jnp.concatenate([jnp.zeros((1, 3), f64), y["cam_t"]])
+    return K, R, t, dist
+
+
+def _residuals(y, args, fix_k3: bool):
+    """Masked reprojection errors (c, v, p, 2), flattened."""
+    obs, mask, P, k3_fixed = args
+    K, R, t, dist = _unpack(y, k3_fixed, fix_k3)
+    Rb = so3_exp(y["board_r"])  # (v, 3, 3)
+    X = jnp.einsum("vij,pj->vpi", Rb, P) + y["board_t"][:, None, :]
+
+    def proj(K, R, t, d):  # width/height do not enter the projection
+        return project(Camera(K=K, R=R, t=t, dist=d, width=1, height=1), X)
+
+    r = jax.vmap(proj)(K, R, t, dist) - obs
+    return jnp.where(mask[..., None], r, 0.0).reshape(-1)
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _solve(y0, args, fix_k3: bool, max_steps: int):
+    fn = functools.partial(_residuals, fix_k3=fix_k3)
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=BA_TOL, atol=BA_TOL), y0, args,
+                             max_steps=max_steps, throw=False)
+    y = sol.value
+    ok = sol.result == optx.RESULTS.successful
+    return (fn(y0, args), fn(y, args), _unpack(y, args[3], fix_k3), so3_exp(y["board_r"]),
+            y["board_t"], sol.stats["num_steps"], ok)
+
+
+def _bundle_adjust(cameras, detections, board_R, board_t, object_points, fix_k3, max_steps):
     n_cams, n_views = len(cameras), len(board_R)
-    n_pts = pattern_size[0] * pattern_size[1]
+    n_pts = len(object_points)
     obs = np.zeros((n_cams, n_views, n_pts, 2))
-    mask = np.zeros((n_cams, n_views), bool)
+    mask = np.zeros((n_cams, n_views, n_pts), bool)
     for c, det in enumerate(detections):
         for v, uv in det.items():
-            obs[c, v], mask[c, v] = uv, True
+            ok = np.isfinite(uv).all(axis=1)
+            obs[c, v][ok], mask[c, v] = uv[ok], ok
     obs, maskj = jnp.asarray(obs), jnp.asarray(mask)
-    P = jnp.asarray(board_points(pattern_size, square_size), f64)
+    P = jnp.asarray(np.asarray(object_points, np.float64))
     sizes = [(int(c.width), int(c.height)) for c in cameras]
     Ks = [np.asarray(c.K, np.float64) for c in cameras]
     y0 = {
@@ -139,46 +182,12 @@ def _bundle_adjust(cameras, detections, board_R, board_t, pattern_size, square_s
         "board_t": jnp.asarray(np.asarray(board_t, np.float64)),
     }
     k3_fixed = jnp.asarray(np.array([float(c.dist[4]) for c in cameras]))
-
-    def unpack(y):
-        """Stacked camera parameters (K, R, t, dist), leading axis = cameras."""
-        dist = y["dist"].at[:, 4].set(k3_fixed) if fix_k3 else y["dist"]
-        fx, fy, cx, cy = y["f_c"].T
-        zero, one = jnp.zeros_like(fx), jnp.ones_like(fx)
-        K = jnp.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], -1).reshape(-1, 3, 3)
-        R = jnp.concatenate([jnp.eye(3, dtype=f64)[None], so3_exp(y["cam_r"])])
-        t = jnp.concatenate([jnp.zeros((1, 3), f64), y["cam_t"]])
-        return K, R, t, dist
-
-    def residuals(y, args):
-        obs, maskj = args
-        K, R, t, dist = unpack(y)
-        Rb = so3_exp(y["board_r"])  # (v, 3, 3)
-        X = jnp.einsum("vij,pj->vpi", Rb, P) + y["board_t"][:, None, :]
-
-        def proj(K, R, t, d):  # width/height do not enter the projection
-            return project(Camera(K=K, R=R, t=t, dist=d, width=1, height=1), X)
-
-        r = jax.vmap(proj)(K, R, t, dist) - obs  # (c, v, p, 2)
-        return jnp.where(maskj[:, :, None, None], r, 0.0).reshape(-1)
-
-    n_obs = float(mask.sum() * n_pts)
-
-    @jax.jit
-    def solve(y0, args):
-        r0 = residuals(y0, args)
-        sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=BA_TOL, atol=BA_TOL),
-                                 y0, args, max_steps=max_steps, throw=False)
-        y = sol.value
-        cams = unpack(y)
-        ok = sol.result == optx.RESULTS.successful
-        return r0, residuals(y, args), cams, so3_exp(y["board_r"]), y["board_t"], \
-            sol.stats["num_steps"], ok
-
-    r0, r1, cams, bR, bt, steps, ok = jax.device_get(solve(y0, (obs, maskj)))
+    n_obs = float(mask.sum())
+    r0, r1, cams, bR, bt, steps, ok = jax.device_get(
+        _solve(y0, (obs, maskj, P, k3_fixed), fix_k3, max_steps))
     r0 = np.asarray(r0).reshape(n_cams, n_views, n_pts, 2)
     r1 = np.asarray(r1).reshape(n_cams, n_views, n_pts, 2)
-    per_cam = [float(np.sqrt((r1[c] ** 2).sum() / (mask[c].sum() * n_pts)))
+    per_cam = [float(np.sqrt((r1[c] ** 2).sum() / mask[c].sum()))
                for c in range(n_cams)]
     cams = [Camera(K=K, R=R, t=t, dist=d, width=w, height=h)
             for K, R, t, d, (w, h) in zip(*cams, sizes, strict=True)]
@@ -251,8 +260,12 @@ def _calibrate(args) -> tuple[list[Camera], list[str], dict]:
     keep = [v for v in range(len(views[0])) if all(vs[v] is not None for vs in views)]
     dropped = len(views[0]) - len(keep)
     views = [[vs[v] for v in keep] for vs in views]
+    charuco = _charuco_board(args, pattern) if args.charuco else None
     calibs = []
     for name, ims in zip(names, views, strict=True):
+        if charuco is not None:
+            calibs.append(_calibrate_charuco(ims, charuco, name, args))
+            continue
         try:
             cal = calibrate_camera(ims, pattern, args.square, min_views=args.min_views,
                                    flags=_flags(args), name=name)
@@ -291,6 +304,8 @@ def _calibrate(args) -> tuple[list[Camera], list[str], dict]:
         board_R.append(Rc.T @ Rcb)
         board_t.append(Rc.T @ (tcb - tc))
     detections = [{index[v]: uv for v, uv in zip(c.used, c.corners, strict=True)} for c in calibs]
+    object_points = (board_points(pattern, args.square) if charuco is None
+                     else np.asarray(charuco.getChessboardCorners(), np.float64))
     report = {
         "opencv_rms": [c.rms for c in calibs],
         "views_used": [len(c.used) for c in calibs],
@@ -300,8 +315,8 @@ def _calibrate(args) -> tuple[list[Camera], list[str], dict]:
     if args.no_refine:
         final, bR, bt = cams, np.array(board_R), np.array(board_t)
     else:
-        ba = bundle_adjust(cams, detections, np.array(board_R), np.array(board_t), pattern,
-                           args.square, fix_k3=args.fix_k3)
+        ba = bundle_adjust(cams, detections, np.array(board_R), np.array(board_t),
+                           object_points, fix_k3=args.fix_k3)
         final, bR, bt = ba.cameras, ba.board_R, ba.board_t
         report.update(rms_before=ba.rms_before, rms_after=ba.rms_after,
                       rms_per_camera=ba.rms_per_camera, steps=ba.steps, converged=ba.converged)
@@ -311,6 +326,69 @@ def _calibrate(args) -> tuple[list[Camera], list[str], dict]:
                         t=jnp.asarray(np.asarray(c.R) @ tw + np.asarray(c.t)), dist=c.dist,
                         width=c.width, height=c.height) for c in final]
     return final, names, report
+
+
+def _charuco_board(args, squares: tuple[int, int]):
+    """The OpenCV ChArUco board of ``--charuco DICT --board COLSxROWS (squares) --marker``."""
+    import cv2
+
+    if not hasattr(cv2, "aruco"):
+        raise InputError("--charuco: this OpenCV build has no aruco module")
+    name = args.charuco.upper()
+    if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
+        raise InputError(f"--charuco {args.charuco!r}: unknown dictionary; expected an OpenCV "
+                         "name such as DICT_4X4_50, DICT_5X5_100, DICT_6X6_250")
+    if args.marker is None or not 0 < args.marker < args.square:
+        raise InputError(f"--marker {args.marker}: ChArUco needs the marker side in metres, "
+                         f"smaller than --square {args.square}")
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+    if squares[0] * squares[1] // 2 > dictionary.bytesList.shape[0]:
+        raise InputError(f"--charuco {name}: {dictionary.bytesList.shape[0]} markers, too few "
+                         f"for a {squares[0]}x{squares[1]}-square board")
+    return cv2.aruco.CharucoBoard(squares, args.square, args.marker, dictionary)
+
+
+def _find_charuco(image: np.ndarray, board) -> np.ndarray | None:
+    """ChArUco inner corners (n, 2) pixels in the board's corner order, NaN where not seen;
+    None with fewer than ``MIN_CHARUCO_CORNERS``."""
+    import cv2
+
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(gray)
+    if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
+        return None
+    out = np.full((len(board.getChessboardCorners()), 2), np.nan)
+    out[ids.ravel()] = corners.reshape(-1, 2)
+    return out
+
+
+def _calibrate_charuco(images: list[np.ndarray], board, name: str, args) -> CameraCalibration:
+    """Zhang calibration (``cv2.calibrateCamera``) from the ChArUco corners of each view."""
+    import cv2
+
+    if len({im.shape[:2] for im in images}) > 1:
+        raise CalibrationError(f"{name}: images have different sizes")
+    det = [_find_charuco(im, board) for im in images]
+    used = [v for v, d in enumerate(det) if d is not None]
+    if len(used) < args.min_views:
+        cols, rows = board.getChessboardSize()
+        raise CalibrationError(
+            f"{name}: found the ChArUco board in {len(used)} of {len(images)} images (need "
+            f"{args.min_views}, each with >= {MIN_CHARUCO_CORNERS} corners): check --charuco "
+            f"{args.charuco} (dictionary), --board {cols}x{rows} (squares, for ChArUco) and "
+            "--marker, and that the board is sharp and well lit")
+    obj = np.asarray(board.getChessboardCorners(), np.float32)
+    ok = [np.isfinite(det[v]).all(axis=1) for v in used]
+    h, w = images[0].shape[:2]
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        [obj[m] for m in ok], [det[v][m].astype(np.float32)[:, None] for v, m in
+                               zip(used, ok, strict=True)], (w, h), None, None,
+        flags=_flags(args))
+    dist = np.pad(np.ravel(dist)[:5], (0, max(0, 5 - np.ravel(dist)[:5].size)))
+    cam = Camera(K=jnp.asarray(K), R=jnp.eye(3), t=jnp.zeros(3), dist=jnp.asarray(dist),
+                 width=w, height=h)
+    return CameraCalibration(cam, float(rms), used, [det[v] for v in used], list(rvecs),
+                             list(tvecs))
 
 
 def _rodrigues(rvec) -> np.ndarray:
@@ -336,9 +414,15 @@ def add_parser(sub) -> None:
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="one per camera: a folder of images or a video file")
     p.add_argument("--board", required=True, metavar="COLSxROWS",
-                   help="inner corners of the checkerboard, e.g. 9x6 (required)")
+                   help="checkerboard: inner corners, e.g. 9x6; ChArUco: squares, e.g. 7x5 "
+                   "(required)")
     p.add_argument("--square", type=float, required=True, metavar="METRES",
                    help="side of one square in metres, e.g. 0.025 (required)")
+    p.add_argument("--charuco", metavar="DICT",
+                   help="the board is a ChArUco board with markers of this OpenCV dictionary "
+                   "(e.g. DICT_4X4_50); partly visible boards still count")
+    p.add_argument("--marker", type=float, metavar="METRES",
+                   help="ChArUco marker side in metres (with --charuco)")
     p.add_argument("--out", default="cameras.json", help="output file (default: %(default)s)")
     p.add_argument("--names", nargs="+", help="camera names (default: cam0 cam1 ...)")
     p.add_argument("--every", type=int, default=1, metavar="N",
