@@ -35,7 +35,6 @@ what was expected. ``save_cameras`` writes atomically (temporary file + ``os.rep
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -667,13 +666,6 @@ def save_cameras(
             }
         )
     text = json.dumps({"version": CAMERAS_JSON_VERSION, "cameras": entries}, indent=2) + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from jaxmocap.io.atomic import write_text  # one atomic-write mechanism for the package
+
+    write_text(path, text)

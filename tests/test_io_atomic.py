@@ -86,3 +86,20 @@ def test_refuses_bad_targets(tmp_path):
     with pytest.raises(InputError, match="is a folder"):
         check_output_file(tmp_path)
     assert check_output_folder(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    """Temporaries are private (mkstemp: 0600); published files follow the umask like open()."""
+    import os
+
+    from jaxmocap.io.atomic import AtomicFiles, write_text
+
+    mask = os.umask(0o022)
+    try:
+        a = write_text(tmp_path / "a.txt", "x")
+        with AtomicFiles() as out:
+            out.path(tmp_path / "b.csv").write_text("y")
+    finally:
+        os.umask(mask)
+    assert (a.stat().st_mode & 0o777) == 0o644
+    assert ((tmp_path / "b.csv").stat().st_mode & 0o777) == 0o644

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -208,16 +207,9 @@ def save_color_model(path: str | os.PathLike, model: ColorModel) -> Path:
             for k, n in enumerate(names)
         ],
     }
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from jaxmocap.io.atomic import write_text  # one atomic-write mechanism for the package
+
+    write_text(path, json.dumps(data, indent=2) + "\n")
     return path
 
 

@@ -76,6 +76,19 @@ def _temp_name(path: Path) -> Path:
     return Path(tmp)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publish(tmp: Path, target: Path) -> None:
+    """Give ``tmp`` the permissions a plain ``open`` would (mkstemp/mkdtemp make them private:
+    0600/0700) and rename it onto ``target``."""
+    os.chmod(tmp, (0o777 if tmp.is_dir() else 0o666) & ~_umask())
+    os.replace(tmp, target)
+
+
 def _remove(p: Path) -> None:
     with contextlib.suppress(FileNotFoundError):
         if p.is_dir() and not p.is_symlink():
@@ -93,7 +106,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp = _temp_name(path)
     try:
         yield tmp
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         _remove(tmp)
         raise
@@ -162,7 +175,7 @@ class AtomicFiles:
             return
         try:
             for target, tmp in self._pending:
-                os.replace(tmp, target)
+                _publish(tmp, target)
         finally:
             self.discard()
 
@@ -186,7 +199,7 @@ def atomic_folder(folder: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         if folder.is_dir():
             folder.rmdir()  # empty, checked above
-        os.replace(tmp, folder)
+        _publish(tmp, folder)
     except BaseException:
         _remove(tmp)
         raise
