@@ -162,14 +162,13 @@ def _write(curves: dict) -> None:
         "prior_gt": "pose-assisted, ground-truth prior",
     }
     for name, style in (("base", "o-"), ("prior_perturbed", "s-"), ("prior_gt", "^--")):
-        ax.plot(100 * np.array(curves[name]["false_positive"]),
-                100 * np.array(curves[name]["correct"]), style, ms=3, label=labels[name])  # fmt: skip
+        fp = 100 * np.array(curves[name]["false_positive"])
+        ax.plot(fp, 100 * np.array(curves[name]["correct"]), style, ms=3, label=labels[name])
     T = curves["thresholds"]
     for k in (T.index(3), T.index(5)):
-        ax.annotate(f"T={T[k]:g}", (100 * curves["base"]["false_positive"][k],
-                                   100 * curves["base"]["correct"][k]), fontsize=7)  # fmt: skip
-        ax.annotate(f"T={T[k]:g}", (100 * curves["prior_perturbed"]["false_positive"][k],
-                                   100 * curves["prior_perturbed"]["correct"][k]), fontsize=7)  # fmt: skip
+        for name in ("base", "prior_perturbed"):
+            xy = (100 * curves[name]["false_positive"][k], 100 * curves[name]["correct"][k])
+            ax.annotate(f"T={T[k]:g}", xy, fontsize=7)
     ax.set_xscale("symlog", linthresh=0.1)
     ax.set_xlabel("false positives (% of window pixels; linear below 0.1)")
     ax.set_ylabel("correctly classified shirt pixels (%)")
@@ -186,4 +185,5 @@ if __name__ == "__main__":
         sys.exit()
     r = main(sys.argv[1] if len(sys.argv) > 1 else "small")
     for name in ("base", "prior_perturbed", "prior_gt"):
-        print(name, list(zip(r["thresholds"], r[name]["correct"], r[name]["false_positive"])))
+        c, f = r[name]["correct"], r[name]["false_positive"]
+        print(name, list(zip(r["thresholds"], c, f, strict=True)))

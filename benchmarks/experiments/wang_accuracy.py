@@ -1,0 +1,209 @@
+"""Accuracy of the colour-shirt tracker (Wang et al. 2011 Figs. 9 and 10 analogues).
+
+1. IK covariances trained the paper's way (§5.2 step 4, ``ik.estimate_covariances``): the
+   tracker (isotropic covariances) runs on a rendered TRAIN_CLIPS sequence; its measured patch
+   centroids and placed database blends are compared with the ground-truth pose.
+2. Full vs ablated tracker (``pose_prior=False, adaptive_white_balance=False``) on held-out
+   sequences with a lamp switched off mid-sequence (lighting step) and an occluder passing, with
+   two cameras and with one: mean per-joint error (cm) over the 12 body keypoints (Fig. 9
+   analogue) and the right shoulder's angle vs ground truth (Fig. 10 analogue).
+
+Sizes (kept affordable on a shared 2-core CPU): 320x240 "webcams" rig, cluttered background,
+sensor noise 1%; database of ``db_size`` poses sampled from TRAIN_CLIPS (the paper: 80,000).
+Writes ``docs/results/shirt_accuracy.json``, ``docs/images/shirt_fig9.png``,
+``docs/images/shirt_fig10.png``.
+
+    python benchmarks/experiments/wang_accuracy.py [small|full]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmocap.body import default_body, dof_index, keypoints
+from jaxmocap.camera import stack_cameras
+from jaxmocap.garment import default_garment
+from jaxmocap.ik import IKCovariances, anchors_from_garment, estimate_covariances
+from jaxmocap.posedb import SamplingConfig, load_or_build, sample_poses, source_pool
+from jaxmocap.synth import HELDOUT_CLIPS, TRAIN_CLIPS, SceneConfig, render_sequence
+from jaxmocap.trackers import shirt
+
+ROOT = Path(__file__).resolve().parents[2]
+SCALES = {
+    "small": dict(n_frames=20, db_size=3000, train_frames=20, heldout=HELDOUT_CLIPS[:1],
+                  cameras=(2, 1)),
+    "full": dict(n_frames=30, db_size=8000, train_frames=30, heldout=HELDOUT_CLIPS[:2],
+                 cameras=(2, 1)),
+}  # fmt: skip
+TRAIN_CLIP = "humanoid3d_dance_a"
+SHOULDER_DOF = "r_shoulder"  # Fig. 10 traces the one of these DOFs that moves most
+
+
+def _scene(clip: str, n_frames: int, n_cameras: int, nuisances: bool) -> SceneConfig:
+    extra = {}
+    if nuisances:
+        extra = dict(lamp_off=n_frames // 2, occluder=(n_frames // 4, n_frames // 4 + 5))
+    return SceneConfig(
+        clip=clip, n_frames=n_frames, n_cameras=n_cameras, width=320, height=240,
+        background="clutter", noise_sigma=0.01, seed=2, **extra,
+    )  # fmt: skip
+
+
+def _setup(seq, model, garment, db, cov, color, **flags):
+    cams = stack_cameras(seq.cameras)
+    ids = seq.groundtruth["colour_ids"][0]
+    labels = np.stack([shirt.scribbles(ids[i]) for i in range(ids.shape[0])])
+    W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
+    params = shirt.make_params(
+        color, model, garment, cams, anchors_from_garment(model, garment), cov, db, **flags
+    )
+    return params, shirt.init(params, W0, jnp.zeros(model.n_dof, jnp.float32))
+
+
+def _track(params, state, frames):
+    t0 = time.perf_counter()
+    _, out = shirt.run(params, state, frames)
+    jax.block_until_ready(out.q)
+    return out, time.perf_counter() - t0
+
+
+def main(scale: str = "small", write: bool = True) -> dict:
+    """Run the experiment; returns the results (and writes JSON + plots when ``write``)."""
+    if scale not in SCALES:
+        raise ValueError(
+            f"wang_accuracy.main: scale must be one of {sorted(SCALES)}, got {scale!r}"
+        )
+    s = SCALES[scale]
+    model = default_body()
+    garment = default_garment(model)
+    kp = jax.jit(jax.vmap(lambda q: keypoints(model, q)))
+    db = load_or_build(SamplingConfig(size=s["db_size"]), model, garment, progress=False)
+    pool = source_pool(model, TRAIN_CLIPS)
+    poses = sample_poses(SamplingConfig(size=5, seed=3, yaw_range=0.3), model, pool)
+    poses[:, 2] = 0.85
+    res: dict = {"scale": scale, "db_size": s["db_size"], "width": 320, "height": 240,
+                 "runs": []}  # fmt: skip
+
+    # 1. covariance training on a TRAIN_CLIPS sequence (two cameras, no lighting step)
+    train = render_sequence(_scene(TRAIN_CLIP, s["train_frames"], 2, False), jnp.float32)
+    color = shirt.fit_color_model_from_renders(model, garment, poses, train.cameras[0])
+    iso = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
+    params, state = _setup(train, model, garment, db, iso, color)
+    out, wall = _track(params, state, train.frames)
+    q_gt = jnp.asarray(train.groundtruth["q"], jnp.float32)
+    cov = estimate_covariances(params.cams, model.chain, params.anchors, q_gt, out.centroids,
+                               out.visible & out.valid[:, None, None], out.q_blend)  # fmt: skip
+    e_tr = np.linalg.norm(np.asarray(kp(out.q)) - train.groundtruth["keypoints"], axis=-1)
+    res["training"] = {
+        "clip": TRAIN_CLIP, "frames": s["train_frames"],
+        "mean_cm_isotropic": float(100 * e_tr.mean()),
+        "sigma_c_px": np.sqrt(np.diag(np.asarray(cov.centroid))).round(2).tolist(),
+        "sigma_b_rad_median": float(np.median(np.sqrt(np.diag(np.asarray(cov.blend))[6:]))),
+        "sigma_p_rad_median": float(np.median(np.sqrt(np.diag(np.asarray(cov.prior))[6:]))),
+    }  # fmt: skip
+    print(json.dumps(res["training"]), flush=True)
+
+    # 2. held-out: full vs ablated, isotropic vs trained covariances, two / one cameras
+    sh_all = dof_index(model, [n for n in model.chain.dof_names if n.startswith(SHOULDER_DOF)])
+    for clip in s["heldout"]:
+        for n_cams in s["cameras"]:
+            seq = render_sequence(_scene(clip, s["n_frames"], n_cams, True), jnp.float32)
+            truth = seq.groundtruth["keypoints"]
+            # Fig. 10 traces the shoulder DOF that moves most in this sequence
+            sh = int(sh_all[np.argmax(seq.groundtruth["q"][:, sh_all].std(0))])
+            variants = [
+                ("full", cov, {}),
+                ("ablated", cov, dict(pose_prior=False, adaptive_white_balance=False)),
+            ]
+            if n_cams == 2:
+                variants.append(("full, isotropic cov", iso, {}))
+            for name, c, flags in variants:
+                params, state = _setup(seq, model, garment, db, c, color, **flags)
+                out, wall = _track(params, state, seq.frames)
+                err = np.linalg.norm(np.asarray(kp(out.q)) - truth, axis=-1)
+                r = {
+                    "clip": clip, "cameras": n_cams, "variant": name, "frames": s["n_frames"],
+                    "lamp_off": seq.config.lamp_off, "occluder": list(seq.config.occluder),
+                    "mean_cm": float(100 * err.mean()),
+                    "per_joint_cm": dict(zip(model.keypoint_names,
+                                             (100 * err.mean(0)).round(1).tolist(), strict=True)),
+                    "per_frame_cm": (100 * err.mean(1)).round(1).tolist(),
+                    "valid_fraction": float(np.asarray(out.valid).mean()),
+                    "references_added": int(np.asarray(out.added_reference).sum()),
+                    "shoulder_dof": model.chain.dof_names[sh],
+                    "shoulder_est": np.asarray(out.q[:, sh]).round(4).tolist(),
+                    "shoulder_gt": np.asarray(seq.groundtruth["q"][:, sh]).round(4).tolist(),
+                    "wall_s_incl_compile": round(wall, 1),
+                }  # fmt: skip
+                print(json.dumps({k: v for k, v in r.items()
+                                  if k not in ("per_frame_cm", "shoulder_est", "shoulder_gt")}),
+                      flush=True)  # fmt: skip
+                res["runs"].append(r)
+    if write:
+        _write(res)
+    return res
+
+
+LEGEND = {
+    "full": "full, trained cov",
+    "ablated": "no pose prior, no adaptive WB (trained cov)",
+    "full, isotropic cov": "full, isotropic cov",
+}
+
+
+def _write(res: dict) -> None:
+    (ROOT / "docs" / "results" / "shirt_accuracy.json").write_text(json.dumps(res, indent=1) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = res["runs"]
+    groups = sorted({(r["clip"], r["cameras"]) for r in runs}, key=lambda g: (g[0], -g[1]))
+    variants = ["full", "ablated", "full, isotropic cov"]
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    w = 0.27
+    for j, v in enumerate(variants):
+        xs, ys = [], []
+        for i, g in enumerate(groups):
+            m = [r["mean_cm"] for r in runs if (r["clip"], r["cameras"]) == g and r["variant"] == v]
+            if m:
+                xs.append(i + (j - 1) * w)
+                ys.append(m[0])
+        ax.bar(xs, ys, w, label=LEGEND[v])
+    ax.set_xticks(range(len(groups)))
+    ax.set_xticklabels([f"{c.split('_')[-1]}\n{n} camera{'s' if n > 1 else ''}" for c, n in groups])
+    ax.set_ylabel("mean per-joint error (cm)")
+    ax.set_title(f"Fig. 9 analogue: held-out clips, lamp off + occluder, DB {res['db_size']} poses")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(ROOT / "docs" / "images" / "shirt_fig9.png", dpi=110)
+
+    fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.2), squeeze=False)
+    for ax, g in zip(axes[0], groups, strict=True):
+        rs = [r for r in runs if (r["clip"], r["cameras"]) == g]
+        ax.plot(np.degrees(rs[0]["shoulder_gt"]), "k-", lw=2, label="ground truth")
+        for r in rs:
+            ax.plot(np.degrees(r["shoulder_est"]), "--", label=LEGEND[r["variant"]])
+        ax.axvline(rs[0]["lamp_off"], color="grey", lw=0.8)
+        ax.axvspan(*rs[0]["occluder"], color="grey", alpha=0.15)
+        ax.set_xlabel("frame (30 Hz); line: lamp off, band: occluder")
+        ax.set_ylabel(f"{rs[0]['shoulder_dof']} angle (deg)")
+        ax.set_title(f"{g[0]}, {g[1]} cam")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(ROOT / "docs" / "images" / "shirt_fig10.png", dpi=110)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] == ["replot"]:  # redraw from the committed JSON
+        _write(json.loads((ROOT / "docs" / "results" / "shirt_accuracy.json").read_text()))
+        sys.exit()
+    main(sys.argv[1] if len(sys.argv) > 1 else "small")
