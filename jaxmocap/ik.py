@@ -53,6 +53,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxmocap.body import ROOT_DOFS, BodyModel, KinematicChain, fk, so3_exp
 from jaxmocap.camera import Camera, project, triangulate
+from jaxmocap.errors import InputError
 from jaxmocap.garment import Garment
 from jaxmocap.render import patch_surface_points
 
@@ -175,6 +176,10 @@ def _check_cov(name: str, a: Array, tail: int | None) -> None:
         )
 
 
+class CovarianceFileError(InputError):
+    """An IK covariance file that is missing, malformed or not positive definite."""
+
+
 class IKCovariances(eqx.Module):
     """Covariances of the three IK terms (Wang et al. §5.2 step 4).
 
@@ -223,15 +228,15 @@ class IKCovariances(eqx.Module):
         try:
             data = np.load(path)
         except (OSError, ValueError) as e:
-            raise ValueError(f"{path}: cannot read IK covariances ({e})") from None
+            raise CovarianceFileError(f"{path}: cannot read IK covariances ({e})") from None
         with data:
             fields = {}
             for key in ("centroid", "blend", "prior", "version"):
                 if key not in data.files:
-                    raise ValueError(f"{path}: missing field {key!r} (have {data.files})")
+                    raise CovarianceFileError(f"{path}: missing field {key!r} (have {data.files})")
                 fields[key] = np.asarray(data[key])
         if int(fields["version"]) != COV_FILE_VERSION:
-            raise ValueError(
+            raise CovarianceFileError(
                 f"{path}: field 'version' is {int(fields['version'])}, expected {COV_FILE_VERSION}"
             )
         for key in ("centroid", "blend", "prior"):
@@ -240,7 +245,9 @@ class IKCovariances(eqx.Module):
                 np.all(a > 0) if a.ndim == 1 else np.all(np.linalg.eigvalsh(a) > 0)
             )
             if not ok:
-                raise ValueError(f"{path}: field {key!r} is not a positive definite covariance")
+                raise CovarianceFileError(
+                    f"{path}: field {key!r} is not a positive definite covariance"
+                )
         return cls(**{k: jnp.asarray(fields[k]) for k in ("centroid", "blend", "prior")})
 
 
