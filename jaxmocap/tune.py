@@ -1,0 +1,540 @@
+"""Gradient-based tuning of the pipeline's covariances through the differentiable pipeline.
+
+Neither paper could do this: Wang et al. (§5.2 step 4) "train off-line on ground-truth data"
+the IK covariances Sigma_c, Sigma_b, Sigma_p by taking the covariance of each term at the true
+pose (:func:`jaxmocap.ik.estimate_covariances`); Azad et al. (§III-D) pick sigma_g, sigma_d by
+hand. Here each parameter group gets a differentiable loss that measures what the user wants
+(tracking error), and Adam descends it. Three groups:
+
+**1. IK covariances (Wang §5.2 step 4).** ``ik_loss`` runs the tracker's last step, the IK
+solve, over a window of frames in a ``jax.lax.scan``: frame t solves
+
+    q*_t = argmin_q  sum_{i,k} ||c^{*i}_k(q) - c^{ki}_t||^2_{Sigma_c}
+                     + ||q - q_{b,t}||^2_{Sigma_b} + ||q - q_h||^2_{Sigma_p},
+
+with ``q_h = q*_{t-1}`` (after a frame with fewer than ``MIN_VALID_PATCHES`` centroids the
+tracker holds the pose and drops the temporal prior, ``q_h := q_b``; so does this scan), and
+the loss is the mean per-joint position error (metres) ``mean_t mean_j ||x_j(q*_t) -
+x_j(q_gt,t)||`` over valid frames, plus optionally ``jitter_weight`` times the mean error of
+the joints' frame-to-frame displacement. Gradients go through the scan (through ``q_h``, so
+a covariance's effect on later frames counts) and through each LM solve by optimistix's
+implicit adjoint. **What is held fixed**: the discrete parts of the tracker — histogram
+search, hard classification, the 10-NN database blend and hence the measured centroids
+``c^{ki}_t``, their validity and ``q_{b,t}`` — are precomputed by running the real tracker
+(:func:`ik_observations_from_tracker`: ``centroids``, ``visible``, ``q_blend`` of
+:class:`jaxmocap.trackers.shirt.ShirtOutput`). In the real tracker ``q*`` also feeds back into
+the next frame's white balance; that loop is cut (the IK-covariance tuning sees the tracker's
+observations as produced with the covariances it ran with).
+
+**2. Colour model (Wang §5.2 step 1).** The Gaussians' covariances Sigma_k and the threshold T
+through :func:`jaxmocap.color.soft_classify` (responsibilities ``softmax(-d^2 / 2t)`` over
+background + colours, background at ``T^2``): ``color_loss`` is the pixel cross-entropy
+against ground-truth colour-id maps of rendered frames (0 = background), with the frames'
+white balance W held fixed. The temperature ``t`` is a fixed hyper-parameter of the surrogate
+(the hard classifier is its ``t -> 0`` limit); means are not tuned (the paper's scribble fit
+estimates them well; their covariances and T decide the trade-off between colours and
+background).
+
+**3. Stereo-filter cue widths (Azad §III-D).** sigma_g, sigma_d act through the particle
+weights ``w_j ∝ exp(log p(z | s_j))``; resampling is not differentiable, so the surrogate is
+one weighting step over fixed particles: per frame, ``n`` particles ``s_j = s_gt + delta +
+eps_j`` (``delta`` a shared prediction error, ``eps_j`` the filter's diffusion, both drawn
+once and held fixed), and ``pf_loss`` is the mean per-joint error of the weighted-mean
+estimate ``sum_j w_j(sigma) s_j``. Too small sigmas put all the weight on one noisy particle,
+too large ones return the cloud's centre: the loss prices exactly the filter's trade-off.
+
+**Constrained parameters** are declared once (as dynamax's ``ParameterProperties``):
+:data:`IK_PARAMETERS`, :data:`COLOR_PARAMETERS`, :data:`PF_PARAMETERS` name the bijection of
+each field; the optimiser sees only unconstrained arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jaxmocap.body import BodyModel, keypoints
+from jaxmocap.camera import Camera
+from jaxmocap.color import ColorModel, soft_classify
+from jaxmocap.errors import InputError
+from jaxmocap.ik import IKCovariances, PatchAnchors, estimate_covariances, solve_ik
+from jaxmocap.ik import DEFAULT_ATOL, DEFAULT_RTOL
+from jaxmocap.pf.cues import Observation, StereoLikelihood
+from jaxmocap.trackers.shirt import MIN_VALID_PATCHES
+
+SOFT_TEMPERATURE = 1.0  # t of the soft classifier in the colour loss (squared std units)
+NORM_EPS = 1e-12  # m^2 under the square root of a joint error (NaN-free gradient at 0)
+# Adam (Kingma & Ba 2015) defaults.
+ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
+
+
+class TuneError(InputError):
+    """Tuning data or settings that cannot be used (shapes, lengths, empty sets)."""
+
+
+# ----------------------------------------------------------------------------- constraints
+
+
+class Constraint(NamedTuple):
+    """A bijection from unconstrained parameters to a constrained value (and back)."""
+
+    name: str
+    to_value: Callable[[Array], Array]
+    to_unconstrained: Callable[[Array], Array]
+
+
+def _tril(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.tril_indices(n, -1)
+
+
+def _n_from_log_cholesky(m: int) -> int:
+    n = int(round((np.sqrt(8 * m + 1) - 1) / 2))
+    if n * (n + 1) // 2 != m:
+        raise ValueError(f"log-Cholesky vector of length {m} is not n (n + 1) / 2 for any n")
+    return n
+
+
+def spd_from_log_cholesky(theta: Float[Array, " m"]) -> Float[Array, "n n"]:
+    """``Sigma = L L^T`` with ``L = diag(exp(a)) (I + N)``: ``a = theta[:n]`` the log of L's
+    diagonal and ``N`` strictly lower triangular from ``theta[n:]`` (row-major,
+    ``np.tril_indices(n, -1)``); ``m = n (n + 1) / 2``.
+
+    Scaling the unit-lower factor by the diagonal makes the off-diagonal parameters unit-free
+    (``N[i, j] = L[i, j] / L[i, i]``): one optimiser step means the same for a DOF with a
+    variance of 1e-6 m^2 as for one of 1 rad^2 (a plain log-Cholesky's off-diagonals are in
+    the units of the covariance and swamp tiny diagonals)."""
+    n = _n_from_log_cholesky(theta.shape[0])
+    rows, cols = _tril(n)
+    unit = jnp.eye(n, dtype=theta.dtype).at[rows, cols].set(theta[n:])
+    L = jnp.exp(theta[:n])[:, None] * unit
+    return L @ L.T
+
+
+def log_cholesky_from_spd(cov: Float[Array, "n n"]) -> Float[Array, " m"]:
+    """Inverse of :func:`spd_from_log_cholesky`."""
+    L = jnp.linalg.cholesky(cov)
+    d = jnp.diagonal(L)
+    rows, cols = _tril(cov.shape[0])
+    return jnp.concatenate([jnp.log(d), (L / d[:, None])[rows, cols]])
+
+
+LOG_CHOLESKY = Constraint("scaled log-Cholesky (SPD matrix)", spd_from_log_cholesky, log_cholesky_from_spd)
+LOG = Constraint("log (positive)", jnp.exp, jnp.log)
+BATCH_LOG_CHOLESKY = Constraint(
+    "log-Cholesky per row (stack of SPD matrices)",
+    jax.vmap(spd_from_log_cholesky),
+    jax.vmap(log_cholesky_from_spd),
+)
+
+# Which bijection each tuned field goes through (declared once).
+IK_PARAMETERS = {"centroid": LOG_CHOLESKY, "blend": LOG_CHOLESKY, "prior": LOG_CHOLESKY}
+COLOR_PARAMETERS = {"cov": BATCH_LOG_CHOLESKY, "threshold": LOG}
+PF_PARAMETERS = {"sigma_g": LOG, "sigma_d": LOG}
+
+
+def _constrain(theta: eqx.Module, table: dict[str, Constraint]) -> dict[str, Array]:
+    return {k: c.to_value(getattr(theta, k)) for k, c in table.items()}
+
+
+# ----------------------------------------------------------------------------- 1. IK covariances
+
+
+class IKTheta(eqx.Module):
+    """Unconstrained IK covariances (:data:`IK_PARAMETERS`): full log-Cholesky vectors of
+    Sigma_c (2 x 2: 3 numbers), Sigma_b and Sigma_p (n_dof x n_dof: n (n + 1) / 2 each)."""
+
+    centroid: Float[Array, " 3"]
+    blend: Float[Array, " m"]
+    prior: Float[Array, " m"]
+
+
+def ik_theta(cov: IKCovariances) -> IKTheta:
+    """Unconstrained parameters of shared (2, 2) Sigma_c and Sigma_b, Sigma_p given as
+    matrices or variance vectors (a vector becomes a diagonal matrix)."""
+    if cov.centroid.ndim != 2:
+        raise TuneError("ik_theta: tuning needs a shared Sigma_c (2, 2), got per-patch (P, 2, 2)")
+    full = lambda a: jnp.diag(a) if a.ndim == 1 else a
+    return IKTheta(
+        centroid=LOG_CHOLESKY.to_unconstrained(cov.centroid),
+        blend=LOG_CHOLESKY.to_unconstrained(full(cov.blend)),
+        prior=LOG_CHOLESKY.to_unconstrained(full(cov.prior)),
+    )
+
+
+def ik_covariances(theta: IKTheta) -> IKCovariances:
+    """The covariances of unconstrained parameters (positive definite by construction)."""
+    return IKCovariances(**_constrain(theta, IK_PARAMETERS))
+
+
+class IKSetup(eqx.Module):
+    """What the IK needs besides the observations: body, stacked cameras, patch anchors and
+    the keypoints the error is measured on (``joints``, indices into ``body.keypoint_names``)."""
+
+    body: BodyModel
+    cams: Camera
+    anchors: PatchAnchors
+    joints: Int[Array, " n_joints"]
+    rtol: Float[Array, ""]  # tolerances of every IK solve (traced)
+    atol: Float[Array, ""]
+
+
+def ik_setup(
+    body: BodyModel, cams: Camera, anchors: PatchAnchors, joints: Sequence[str] | None = None,
+    rtol: float = DEFAULT_RTOL, atol: float = DEFAULT_ATOL,
+) -> IKSetup:  # fmt: skip
+    """Validated :class:`IKSetup`; ``joints`` keypoint names (default all); ``rtol``/``atol``
+    of the IK solves (tighter than the tracker's when checking gradients)."""
+    names = list(body.keypoint_names)
+    joints = names if joints is None else list(joints)
+    bad = [j for j in joints if j not in names]
+    if bad or not joints:
+        raise TuneError(f"ik_setup: joints {bad or joints} not among the keypoints {names}")
+    if cams.K.ndim != 3:
+        raise TuneError("ik_setup: cams must be stacked (jaxmocap.camera.stack_cameras)")
+    dt = cams.K.dtype
+    idx = jnp.asarray([names.index(j) for j in joints], jnp.int32)
+    return IKSetup(body, cams, anchors, idx, jnp.asarray(rtol, dt), jnp.asarray(atol, dt))
+
+
+class IKObservations(eqx.Module):
+    """Per-frame inputs of the IK step and the ground truth, over windows of T frames:
+    ``centroids`` (pixels; anything, NaN included, where not ``visible``), ``visible``, the
+    blended database pose ``q_b`` and the true pose ``q_gt``."""
+
+    centroids: Float[Array, "n_windows t n_cams n_patches 2"]
+    visible: Bool[Array, "n_windows t n_cams n_patches"]
+    q_b: Float[Array, "n_windows t n_dof"]
+    q_gt: Float[Array, "n_windows t n_dof"]
+
+
+def _windows(a: np.ndarray, length: int) -> np.ndarray:
+    n = a.shape[0] // length
+    return a[: n * length].reshape((n, length) + a.shape[1:])
+
+
+def ik_observations(
+    sequences: Sequence[tuple[ArrayLike, ArrayLike, ArrayLike, ArrayLike]],
+    window: int,
+    dtype=None,
+) -> IKObservations:
+    """Stack sequences ``(centroids (T, C, P, 2), visible (T, C, P), q_b (T, n), q_gt (T,
+    n))`` into windows of ``window`` consecutive frames (a sequence's tail shorter than a
+    window is dropped; windows never straddle two sequences)."""
+    if window < 2:
+        raise TuneError(f"ik_observations: window must be >= 2 frames, got {window}")
+    parts: list[list[np.ndarray]] = [[], [], [], []]
+    for s, seq in enumerate(sequences):
+        c, v, qb, qg = (np.asarray(a) for a in seq)
+        T = c.shape[0]
+        if c.ndim != 4 or c.shape[-1] != 2 or v.shape != c.shape[:3] or qb.shape != qg.shape:
+            raise TuneError(
+                f"ik_observations: sequence {s}: expected centroids (T, C, P, 2), visible "
+                f"(T, C, P), q_b and q_gt (T, n_dof); got {c.shape}, {v.shape}, {qb.shape}, "
+                f"{qg.shape}"
+            )
+        if qb.shape[0] != T:
+            raise TuneError(f"ik_observations: sequence {s}: {T} centroid frames, {qb.shape[0]} poses")
+        for p, a in zip(parts, (c, v.astype(bool), qb, qg), strict=True):
+            p.append(_windows(a, window))
+    if not parts[0] or sum(p.shape[0] for p in parts[0]) == 0:
+        raise TuneError(f"ik_observations: no sequence has {window} frames")
+    dt = dtype or jnp.result_type(float)
+    c, v, qb, qg = (np.concatenate(p) for p in parts)
+    return IKObservations(
+        jnp.asarray(c, dt), jnp.asarray(v), jnp.asarray(qb, dt), jnp.asarray(qg, dt)
+    )
+
+
+def ik_observations_from_tracker(out, q_gt: ArrayLike):
+    """The tuple ``(centroids, visible, q_b, q_gt)`` of one tracked sequence (stacked
+    :class:`jaxmocap.trackers.shirt.ShirtOutput`) for :func:`ik_observations`."""
+    return (np.asarray(out.centroids), np.asarray(out.visible), np.asarray(out.q_blend),
+            np.asarray(q_gt))  # fmt: skip
+
+
+def _joint_error(setup: IKSetup, q: Array, q_gt: Array) -> tuple[Array, Array]:
+    """(mean per-joint error (m), joint positions (J, 3)) at pose q."""
+    x = keypoints(setup.body, q)[setup.joints]
+    g = keypoints(setup.body, q_gt)[setup.joints]
+    e = jnp.sqrt(jnp.sum(jnp.square(x - g), axis=-1) + NORM_EPS)
+    return jnp.mean(e), x - g
+
+
+def ik_track(
+    cov: IKCovariances,
+    setup: IKSetup,
+    centroids: Float[Array, "t n_cams n_patches 2"],
+    visible: Bool[Array, "t n_cams n_patches"],
+    q_b: Float[Array, "t n_dof"],
+) -> tuple[Float[Array, "t n_dof"], Bool[Array, " t"]]:
+    """The tracker's step 4 over one window (``lax.scan``): poses q*_t and frame validity.
+
+    The first frame has no temporal prior (``q_h = q_b``, as after a loss); an invalid frame
+    (< ``MIN_VALID_PATCHES`` centroids) holds the previous pose (the window's first: q_b).
+    """
+    chain = setup.body.chain
+
+    def step(carry, frame):
+        q_prev, ok_prev = carry
+        c, v, qb = frame
+        q_h = jnp.where(ok_prev, q_prev, qb)
+        sol = solve_ik(chain, setup.cams, setup.anchors, c, v, qb, q_h, cov, qb,
+                       rtol=setup.rtol, atol=setup.atol)  # fmt: skip
+        ok = jnp.sum(v) >= MIN_VALID_PATCHES
+        q = jnp.where(ok, sol.q, q_prev)
+        return (q, ok), (q, ok)
+
+    init = (q_b[0], jnp.array(False))
+    _, (q, ok) = jax.lax.scan(step, init, (centroids, visible, q_b))
+    return q, ok
+
+
+def _window_loss(cov, setup, c, v, qb, qg, jitter_weight) -> tuple[Array, Array]:
+    q, ok = ik_track(cov, setup, c, v, qb)
+    err, dx = jax.vmap(lambda a, b: _joint_error(setup, a, b))(q, qg)
+    w = ok.astype(err.dtype)
+    total = jnp.sum(w * err)
+    n = jnp.sum(w)
+    if jitter_weight:
+        jit = jnp.sqrt(jnp.sum(jnp.square(dx[1:] - dx[:-1]), axis=-1) + NORM_EPS).mean(-1)
+        pair = w[1:] * w[:-1]
+        total = total + jitter_weight * jnp.sum(pair * jit) * n / jnp.maximum(jnp.sum(pair), 1)
+    return total, n
+
+
+def ik_loss(
+    theta: IKTheta, setup: IKSetup, obs: IKObservations, jitter_weight: float = 0.0
+) -> Float[Array, ""]:
+    """Mean per-joint position error (m) of the IK track over all windows' valid frames
+    (+ ``jitter_weight`` x mean error of the joints' frame-to-frame displacement), as a
+    function of the unconstrained covariances. Windows are vmapped."""
+    cov = ik_covariances(theta)
+    total, n = jax.vmap(
+        lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight)
+    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt)
+    return jnp.sum(total) / jnp.maximum(jnp.sum(n), 1.0)
+
+
+def ik_closed_form(setup: IKSetup, obs: IKObservations) -> IKCovariances:
+    """The paper's estimate (:func:`jaxmocap.ik.estimate_covariances`, shared Sigma_c) pooled
+    over windows: per-window estimates averaged with weights = visible centroids (Sigma_c),
+    frames (Sigma_b) and frame pairs (Sigma_p) — every window has the same T, so this is the
+    pooled second moment (up to the estimator's tiny ridge), and Sigma_p never spans a gap
+    between two windows."""
+    est = jax.vmap(
+        lambda c, v, qb, qg: estimate_covariances(setup.cams, setup.body.chain, setup.anchors,
+                                                  qg, c, v, qb)  # fmt: skip
+    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt)
+    wc = obs.visible.sum(axis=(1, 2, 3)).astype(est.centroid.dtype)
+    wc = wc / jnp.maximum(wc.sum(), 1.0)
+    return IKCovariances(
+        centroid=jnp.einsum("w,wij->ij", wc, est.centroid),
+        blend=est.blend.mean(0),
+        prior=est.prior.mean(0),
+    )
+
+
+# ----------------------------------------------------------------------------- 2. colour model
+
+
+class ColorTheta(eqx.Module):
+    """Unconstrained colour parameters (:data:`COLOR_PARAMETERS`): log-Cholesky (k, 6) of the
+    Sigma_k, log T."""
+
+    cov: Float[Array, "k 6"]
+    threshold: Float[Array, ""]
+
+
+def color_theta(model: ColorModel, threshold: float | ArrayLike) -> ColorTheta:
+    t = jnp.asarray(threshold, model.cov.dtype)
+    return ColorTheta(cov=BATCH_LOG_CHOLESKY.to_unconstrained(model.cov), threshold=LOG.to_unconstrained(t))
+
+
+def color_model(theta: ColorTheta, base: ColorModel) -> tuple[ColorModel, Float[Array, ""]]:
+    """(the colour model with tuned covariances, threshold T)."""
+    v = _constrain(theta, COLOR_PARAMETERS)
+    return ColorModel(base.mean, v["cov"], base.names), v["threshold"]
+
+
+class ColorData(eqx.Module):
+    """Labelled pixels: ``pixels`` (n_images, n, 3) RGB 0..255, ``labels`` (n_images, n) the
+    ground-truth colour ids (0 background), ``W`` (n_images, 3, 3) each image's white balance."""
+
+    pixels: Float[Array, "n_images n 3"]
+    labels: Int[Array, "n_images n"]
+    W: Float[Array, "n_images 3 3"]
+
+
+def color_data(
+    images: ArrayLike, colour_ids: ArrayLike, W: ArrayLike, n_pixels: int, seed: int = 0,
+    dtype=None,
+) -> ColorData:  # fmt: skip
+    """A fixed random subset of ``n_pixels`` pixels per image (half of them from the
+    foreground, id > 0, where an image has enough), labels from its colour-id map."""
+    images, ids, W = np.asarray(images), np.asarray(colour_ids), np.asarray(W)
+    if images.ndim != 4 or ids.shape != images.shape[:3] or W.shape != (images.shape[0], 3, 3):
+        raise TuneError(
+            f"color_data: expected images (N, H, W, 3), colour_ids (N, H, W) and W (N, 3, 3); "
+            f"got {images.shape}, {ids.shape}, {W.shape}"
+        )
+    rng = np.random.default_rng(seed)
+    pix, lab = [], []
+    for im, idm in zip(images, ids, strict=True):
+        flat, fl = im.reshape(-1, 3), idm.reshape(-1)
+        fg = np.flatnonzero(fl > 0)
+        n_fg = min(fg.size, n_pixels // 2)
+        pick = np.concatenate(
+            [rng.choice(fg, n_fg, replace=False),
+             rng.choice(fl.size, n_pixels - n_fg, replace=False)]
+        )  # fmt: skip
+        pix.append(flat[pick]), lab.append(fl[pick])
+    dt = dtype or jnp.result_type(float)
+    return ColorData(jnp.asarray(np.stack(pix), dt), jnp.asarray(np.stack(lab), jnp.int32),
+                     jnp.asarray(W, dt))  # fmt: skip
+
+
+def color_loss(
+    theta: ColorTheta,
+    base: ColorModel,
+    data: ColorData,
+    temperature: float | Float[Array, ""] = SOFT_TEMPERATURE,
+) -> Float[Array, ""]:
+    """Mean cross-entropy ``-log p(r = label)`` of the soft classifier over the pixels."""
+    model, T = color_model(theta, base)
+
+    def per_image(px, lab, W):
+        p = soft_classify(model, W, px[:, None, :], T, temperature)[:, 0, :]
+        return -jnp.log(jnp.take_along_axis(p, lab[:, None], axis=1)[:, 0] + 1e-30)
+
+    return jnp.mean(jax.vmap(per_image)(data.pixels, data.labels, data.W))
+
+
+# ----------------------------------------------------------------------------- 3. stereo PF cues
+
+
+class PFTheta(eqx.Module):
+    """Unconstrained cue widths (:data:`PF_PARAMETERS`): log sigma_g, log sigma_d (m)."""
+
+    sigma_g: Float[Array, ""]
+    sigma_d: Float[Array, ""]
+
+
+def pf_theta(sigma_g: float, sigma_d: float, dtype=None) -> PFTheta:
+    dt = dtype or jnp.result_type(float)
+    return PFTheta(jnp.log(jnp.asarray(sigma_g, dt)), jnp.log(jnp.asarray(sigma_d, dt)))
+
+
+class PFData(eqx.Module):
+    """Per frame: the observation z_t, fixed particles (n, d) in the filter's DOF subset and
+    the true pose s_gt (d,)."""
+
+    obs: Observation
+    particles: Float[Array, "t n d"]
+    s_gt: Float[Array, "t d"]
+
+
+def pf_particles(
+    s_gt: Float[ArrayLike, "t d"], offset_std: ArrayLike, spread_std: ArrayLike, n: int,
+    key: Array, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+) -> Float[Array, "t n d"]:  # fmt: skip
+    """Fixed particles ``s_gt + delta_t + eps_tj`` (``delta_t ~ N(0, offset_std^2)`` shared
+    by a frame's particles — the prediction error —, ``eps_tj ~ N(0, spread_std^2)`` the
+    diffusion), clipped to ``[lower, upper]`` where given."""
+    s = jnp.asarray(s_gt)
+    k1, k2 = jax.random.split(key)
+    delta = jax.random.normal(k1, s.shape, s.dtype) * jnp.asarray(offset_std, s.dtype)
+    eps = jax.random.normal(k2, (s.shape[0], n, s.shape[1]), s.dtype) * jnp.asarray(spread_std, s.dtype)
+    p = s[:, None, :] + delta[:, None, :] + eps
+    if lower is not None:
+        p = jnp.clip(p, jnp.asarray(lower, s.dtype), jnp.asarray(upper, s.dtype))
+    return p
+
+
+def pf_estimate(
+    theta: PFTheta, likelihood: StereoLikelihood, z: Observation, particles: Float[Array, "n d"]
+) -> Float[Array, " d"]:
+    """The weighted-mean estimate ``sum_j w_j s_j`` of one weighting step with the cue widths
+    of ``theta`` (weights ``softmax_j log p(z | s_j)``)."""
+    v = _constrain(theta, PF_PARAMETERS)
+    lik = eqx.tree_at(lambda m: (m.sigma_g, m.sigma_d), likelihood, (v["sigma_g"], v["sigma_d"]))
+    ll = jax.vmap(lambda s: lik(s, z))(particles)
+    return jax.nn.softmax(ll) @ particles
+
+
+def pf_loss(
+    theta: PFTheta, likelihood: StereoLikelihood, data: PFData, joints: Int[Array, " j"]
+) -> Float[Array, ""]:
+    """Mean per-joint error (m, keypoints ``joints``) of :func:`pf_estimate` over frames."""
+    model = likelihood.model
+
+    def frame(z, parts, s_gt):
+        s = pf_estimate(theta, likelihood, z, parts)
+        x = keypoints(model, likelihood.full_q(s))[joints]
+        g = keypoints(model, likelihood.full_q(s_gt))[joints]
+        return jnp.mean(jnp.sqrt(jnp.sum(jnp.square(x - g), -1) + NORM_EPS))
+
+    return jnp.mean(jax.vmap(frame)(data.obs, data.particles, data.s_gt))
+
+
+# ----------------------------------------------------------------------------- optimiser
+
+
+class AdamState(NamedTuple):
+    m: eqx.Module
+    v: eqx.Module
+    count: Int[Array, ""]
+
+
+def adam_init(theta) -> AdamState:
+    zeros = jax.tree.map(jnp.zeros_like, theta)
+    return AdamState(zeros, zeros, jnp.zeros((), jnp.int32))
+
+
+def adam_update(grad, state: AdamState, theta, learning_rate: float | Array):
+    """One Adam step (Kingma & Ba 2015, bias-corrected) on a pytree; returns (theta, state)."""
+    c = state.count + 1
+    m = jax.tree.map(lambda m, g: ADAM_B1 * m + (1 - ADAM_B1) * g, state.m, grad)
+    v = jax.tree.map(lambda v, g: ADAM_B2 * v + (1 - ADAM_B2) * g * g, state.v, grad)
+    b1 = 1 - ADAM_B1 ** c.astype(jnp.result_type(float))
+    b2 = 1 - ADAM_B2 ** c.astype(jnp.result_type(float))
+    theta = jax.tree.map(
+        lambda t, m, v: t - learning_rate * (m / b1) / (jnp.sqrt(v / b2) + ADAM_EPS), theta, m, v
+    )
+    return theta, AdamState(m, v, c)
+
+
+def fit(
+    loss: Callable,
+    theta,
+    steps: int,
+    learning_rate: float,
+    callback: Callable | None = None,
+    value_and_grad: bool = False,
+):
+    """Minimise ``loss(theta)`` by ``steps`` Adam steps. ``loss`` returns the scalar (it is
+    differentiated and jitted here), or with ``value_and_grad=True`` already ``(value,
+    gradient)`` (e.g. a jitted ``jax.value_and_grad`` shared with other calls). Returns (theta
+    with the lowest loss seen, losses (steps + 1,); the last is the final iterate's).
+    ``callback(i, loss, theta)`` is called after each evaluation."""
+    if steps < 0:
+        raise TuneError(f"fit: steps must be >= 0, got {steps}")
+    vg = loss if value_and_grad else eqx.filter_jit(jax.value_and_grad(loss))
+    state = adam_init(theta)
+    best, best_loss, losses = theta, np.inf, []
+    for i in range(steps + 1):
+        value, grad = vg(theta)
+        value = float(value)
+        losses.append(value)
+        if callback is not None:
+            callback(i, value, theta)
+        if value < best_loss:
+            best, best_loss = theta, value
+        if i < steps:
+            theta, state = adam_update(grad, state, theta, learning_rate)
+    return best, np.asarray(losses)

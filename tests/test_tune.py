@@ -1,0 +1,318 @@
+"""Tests of jaxmocap.tune: gradients of the three tuning losses against central finite
+differences (float64), jit, NaN-free gradients with missing patches, closed form as the
+starting point, constraints round trip, and the loss falling under a few Adam steps.
+
+The IK tests use a small arm (root + 3 revolute joints) so that the solve compiles fast; the
+stereo-filter test uses the bundled body (the cue needs its limbs) on 80x60 edge maps.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmocap import tune
+from jaxmocap.body import load_urdf
+from jaxmocap.camera import stack_cameras
+from jaxmocap.color import ColorModel, classify
+from jaxmocap.ik import IKCovariances, anchors_from_samples, project_anchors
+from jaxmocap.synth.scene import SceneConfig, make_cameras
+
+ARM_URDF = """<robot name="arm">
+  <link name="torso"><visual><geometry><box size="0.2 0.3 0.5"/></geometry></visual></link>
+  <link name="upper0"/>
+  <link name="upper"><visual><origin xyz="0 0 -0.15"/>
+    <geometry><cylinder radius="0.05" length="0.3"/></geometry></visual></link>
+  <link name="fore"><visual><origin xyz="0 0 -0.15"/>
+    <geometry><cylinder radius="0.04" length="0.3"/></geometry></visual></link>
+  <joint name="shoulder_x" type="revolute"><parent link="torso"/><child link="upper0"/>
+    <origin xyz="0 0.2 0.2"/><axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="shoulder_y" type="revolute"><parent link="upper0"/><child link="upper"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="elbow" type="revolute"><parent link="upper"/><child link="fore"/>
+    <origin xyz="0 0 -0.3"/><axis xyz="0 1 0"/><limit lower="0" upper="2.5" effort="1" velocity="1"/></joint>
+</robot>"""
+KEYPOINTS = {"pelvis": ("torso", (0, 0, -0.25)), "neck": ("torso", (0, 0, 0.25)),
+             "shoulder": ("upper", (0, 0, 0)), "elbow": ("fore", (0, 0, 0)),
+             "hand": ("fore", (0, 0, -0.3))}  # fmt: skip
+# Patch anchors: (link, offset in the link frame, m).
+PATCHES = [("torso", (0.1, 0.1, 0.1)), ("torso", (0.1, -0.1, 0.1)), ("torso", (0.1, 0, -0.15)),
+           ("torso", (0.1, 0.1, -0.15)), ("upper", (0.05, 0, -0.1)), ("upper", (0, 0.05, -0.2)),
+           ("fore", (0.04, 0, -0.1)), ("fore", (0, 0.04, -0.25))]  # fmt: skip
+T_WINDOW = 4
+RTOL, ATOL = 1e-11, 1e-13  # tight solves: FD noise ~ solve error / h
+
+
+@pytest.fixture(scope="module")
+def arm(tmp_path_factory):
+    path = tmp_path_factory.mktemp("arm") / "arm.urdf"
+    path.write_text(ARM_URDF)
+    model = load_urdf(path, keypoints=KEYPOINTS)
+    link = np.array([model.chain.link_index(n) for n, _ in PATCHES])
+    anchors = anchors_from_samples(link, np.array([[o] for _, o in PATCHES], np.float64))
+    cams = stack_cameras(make_cameras(SceneConfig(width=160, height=120), jnp.float64))
+    setup = tune.ik_setup(model, cams, anchors, rtol=RTOL, atol=ATOL)
+    return model, anchors, cams, setup
+
+
+def make_observations(arm, rng, n_windows=2, missing=0.25, pixel_std=1.5):
+    model, anchors, cams, _ = arm
+    n = model.n_dof
+    T = T_WINDOW * n_windows
+    t = np.arange(T)[:, None]
+    q = np.zeros((T, n))
+    q[:, 0:3] = [0.0, 0.0, 1.0] + 0.01 * t * np.array([1, 0, 0])
+    q[:, 3:6] = 0.05 * np.sin(0.4 * t + np.arange(3))
+    q[:, 6:] = [0.3, 0.2, 0.8] + 0.25 * np.sin(0.5 * t + np.arange(3))
+    proj = jax.vmap(project_anchors, in_axes=(None, None, None, 0))(
+        cams, model.chain, anchors, jnp.asarray(q)
+    )
+    c = np.asarray(proj) + rng.normal(0, pixel_std, proj.shape)
+    vis = rng.random(c.shape[:3]) > missing
+    c[~vis] = np.nan  # missing patches carry NaN: must not reach any gradient
+    q_b = q + rng.normal(0, 0.06, q.shape) * np.r_[[0.03] * 3, [1.0] * (n - 3)]
+    return tune.ik_observations([(c, vis, q_b, q)], T_WINDOW, jnp.float64)
+
+
+@pytest.fixture(scope="module")
+def ik_problem(arm):
+    obs = make_observations(arm, np.random.default_rng(1))
+    _, _, _, setup = arm
+    theta = tune.ik_theta(IKCovariances.isotropic(2.0, 0.08, 0.2, setup.body.n_dof))
+    vg = jax.jit(jax.value_and_grad(tune.ik_loss))  # the whole loss under one jit
+    return obs, theta, vg
+
+
+def directional_fd(f, theta, name, d, h):
+    shift = lambda s: eqx.tree_at(lambda t: getattr(t, name), theta, getattr(theta, name) + s * d)
+    return (f(shift(h)) - f(shift(-h))) / (2 * h)
+
+
+# ----------------------------------------------------------------------------- constraints
+
+
+def test_log_cholesky_round_trip_and_positive_definite(rng):
+    A = rng.normal(size=(5, 5))
+    cov = jnp.asarray(A @ A.T + 0.1 * np.eye(5))
+    theta = tune.log_cholesky_from_spd(cov)
+    assert theta.shape == (15,)
+    np.testing.assert_allclose(tune.spd_from_log_cholesky(theta), cov, rtol=1e-12, atol=1e-12)
+    for _ in range(5):  # any unconstrained vector gives a symmetric positive definite matrix
+        S = tune.spd_from_log_cholesky(jnp.asarray(rng.normal(size=15) * 3))
+        np.testing.assert_allclose(S, S.T)
+        assert np.linalg.eigvalsh(np.asarray(S)).min() > 0
+    with pytest.raises(ValueError, match="n \\(n \\+ 1\\) / 2"):
+        tune.spd_from_log_cholesky(jnp.zeros(4))
+    every = set(tune.IK_PARAMETERS) | set(tune.COLOR_PARAMETERS) | set(tune.PF_PARAMETERS)
+    assert every == {"centroid", "blend", "prior", "cov", "threshold", "sigma_g", "sigma_d"}
+
+
+def test_ik_theta_round_trip_and_refusals(arm):
+    _, _, _, setup = arm
+    n = setup.body.n_dof
+    cov = IKCovariances.isotropic(2.0, 0.1, 0.3, n)
+    back = tune.ik_covariances(tune.ik_theta(cov))
+    np.testing.assert_allclose(back.centroid, cov.centroid, rtol=1e-12)
+    np.testing.assert_allclose(back.blend, np.diag(cov.blend), rtol=1e-12, atol=1e-15)
+    per_patch = IKCovariances(jnp.broadcast_to(jnp.eye(2), (3, 2, 2)), cov.blend, cov.prior)
+    with pytest.raises(tune.TuneError, match="shared Sigma_c"):
+        tune.ik_theta(per_patch)
+    with pytest.raises(tune.TuneError, match="window"):
+        tune.ik_observations([], 1)
+    with pytest.raises(tune.TuneError, match="no sequence"):
+        z = np.zeros
+        tune.ik_observations([(z((3, 2, 8, 2)), z((3, 2, 8), bool), z((3, n)), z((3, n)))], 4)
+    with pytest.raises(tune.TuneError, match="joints"):
+        tune.ik_setup(setup.body, setup.cams, setup.anchors, joints=["nose"])
+
+
+# ----------------------------------------------------------------------------- IK covariances
+
+
+def test_ik_track_matches_per_frame_solves(arm, ik_problem):
+    """The scan is the tracker's step 4: frame t's prior is the previous solution."""
+    from jaxmocap.ik import solve_ik
+
+    model, anchors, cams, setup = arm
+    obs, theta, _ = ik_problem
+    cov = tune.ik_covariances(theta)
+    q_scan, ok = jax.jit(tune.ik_track)(cov, setup, obs.centroids[0], obs.visible[0], obs.q_b[0])
+    q_prev = obs.q_b[0, 0]
+    for t in range(T_WINDOW):
+        c, v, qb = obs.centroids[0, t], obs.visible[0, t], obs.q_b[0, t]
+        q_h = qb if t == 0 else q_prev
+        sol = solve_ik(model.chain, cams, anchors, c, v, qb, q_h, cov, qb, rtol=RTOL, atol=ATOL)
+        q_prev = sol.q if bool(ok[t]) else q_prev
+        np.testing.assert_allclose(q_scan[t], q_prev, atol=1e-9)
+
+
+def test_ik_loss_gradients_match_finite_differences(arm, ik_problem, rng):
+    _, _, _, setup = arm
+    obs, theta, vg = ik_problem
+    value, grad = vg(theta, setup, obs)
+    assert 0 < float(value) < 0.5  # metres
+    f = lambda th: vg(th, setup, obs)[0]
+    for name in ("centroid", "blend", "prior"):
+        g = getattr(grad, name)
+        assert np.all(np.isfinite(g)) and np.abs(g).max() > 1e-8, name
+        d = rng.normal(size=g.shape)
+        fd = float(directional_fd(f, theta, name, d, 1e-4))
+        an = float(jnp.vdot(g, d))
+        assert abs(an - fd) <= 1e-3 * abs(fd), (name, an, fd)
+
+
+def test_no_nan_gradient_with_missing_patches_and_invalid_frames(arm, ik_problem):
+    """Frames without patches (invalid: the pose is held) and NaN centroids give finite
+    gradients."""
+    _, _, _, setup = arm
+    obs, theta, vg = ik_problem
+    vis = obs.visible.at[0, 1].set(False).at[1, 2, 0].set(False)
+    c = jnp.where(vis[..., None], obs.centroids, jnp.nan)
+    obs2 = tune.IKObservations(c, vis, obs.q_b, obs.q_gt)
+    value, grad = vg(theta, setup, obs2)
+    assert np.isfinite(float(value))
+    assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grad))
+
+
+def test_closed_form_then_adam_lowers_the_tracking_error(arm, ik_problem):
+    """The paper's estimate is the start; a few Adam steps on the same data lower the loss."""
+    _, _, _, setup = arm
+    obs, _, vg = ik_problem
+    cov0 = tune.ik_closed_form(setup, obs)
+    # the closed form is the (pooled) second moment of q_gt - q_b
+    e = np.asarray(obs.q_gt - obs.q_b).reshape(-1, setup.body.n_dof)
+    np.testing.assert_allclose(cov0.blend, e.T @ e / e.shape[0], rtol=1e-4, atol=1e-8)  # + ridge
+    theta0 = tune.ik_theta(cov0)
+    theta, losses = tune.fit(lambda th: vg(th, setup, obs), theta0, steps=4,
+                             learning_rate=0.1, value_and_grad=True)  # fmt: skip
+    assert losses.shape == (5,) and np.all(np.isfinite(losses))
+    assert losses.min() < losses[0] - 1e-5
+    assert float(vg(theta, setup, obs)[0]) == pytest.approx(losses.min())
+
+
+# ----------------------------------------------------------------------------- colour model
+
+
+@pytest.fixture(scope="module")
+def colour_problem():
+    rng = np.random.default_rng(2)
+    means = np.array([[200.0, 40, 40], [40, 200, 40], [40, 40, 200]])
+    covs = np.stack([np.diag([90.0, 60, 50]) + 20 * (np.ones((3, 3)) - np.eye(3))] * 3)
+    n_img, n_pix = 2, 300
+    labels = rng.integers(0, 4, (n_img, n_pix))
+    pix = rng.uniform(0, 255, (n_img, n_pix, 3))  # background: anything
+    for k in range(1, 4):
+        m = labels == k
+        pix[m] = rng.multivariate_normal(means[k - 1], covs[k - 1] * 4, m.sum())
+    pix = np.clip(pix, 0, 255)
+    W = np.stack([np.eye(3), np.diag([1.05, 0.95, 1.0])])
+    data = tune.ColorData(jnp.asarray(pix), jnp.asarray(labels, jnp.int32), jnp.asarray(W))
+    model = ColorModel(jnp.asarray(means), jnp.asarray(covs))
+    return model, data
+
+
+def test_color_loss_gradients_match_finite_differences(colour_problem, rng):
+    model, data = colour_problem
+    theta = tune.color_theta(model, 3.0)
+    vg = jax.jit(jax.value_and_grad(tune.color_loss))
+    _, grad = vg(theta, model, data)
+    f = lambda th: vg(th, model, data)[0]
+    for name in ("cov", "threshold"):
+        g = getattr(grad, name)
+        assert np.all(np.isfinite(g)) and np.abs(g).max() > 1e-6
+        d = rng.normal(size=g.shape)
+        fd = float(directional_fd(f, theta, name, d, 1e-5))
+        an = float(jnp.vdot(g, d))
+        assert abs(an - fd) <= 1e-3 * abs(fd), (name, an, fd)
+
+
+def test_color_tuning_lowers_cross_entropy_and_hard_errors(colour_problem):
+    """Data drawn with 4x the model's covariances: tuning widens Sigma_k, and the hard
+    classifier with the tuned model and T misclassifies fewer pixels."""
+    model, data = colour_problem
+    theta0 = tune.color_theta(model, 3.0)
+    theta, losses = tune.fit(lambda th: tune.color_loss(th, model, data), theta0, steps=30,
+                             learning_rate=0.1)  # fmt: skip
+    assert losses.min() < 0.8 * losses[0]
+
+    def errors(th):
+        m, T = tune.color_model(th, model)
+        wrong = 0
+        for px, lab, W in zip(data.pixels, data.labels, data.W, strict=True):
+            ids, _ = classify(m, W, px[:, None, :], threshold=T)
+            wrong += int(jnp.sum(ids[:, 0] != lab))
+        return wrong
+
+    m1, _ = tune.color_model(theta, model)
+    assert np.all(np.linalg.det(np.asarray(m1.cov)) > np.linalg.det(np.asarray(model.cov)))
+    assert errors(theta) < errors(theta0)
+
+
+def test_color_data_samples_labelled_pixels(rng):
+    images = rng.integers(0, 256, (2, 20, 30, 3)).astype(np.uint8)
+    ids = np.zeros((2, 20, 30), np.int32)
+    ids[:, 5:10, 5:15] = 2
+    data = tune.color_data(images, ids, np.stack([np.eye(3)] * 2), n_pixels=40, dtype=jnp.float64)
+    assert data.pixels.shape == (2, 40, 3) and data.labels.shape == (2, 40)
+    assert np.all(np.asarray(data.labels[:, :20]) == 2)  # half drawn from the foreground
+    for i in range(2):  # every sampled pixel carries its own label
+        for px, lab in zip(np.asarray(data.pixels[i]), np.asarray(data.labels[i]), strict=True):
+            rows, cols = np.nonzero(np.all(images[i] == px, axis=-1))
+            assert lab in ids[i, rows, cols]
+    with pytest.raises(tune.TuneError, match="colour_ids"):
+        tune.color_data(images, ids[0], np.eye(3), 10)
+
+
+# ----------------------------------------------------------------------------- stereo filter
+
+
+def test_pf_loss_gradients_match_finite_differences(rng):
+    from jaxmocap.body import default_body, keypoint_index, stereo_dofs
+    from jaxmocap.pf.cues import Observation, StereoLikelihood, limb_model
+
+    model = default_body()
+    cams = stack_cameras(make_cameras(SceneConfig(rig="stereo", width=80, height=60), jnp.float64))
+    dofs = tuple(int(i) for i in stereo_dofs(model))
+    lik = StereoLikelihood(
+        model=model, limbs=limb_model(model), cams=cams, default_q=jnp.zeros(model.n_dof),
+        sigma_g=jnp.asarray(0.2), sigma_d=jnp.asarray(0.04), sigma_r=jnp.asarray(0.1),
+        dofs=dofs,
+    )  # fmt: skip
+    T, n, d = 2, 12, len(dofs)
+    s_gt = np.zeros((T, d))
+    s_gt[:, 2] = 0.9
+    s_gt[:, 6:] = rng.uniform(-0.3, 0.3, (T, d - 6))
+    # smooth edge maps in [0, 1] and blob points near the true hands/head (one missing)
+    from scipy.ndimage import gaussian_filter
+
+    edges = np.stack([[gaussian_filter(rng.random((60, 80)), 2) for _ in range(2)]
+                      for _ in range(T)])  # fmt: skip
+    edges = (edges - edges.min()) / (edges.max() - edges.min())
+    idx = keypoint_index(model, ("head", "l_hand", "r_hand"))
+    from jaxmocap.body import keypoints
+
+    pts = np.stack([np.asarray(keypoints(model, lik.full_q(jnp.asarray(s))))[idx] for s in s_gt])
+    pts = pts + rng.normal(0, 0.03, pts.shape)
+    valid = np.ones((T, 3), bool)
+    valid[1, 2] = False
+    obs = Observation(jnp.asarray(edges), jnp.asarray(pts), jnp.asarray(valid),
+                      jnp.zeros((T, 2, 60, 80)))  # fmt: skip
+    parts = tune.pf_particles(s_gt, 0.03, 0.05, n, jax.random.key(0))
+    assert parts.shape == (T, n, d)
+    data = tune.PFData(obs, parts, jnp.asarray(s_gt))
+    joints = jnp.asarray(keypoint_index(model, ("l_elbow", "r_elbow", "l_hand", "r_hand")))
+    theta = tune.pf_theta(0.2, 0.04)
+    vg = jax.jit(jax.value_and_grad(tune.pf_loss))
+    value, grad = vg(theta, lik, data, joints)
+    assert 0 < float(value) < 1.0
+    f = lambda th: vg(th, lik, data, joints)[0]
+    for name in ("sigma_g", "sigma_d"):
+        g = getattr(grad, name)
+        assert np.isfinite(g) and abs(float(g)) > 1e-8
+        fd = float(directional_fd(f, theta, name, 1.0, 1e-5))
+        assert abs(float(g) - fd) <= 1e-3 * abs(fd), (name, float(g), fd)
+    # the estimate is a convex combination of the particles: with huge sigmas, their mean
+    flat = tune.pf_theta(1e3, 1e3)
+    est = tune.pf_estimate(flat, lik, jax.tree.map(lambda a: a[0], obs), parts[0])
+    np.testing.assert_allclose(est, parts[0].mean(0), atol=1e-6)
