@@ -63,8 +63,14 @@ from jaxmocap.body import BodyModel, keypoints
 from jaxmocap.camera import Camera
 from jaxmocap.color import ColorModel, soft_classify
 from jaxmocap.errors import InputError
-from jaxmocap.ik import IKCovariances, PatchAnchors, estimate_covariances, solve_ik
-from jaxmocap.ik import DEFAULT_ATOL, DEFAULT_RTOL
+from jaxmocap.ik import (
+    DEFAULT_ATOL,
+    DEFAULT_RTOL,
+    IKCovariances,
+    PatchAnchors,
+    estimate_covariances,
+    solve_ik,
+)
 from jaxmocap.pf.cues import Observation, StereoLikelihood
 from jaxmocap.trackers.shirt import MIN_VALID_PATCHES
 
@@ -124,7 +130,9 @@ def log_cholesky_from_spd(cov: Float[Array, "n n"]) -> Float[Array, " m"]:
     return jnp.concatenate([jnp.log(d), (L / d[:, None])[rows, cols]])
 
 
-LOG_CHOLESKY = Constraint("scaled log-Cholesky (SPD matrix)", spd_from_log_cholesky, log_cholesky_from_spd)
+LOG_CHOLESKY = Constraint(
+    "scaled log-Cholesky (SPD matrix)", spd_from_log_cholesky, log_cholesky_from_spd
+)
 LOG = Constraint("log (positive)", jnp.exp, jnp.log)
 BATCH_LOG_CHOLESKY = Constraint(
     "log-Cholesky per row (stack of SPD matrices)",
@@ -239,7 +247,9 @@ def ik_observations(
                 f"{qg.shape}"
             )
         if qb.shape[0] != T:
-            raise TuneError(f"ik_observations: sequence {s}: {T} centroid frames, {qb.shape[0]} poses")
+            raise TuneError(
+                f"ik_observations: sequence {s}: {T} centroid frames, {qb.shape[0]} poses"
+            )
         for p, a in zip(parts, (c, v.astype(bool), qb, qg), strict=True):
             p.append(_windows(a, window))
     if not parts[0] or sum(p.shape[0] for p in parts[0]) == 0:
@@ -315,9 +325,9 @@ def ik_loss(
     (+ ``jitter_weight`` x mean error of the joints' frame-to-frame displacement), as a
     function of the unconstrained covariances. Windows are vmapped."""
     cov = ik_covariances(theta)
-    total, n = jax.vmap(
-        lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight)
-    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt)
+    total, n = jax.vmap(lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight))(
+        obs.centroids, obs.visible, obs.q_b, obs.q_gt
+    )
     return jnp.sum(total) / jnp.maximum(jnp.sum(n), 1.0)
 
 
@@ -328,8 +338,9 @@ def ik_closed_form(setup: IKSetup, obs: IKObservations) -> IKCovariances:
     pooled second moment (up to the estimator's tiny ridge), and Sigma_p never spans a gap
     between two windows."""
     est = jax.vmap(
-        lambda c, v, qb, qg: estimate_covariances(setup.cams, setup.body.chain, setup.anchors,
-                                                  qg, c, v, qb)  # fmt: skip
+        lambda c, v, qb, qg: estimate_covariances(
+            setup.cams, setup.body.chain, setup.anchors, qg, c, v, qb
+        )  # fmt: skip
     )(obs.centroids, obs.visible, obs.q_b, obs.q_gt)
     wc = obs.visible.sum(axis=(1, 2, 3)).astype(est.centroid.dtype)
     wc = wc / jnp.maximum(wc.sum(), 1.0)
@@ -353,7 +364,9 @@ class ColorTheta(eqx.Module):
 
 def color_theta(model: ColorModel, threshold: float | ArrayLike) -> ColorTheta:
     t = jnp.asarray(threshold, model.cov.dtype)
-    return ColorTheta(cov=BATCH_LOG_CHOLESKY.to_unconstrained(model.cov), threshold=LOG.to_unconstrained(t))
+    return ColorTheta(
+        cov=BATCH_LOG_CHOLESKY.to_unconstrained(model.cov), threshold=LOG.to_unconstrained(t)
+    )
 
 
 def color_model(theta: ColorTheta, base: ColorModel) -> tuple[ColorModel, Float[Array, ""]]:
@@ -449,7 +462,9 @@ def pf_particles(
     s = jnp.asarray(s_gt)
     k1, k2 = jax.random.split(key)
     delta = jax.random.normal(k1, s.shape, s.dtype) * jnp.asarray(offset_std, s.dtype)
-    eps = jax.random.normal(k2, (s.shape[0], n, s.shape[1]), s.dtype) * jnp.asarray(spread_std, s.dtype)
+    eps = jax.random.normal(k2, (s.shape[0], n, s.shape[1]), s.dtype) * jnp.asarray(
+        spread_std, s.dtype
+    )
     p = s[:, None, :] + delta[:, None, :] + eps
     if lower is not None:
         p = jnp.clip(p, jnp.asarray(lower, s.dtype), jnp.asarray(upper, s.dtype))

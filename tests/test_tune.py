@@ -27,11 +27,14 @@ ARM_URDF = """<robot name="arm">
   <link name="fore"><visual><origin xyz="0 0 -0.15"/>
     <geometry><cylinder radius="0.04" length="0.3"/></geometry></visual></link>
   <joint name="shoulder_x" type="revolute"><parent link="torso"/><child link="upper0"/>
-    <origin xyz="0 0.2 0.2"/><axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+    <origin xyz="0 0.2 0.2"/><axis xyz="1 0 0"/><limit lower="-2" upper="2"
+    effort="1" velocity="1"/></joint>
   <joint name="shoulder_y" type="revolute"><parent link="upper0"/><child link="upper"/>
-    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2"
+    effort="1" velocity="1"/></joint>
   <joint name="elbow" type="revolute"><parent link="upper"/><child link="fore"/>
-    <origin xyz="0 0 -0.3"/><axis xyz="0 1 0"/><limit lower="0" upper="2.5" effort="1" velocity="1"/></joint>
+    <origin xyz="0 0 -0.3"/><axis xyz="0 1 0"/><limit lower="0" upper="2.5"
+    effort="1" velocity="1"/></joint>
 </robot>"""
 KEYPOINTS = {"pelvis": ("torso", (0, 0, -0.25)), "neck": ("torso", (0, 0, 0.25)),
              "shoulder": ("upper", (0, 0, 0)), "elbow": ("fore", (0, 0, 0)),

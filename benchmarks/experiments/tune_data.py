@@ -56,8 +56,16 @@ def shirt_clip(clip: str) -> None:
     from jaxmocap.synth import SceneConfig, render_sequence
     from jaxmocap.trackers import shirt
 
-    config = SceneConfig(clip=clip, n_frames=N_FRAMES, rig="webcams", width=SIZE[0],
-                         height=SIZE[1], noise_sigma=0.01, occluder=OCCLUDED.get(clip), seed=0)
+    config = SceneConfig(
+        clip=clip,
+        n_frames=N_FRAMES,
+        rig="webcams",
+        width=SIZE[0],
+        height=SIZE[1],
+        noise_sigma=0.01,
+        occluder=OCCLUDED.get(clip),
+        seed=0,
+    )
     t0 = time.perf_counter()
     seq = render_sequence(config)
     model = default_body()
@@ -70,8 +78,16 @@ def shirt_clip(clip: str) -> None:
     W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
     anchors = anchors_from_garment(model, garment)
     cov = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)  # the demo's settings
-    params = shirt.make_params(color, model, garment, stack_cameras(list(seq.cameras)),
-                               anchors, cov, db, work_size=WORK_SIZE)
+    params = shirt.make_params(
+        color,
+        model,
+        garment,
+        stack_cameras(list(seq.cameras)),
+        anchors,
+        cov,
+        db,
+        work_size=WORK_SIZE,
+    )
     _, out = shirt.run(params, shirt.init(params, W0, jnp.zeros(model.n_dof)), seq.frames)
     np.savez_compressed(
         clip_file("shirt", clip),
@@ -80,8 +96,10 @@ def shirt_clip(clip: str) -> None:
         q_gt=seq.groundtruth["q"], frames=seq.frames, colour_ids=seq.groundtruth["colour_ids"],
         W0=np.asarray(W0), color_mean=np.asarray(color.mean), color_cov=np.asarray(color.cov),
     )  # fmt: skip
-    print(f"shirt {clip}: {time.perf_counter() - t0:.0f} s, valid {int(out.valid.sum())}/"
-          f"{N_FRAMES}", flush=True)
+    print(
+        f"shirt {clip}: {time.perf_counter() - t0:.0f} s, valid {int(out.valid.sum())}/{N_FRAMES}",
+        flush=True,
+    )
 
 
 def stereo_clip(clip: str) -> None:
@@ -90,11 +108,19 @@ def stereo_clip(clip: str) -> None:
     from jaxmocap.trackers import stereo_pf as sp
 
     t0 = time.perf_counter()
-    config = SceneConfig(clip=clip, rig="stereo", garment="single", background="plain",
-                         n_frames=N_FRAMES, noise_sigma=0.01, seed=0)
+    config = SceneConfig(
+        clip=clip,
+        rig="stereo",
+        garment="single",
+        background="plain",
+        n_frames=N_FRAMES,
+        noise_sigma=0.01,
+        seed=0,
+    )
     seq = render_sequence(config)
-    params = sp.make_params(list(seq.cameras),
-                            segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(
+        list(seq.cameras), segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
+    )
     obs = sp.observe_sequence(params, seq.frames)
     np.savez_compressed(
         clip_file("stereo", clip), edges=np.asarray(obs.edges), points=np.asarray(obs.points),
