@@ -92,7 +92,7 @@ def _child(name: str, out: Path, quick: bool) -> None:
 
 def run_one(name: str, out: Path, quick: bool, timeout_s: float) -> dict:
     """Run ``name`` in a child process; wall time, exit status and peak RSS (MiB) of the child."""
-    log = out / "logs" / f"{name}.log"
+    log = Path(tempfile.gettempdir()) / "jaxmocap-bench-logs" / f"{name}.log"  # not committed
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
