@@ -10,9 +10,10 @@ validity, blended pose q_b) are kept and the IK step is re-run under ``jaxmocap.
 2. Adam on the mean per-joint error of the IK track over the training windows.
 3. Held-out: the same loss and a per-joint table for the three sets of covariances.
 
-Writes ``tuning_ik.json`` (+ the tuned covariances) to the tune cache folder and
-``docs/images/tuning_ik.png``. Run:
-``python benchmarks/experiments/tune_ik.py [steps]`` (a few minutes per 10 steps on 2 cores).
+Writes ``tuning_ik_<start>.json`` (+ the tuned covariances) to the tune cache folder and
+``docs/images/tuning_ik_<start>.png``. Run:
+``python benchmarks/experiments/tune_ik.py [steps] [closed|isotropic]`` (the start; a few
+minutes per 10 steps on 2 cores).
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def per_joint(setup, cov, obs):
     return np.asarray(err), np.asarray(ok)
 
 
-def main(steps: int = STEPS) -> None:
+def main(steps: int = STEPS, start: str = "closed") -> None:
     enable_compilation_cache()
     if not all(data.clip_file("shirt", c).exists() for c in data.SHIRT_TRAIN + data.SHIRT_HELDOUT):
         subprocess.run([sys.executable, str(Path(data.__file__)), "shirt"], check=True)
@@ -94,12 +95,13 @@ def main(steps: int = STEPS) -> None:
         )
 
     t0 = time.perf_counter()
-    theta, losses = tune.fit(lambda th: vg(th, setup, train), tune.ik_theta(closed), steps,
-                             LEARNING_RATE, callback, value_and_grad=True)  # fmt: skip
+    theta0 = tune.ik_theta(closed if start == "closed" else demo)
+    theta, losses = tune.fit(lambda th: vg(th, setup, train), theta0, steps, LEARNING_RATE,
+                             callback, value_and_grad=True)  # fmt: skip
     elapsed = time.perf_counter() - t0
     tuned = tune.ik_covariances(theta)
 
-    results = {"window": WINDOW, "steps": steps, "learning_rate": LEARNING_RATE,
+    results = {"start": start, "window": WINDOW, "steps": steps, "learning_rate": LEARNING_RATE,
                "train_clips": list(data.SHIRT_TRAIN), "heldout_clips": list(data.SHIRT_HELDOUT),
                "train_loss_cm": (100 * losses).tolist(),
                "heldout_loss_cm": (100 * np.asarray(held_curve)).tolist(),
@@ -133,14 +135,16 @@ def main(steps: int = STEPS) -> None:
         for label, c in (("closed form", closed), ("tuned", tuned))
     }  # fmt: skip
     results["dof_names"] = list(model.chain.dof_names)
-    out = data.cache_folder() / "tuning_ik.json"  # numbers copied into docs/results/tuning.md
+    out = (
+        data.cache_folder() / f"tuning_ik_{start}.json"
+    )  # numbers copied into docs/results/tuning.md
     out.write_text(json.dumps(results, indent=1))
-    tuned.save(data.cache_folder() / "tuning_ik_tuned.npz")
-    plot(results)
+    tuned.save(data.cache_folder() / f"tuning_ik_tuned_{start}.npz")
+    plot(results, start)
     print(f"wrote {out}")
 
 
-def plot(results) -> None:
+def plot(results, start: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,13 +165,18 @@ def plot(results) -> None:
             fontsize=7,
             color="gray",
         )
-    ax.set_xlabel("Adam step (from the closed-form estimate)")
+    ax.set_xlabel(
+        f"Adam step (from the {'closed-form estimate' if start == 'closed' else 'demo isotropic'})"
+    )
     ax.set_ylabel("mean per-joint error (cm)")
     ax.set_title("IK covariances tuned through the IK scan")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(ROOT / "docs" / "images" / "tuning_ik.png", dpi=120)
+    fig.savefig(ROOT / "docs" / "images" / f"tuning_ik_{start}.png", dpi=120)
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else STEPS)
+    main(
+        int(sys.argv[1]) if len(sys.argv) > 1 else STEPS,
+        sys.argv[2] if len(sys.argv) > 2 else "closed",
+    )
