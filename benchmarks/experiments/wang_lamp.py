@@ -1,8 +1,10 @@
 """Wang et al. 2011 §5.2 steps 1 and 5 restricted to colour: a lamp switched off mid-way.
 
 Frames: a held-out clip (``HELDOUT_CLIPS[0]``) rendered by the synth module (one webcam,
-cluttered background, sensor noise); the tungsten lamp is switched off at ``lamp_off``
-(``SceneConfig.lamp_off``: the light drops to the fluorescent ceiling light, dimmer and bluer).
+cluttered background, sensor noise); the tungsten lamp gives ``LAMP_SHARE`` of the light
+(``SceneConfig.lamp_share``) and is switched off at ``lamp_off`` (``SceneConfig.lamp_off``):
+the light drops to the fluorescent ceiling light alone, about 3x darker and strongly bluer, a
+"sudden lighting change" (§5.2) that the carried ``W`` no longer classifies.
 Earlier in the session the lamp was already off for a while (a short *pre* segment of the same
 clip, ``lamp_off=0``): this is when the lamp-off white balance enters the reference set, as in
 the paper, where references help when the light returns to a state seen before.
@@ -62,14 +64,18 @@ SCALES = {
     "full": dict(width=320, height=240, n_pre=3, n_frames=16, lamp_off=8),
 }
 METHODS = ("references", "no_references", "fixed")
+# The tungsten lamp's share of the light (SceneConfig.lamp_share): strong enough that switching
+# it off is a "sudden lighting change" (§5.2): much darker and strongly bluer.
+LAMP_SHARE = 0.7
 
 
-def render(scale: str = "small", dtype=jnp.float32):
+def render(scale: str = "small", dtype=jnp.float32, lamp_share: float | None = LAMP_SHARE):
     """Pre segment (lamp already off), main segment (lamp on, off at ``lamp_off``), colour
     model and ``W0``."""
     s = SCALES[scale]
     common = dict(clip=HELDOUT_CLIPS[0], n_cameras=1, width=s["width"], height=s["height"],
-                  background="clutter", noise_sigma=0.01, seed=2)  # fmt: skip
+                  background="clutter", noise_sigma=0.01, lamp_share=lamp_share,
+                  seed=2)  # fmt: skip
     main_cfg = SceneConfig(n_frames=s["n_frames"], lamp_off=s["lamp_off"], start=s["n_pre"],
                            **common)  # fmt: skip
     pre_cfg = SceneConfig(n_frames=s["n_pre"], lamp_off=0, start=0, **{**common, "seed": 3})
@@ -146,14 +152,17 @@ def plot(r: dict, path: Path) -> None:
     for m, style in zip(METHODS, ("o-", "s--", "^:"), strict=True):
         ax.plot(100 * np.array(r[m]["accuracy"]), style, ms=4, label=labels[m])
     ax.axvline(r["lamp_off"] - 0.5, color="k", lw=1)
-    ax.text(r["lamp_off"] - 0.4, 50, "lamp switched off", fontsize=8)
+    ax.text(r["lamp_off"] - 0.4, 75, "lamp switched off", fontsize=8)
     ax.axhline(90, color="grey", lw=0.6, ls="--")
     ax.set_xlabel("frame")
     ax.set_ylabel("shirt pixels classified correctly (%)")
     ax.set_ylim(-2, 102)
     c = r["config"]
-    ax.set_title(f"Lamp off, {c['width']}x{c['height']} held-out clip, T = 3", fontsize=9)
-    ax.legend(fontsize=7, loc="lower left")
+    share = c.get("lamp_share")
+    ax.set_title(f"Lamp off ({100 * share:.0f}% of the light), {c['width']}x{c['height']} "
+                 "held-out clip, T = 3" if share else
+                 f"Lamp off, {c['width']}x{c['height']} held-out clip, T = 3", fontsize=9)
+    ax.legend(fontsize=7, loc="center left")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -24,8 +24,15 @@ fluorescent colour ``c_f``, the lamp colour ``c_l`` and the lamp level ``L_t``,
     L_t = (1 + drift sin(2 pi t / period)) [t < t_off]
 
 so the lamp's drift changes the light's colour and brightness smoothly, and switching it off
-at frame ``t_off`` is a step to a dimmer, bluer light. ``intensity < 1`` is a dim scene; sensor
-noise is ``noise_sigma`` (fraction of 255, added before 8-bit quantisation).
+at frame ``t_off`` is a step to a dimmer, bluer light. By default the lamp gives
+``mean(c_l) / mean(c_f + c_l)`` (about 48%) of the light; ``lamp_share = s`` sets its share
+instead (Wang §5.2's "sudden lighting change" is stronger the larger ``s``):
+
+    M_t = diag((1 - s) c_f / mean(c_f) + L_t s c_l / mean(c_l)),
+
+which keeps ``mean(diag M_t) = 1`` with the lamp on at its nominal level, as above.
+``intensity < 1`` is a dim scene; sensor noise is ``noise_sigma`` (fraction of 255, added
+before 8-bit quantisation).
 """
 
 from __future__ import annotations
@@ -100,7 +107,8 @@ class SceneConfig:
     ``distance`` (m from the subject) and radial distortion ``k1``. Garment: ``"shirt"``
     (Wang's 20 patches) or ``"single"`` (Azad: one ``shirt_rgb`` + skin). Nuisances:
     ``intensity`` (I, 1 = normal, < 1 dim), ``noise_sigma`` (fraction of 255), lamp
-    ``drift`` (relative amplitude) and ``lamp_off`` (frame of the step, or None),
+    ``drift`` (relative amplitude), ``lamp_off`` (frame of the step, or None) and
+    ``lamp_share`` (the tungsten lamp's share of the light, or None for the default mix),
     ``motion_blur`` (odd number of sub-frames, 1 = none) over ``shutter`` (fraction of the
     frame interval), ``background`` (``"plain"`` or ``"clutter"``) with ``n_distractors``,
     a ``moving_object``, an ``occluder`` passing during frames ``(first, last)``, and
@@ -124,6 +132,7 @@ class SceneConfig:
     noise_sigma: float = 0.0
     drift: float = 0.0
     lamp_off: int | None = None
+    lamp_share: float | None = None
     motion_blur: int = 1
     shutter: float = 0.5
     background: str = "clutter"
@@ -188,7 +197,7 @@ def _is_num(v: Any) -> bool:
 
 
 _FLOAT_FIELDS = {"fps", "baseline", "distance", "k1", "intensity", "noise_sigma", "drift",
-                 "shutter"}
+                 "shutter", "lamp_share"}
 
 
 def _validate(values: dict[str, Any]) -> None:
@@ -222,6 +231,8 @@ def _validate(values: dict[str, Any]) -> None:
     _check(_is_num(c.drift) and 0 <= c.drift <= 1, "drift", "a number in [0, 1]", c.drift)
     _check(c.lamp_off is None or (_is_int(c.lamp_off) and c.lamp_off >= 0), "lamp_off",
            "a frame index >= 0 or null", c.lamp_off)
+    _check(c.lamp_share is None or (_is_num(c.lamp_share) and 0 < c.lamp_share < 1),
+           "lamp_share", "a number in (0, 1) or null", c.lamp_share)
     _check(_is_int(c.motion_blur) and c.motion_blur >= 1 and c.motion_blur % 2 == 1,
            "motion_blur", "an odd number of sub-frames >= 1", c.motion_blur)
     _check(_is_num(c.shutter) and 0 <= c.shutter <= 1, "shutter", "a number in [0, 1]",
@@ -402,7 +413,11 @@ def illuminant_schedule(config: SceneConfig, n_frames: int) -> tuple[np.ndarray,
     if config.lamp_off is not None:
         level = np.where(np.arange(n_frames) >= config.lamp_off, 0.0, level)
     cf, cl = np.array(FLUORESCENT_RGB), np.array(TUNGSTEN_RGB)
-    gains = (cf[None] + level[:, None] * cl[None]) / np.mean(cf + cl)
+    if config.lamp_share is None:
+        gains = (cf[None] + level[:, None] * cl[None]) / np.mean(cf + cl)
+    else:
+        s = float(config.lamp_share)
+        gains = (1 - s) * cf[None] / np.mean(cf) + level[:, None] * (s * cl[None] / np.mean(cl))
     M = gains[:, :, None] * np.eye(3)[None]
     return M, np.full(n_frames, float(config.intensity))
 
