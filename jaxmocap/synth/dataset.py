@@ -244,6 +244,7 @@ _SCENE_OPTIONS = {
     "cameras": "n_cameras", "width": "width", "height": "height", "baseline": "baseline",
     "distance": "distance", "k1": "k1", "garment": "garment", "shirt_rgb": "shirt_rgb",
     "intensity": "intensity", "noise": "noise_sigma", "drift": "drift", "lamp_off": "lamp_off",
+    "lamp_share": "lamp_share",
     "blur": "motion_blur", "shutter": "shutter", "background": "background",
     "distractors": "n_distractors", "moving_object": "moving_object", "occluder": "occluder",
     "leave_view": "leave_view", "colour_ids": "colour_ids", "seed": "seed",
@@ -277,6 +278,9 @@ def add_parser(sub) -> None:
     a("--noise", type=float, help="sensor noise sigma, fraction of 255")
     a("--drift", type=float, help="relative amplitude of the lamp's smooth drift")
     a("--lamp-off", type=int, metavar="FRAME", help="switch the lamp off at this frame")
+    a("--lamp-share", type=float, metavar="S",
+      help="the switched lamp's share of the light in (0, 1) (default: the mild built-in mix; "
+           "0.7 makes switching it off a sudden, strongly bluer and darker change)")
     a("--blur", type=int, metavar="S", help="motion blur: odd number of sub-frames")
     a("--shutter", type=float, help="exposure as a fraction of the frame interval")
     a("--background", choices=("plain", "clutter"))
