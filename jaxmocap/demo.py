@@ -56,32 +56,19 @@ def add_parser(sub) -> None:
 
 
 def _setup(seq, progress: bool):
-    """Pose database, colour model, initial white balance and IK settings for the demo."""
+    """Pose database (small, cached), then the capture-session set-up of §5.1
+    (:func:`jaxmocap.trackers.shirt.setup_for_sequence`)."""
     import jax.numpy as jnp
 
     from jaxmocap.body import default_body
     from jaxmocap.garment import default_garment
-    from jaxmocap.ik import IKCovariances, anchors_from_garment
     from jaxmocap.posedb import SamplingConfig, load_or_build
     from jaxmocap.trackers import shirt
 
     model = default_body()
-    garment = default_garment(model)
-    db = load_or_build(SamplingConfig(size=DEMO_DB_SIZE), model, garment, progress=progress)
-    # The colour model (offline, §5.1): scribbles on white-light renders of database poses
-    # placed in front of camera 0.
-    q_model = np.asarray(db.poses[:5], np.float64).copy()
-    q_model[:, :3] = np.asarray(seq.groundtruth["q"][0, :3])
-    color = shirt.fit_color_model_from_renders(model, garment, q_model, seq.cameras[0])
-    # The capture session's white balance: one scribbled frame of the scene (§5.1).
-    labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
-    W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
-    anchors = anchors_from_garment(model, garment)
-    cov = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
-    from jaxmocap.camera import stack_cameras
-
-    params = shirt.make_params(color, model, garment, stack_cameras(list(seq.cameras)),
-                               anchors, cov, db, work_size=96)
+    db = load_or_build(SamplingConfig(size=DEMO_DB_SIZE), model, default_garment(model),
+                       progress=progress)
+    params, W0, _ = shirt.setup_for_sequence(seq, db, work_size=96)
     return model, params, W0, jnp.zeros(model.n_dof)
 
 

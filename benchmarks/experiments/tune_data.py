@@ -49,9 +49,8 @@ def shirt_clip(clip: str) -> None:
     import jax.numpy as jnp
 
     from jaxmocap.body import default_body
-    from jaxmocap.camera import stack_cameras
     from jaxmocap.garment import default_garment
-    from jaxmocap.ik import IKCovariances, anchors_from_garment
+    from jaxmocap.ik import IKCovariances
     from jaxmocap.posedb import SamplingConfig, load_or_build
     from jaxmocap.synth import SceneConfig, render_sequence
     from jaxmocap.trackers import shirt
@@ -71,23 +70,8 @@ def shirt_clip(clip: str) -> None:
     model = default_body()
     garment = default_garment(model)
     db = load_or_build(SamplingConfig(size=DB_SIZE), model, garment, progress=False)
-    q_model = np.asarray(db.poses[:5], np.float64).copy()
-    q_model[:, :3] = np.asarray(seq.groundtruth["q"][0, :3])
-    color = shirt.fit_color_model_from_renders(model, garment, q_model, seq.cameras[0])
-    labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
-    W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
-    anchors = anchors_from_garment(model, garment)
     cov = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)  # the demo's settings
-    params = shirt.make_params(
-        color,
-        model,
-        garment,
-        stack_cameras(list(seq.cameras)),
-        anchors,
-        cov,
-        db,
-        work_size=WORK_SIZE,
-    )
+    params, W0, color = shirt.setup_for_sequence(seq, db, cov, work_size=WORK_SIZE)
     _, out = shirt.run(params, shirt.init(params, W0, jnp.zeros(model.n_dof)), seq.frames)
     np.savez_compressed(
         clip_file("shirt", clip),

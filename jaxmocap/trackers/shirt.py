@@ -554,3 +554,34 @@ def initial_white_balance(
             for f, lab in zip(frames, labels, strict=True)
         ]
     )
+
+
+def setup_for_sequence(
+    seq,
+    db: PoseDB,
+    cov: IKCovariances | None = None,
+    work_size: int = WORK_SIZE,
+) -> tuple[ShirtParams, Float[Array, "n_cams 3 3"], ColorModel]:
+    """Tracker set-up for a rendered :class:`jaxmocap.synth.Sequence` the way a user sets up a
+    capture session (§5.1): the colour model from scribbles on white-light renders of five
+    database poses placed at the subject's first position in front of camera 0
+    (:func:`fit_color_model_from_renders`), ``W0`` from one scribbled frame of the scene (the
+    first frame's ground-truth colour ids, eroded: :func:`scribbles`), patch anchors of the
+    default garment, and ``cov`` (default: isotropic 2 px / 0.3 / 0.5). Returns
+    ``(params, W0, color)``."""
+    from jaxmocap.body import default_body
+    from jaxmocap.camera import stack_cameras
+    from jaxmocap.garment import default_garment
+    from jaxmocap.ik import anchors_from_garment
+
+    body = default_body()
+    garment = default_garment(body)
+    q_model = np.asarray(db.poses[:5], np.float64).copy()
+    q_model[:, :3] = np.asarray(seq.groundtruth["q"][0, :3])
+    color = fit_color_model_from_renders(body, garment, q_model, seq.cameras[0])
+    labels = np.stack([scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
+    W0 = initial_white_balance(color, seq.frames[0], labels)
+    cov = cov if cov is not None else IKCovariances.isotropic(2.0, 0.3, 0.5, body.n_dof)
+    params = make_params(color, body, garment, stack_cameras(list(seq.cameras)),
+                         anchors_from_garment(body, garment), cov, db, work_size=work_size)
+    return params, W0, color
