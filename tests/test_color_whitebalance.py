@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _shirt_colours import SHIRT  # noqa: E402  (shared procedural shirt palette)
 
 from jaxmocap.color import (
     ColorModel,
@@ -12,22 +13,6 @@ from jaxmocap.color import (
     patch_means,
     white_balance_from_ids,
     white_balance_from_scribbles,
-)
-
-SHIRT = np.array(
-    [
-        [205, 35, 40],
-        [35, 170, 50],
-        [40, 60, 205],
-        [225, 210, 40],
-        [40, 190, 200],
-        [200, 45, 190],
-        [235, 125, 30],
-        [110, 45, 170],
-        [150, 225, 60],
-        [245, 140, 170],
-    ],
-    float,
 )
 
 
