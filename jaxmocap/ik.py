@@ -80,22 +80,39 @@ _ADJOINT = optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=Fal
 class PatchAnchors(eqx.Module):
     """The 3D centroid of every shirt patch as a point fixed in the frame of its link.
 
-    ``link`` (P,) link index, ``offset`` (P, 3) metres in that link's frame.
+    ``link`` (P,) link index, ``offset`` (P, 3) metres in that link's frame: one anchor per
+    patch shared by all cameras (:func:`anchors_from_garment`). **Per-view anchors**
+    (:func:`view_anchors`) carry a leading camera axis, ``offset`` (C, P, 3), plus a pixel
+    ``shift`` (C, P, 2) added to the projection, so that each camera predicts the centroid of
+    the patch's *visible* part: ``c^{*i}_k(q) = project(cam_i, T_link(q) offset_ik) + shift_ik``.
     """
 
     link: Int[Array, " n_patches"]
-    offset: Float[Array, "n_patches 3"]
+    offset: Float[Array, "*cams n_patches 3"]
+    shift: Float[Array, "*cams n_patches 2"] | None = None
 
     def __check_init__(self):
-        if self.link.shape[0] != self.offset.shape[0]:
+        if self.link.shape[0] != self.offset.shape[-2]:
             raise ValueError(
                 f"PatchAnchors: link has {self.link.shape[0]} rows, offset "
-                f"{self.offset.shape[0]}; expected one of each per patch"
+                f"{self.offset.shape[-2]}; expected one of each per patch"
+            )
+        if self.offset.ndim not in (2, 3):
+            raise ValueError(f"PatchAnchors: offset must be (P, 3) or (C, P, 3), got "
+                             f"{self.offset.shape}")  # fmt: skip
+        if self.shift is not None and self.shift.shape != self.offset.shape[:-1] + (2,):
+            raise ValueError(
+                f"PatchAnchors: shift {self.shift.shape}, expected {self.offset.shape[:-1] + (2,)}"
             )
 
     @property
     def n_patches(self) -> int:
-        return self.offset.shape[0]
+        return self.offset.shape[-2]
+
+    @property
+    def per_view(self) -> bool:
+        """Whether the anchors differ per camera (:func:`view_anchors`)."""
+        return self.offset.ndim == 3
 
 
 def anchors_from_samples(
@@ -145,22 +162,89 @@ def anchors_from_garment(model: BodyModel, garment: Garment, dtype=None) -> Patc
 
 def anchor_positions(
     chain: KinematicChain, anchors: PatchAnchors, q: Float[Array, " n_dof"]
-) -> Float[Array, "n_patches 3"]:
-    """World positions (metres) of the patch anchors at pose q: ``T_link(q) @ offset``."""
+) -> Float[Array, "*cams n_patches 3"]:
+    """World positions (metres) of the patch anchors at pose q: ``T_link(q) @ offset``
+    ((P, 3), or (C, P, 3) for per-view anchors)."""
     T = fk(chain, q)[anchors.link]
     off = anchors.offset.astype(q.dtype)
-    return jnp.einsum("pij,pj->pi", T[:, :3, :3], off) + T[:, :3, 3]
+    X = jnp.einsum("pij,...pj->...pi", T[:, :3, :3], off)
+    return X + T[:, :3, 3].reshape((1,) * (X.ndim - 2) + T.shape[:1] + (3,))
 
 
-def _project_all(cams: Camera, X: Float[Array, "n 3"]) -> Float[Array, "n_cams n 2"]:
+def _project_all(cams: Camera, X: Float[Array, "*c n 3"]) -> Float[Array, "n_cams n 2"]:
+    if X.ndim == 3:  # one point set per camera
+        return jax.vmap(project)(cams, X)
     return jax.vmap(project, in_axes=(0, None))(cams, X)
+
+
+def _project_anchor_points(cams: Camera, X: Array, shift: Array | None) -> Array:
+    c = _project_all(cams, X)
+    return c if shift is None else c + shift.astype(c.dtype)
 
 
 def project_anchors(
     cams: Camera, chain: KinematicChain, anchors: PatchAnchors, q: Float[Array, " n_dof"]
 ) -> Float[Array, "n_cams n_patches 2"]:
     """Projected anchors ``c^{*i}_k(q)`` (pixels) in every camera of a stacked Camera."""
-    return _project_all(cams, anchor_positions(chain, anchors, q))
+    return _project_anchor_points(cams, anchor_positions(chain, anchors, q), anchors.shift)
+
+
+VIEW_MIN_PIXELS = 4  # rendered pixels a patch needs in a view for a per-view anchor
+
+
+def view_anchors(
+    chain: KinematicChain,
+    anchors: PatchAnchors,
+    cams: Camera,
+    q_ref: Float[Array, " n_dof"],
+    patch: Int[Array, "n_cams h w"],
+    point: Float[Array, "n_cams h w 3"],
+    uv: Float[Array, "n_cams h w 2"],
+    min_pixels: int = VIEW_MIN_PIXELS,
+) -> PatchAnchors:
+    """Per-view anchors from a render of the model at ``q_ref`` (the paper's rendered
+    centroids, made smooth in q).
+
+    Wang et al. compare the observed centroids with the centroids of the model's *rendered*
+    patches, which are piecewise constant in q. Here every rendered pixel of patch k in camera
+    i (``patch`` ids, world hit ``point`` at pixel position ``uv``, e.g. the ``Hits`` of
+    :func:`jaxmocap.render.render_uv` on the tracker's crop grid) is carried rigidly by the
+    patch's link: the anchor is the mean of those hit points in the link frame and ``shift``
+    the difference between the rendered 2D centroid and the anchor's projection at
+    ``q_ref``. So at ``q_ref`` the prediction equals the rendered visible-part centroid
+    exactly, and near it the prediction moves with the link (visibility frozen). Patches
+    with fewer than ``min_pixels`` rendered pixels in a view keep the shared anchor of
+    ``anchors`` and no shift. Not differentiated w.r.t. the render (stop_gradient).
+    """
+    if anchors.per_view:
+        raise ValueError("view_anchors: anchors must be the shared (P, 3) anchors")
+    dt = q_ref.dtype
+    P = anchors.n_patches
+    n_cams = cams.K.shape[0]
+    T = fk(chain, q_ref)[anchors.link]  # (P, 4, 4) at the reference pose
+    seg = jnp.clip(patch.reshape(n_cams, -1), 0, P + 1)  # ids > P go to a discarded bin
+    pts = point.reshape(n_cams, -1, 3).astype(dt)
+    pix = uv.reshape(n_cams, -1, 2).astype(dt)
+    fg = (seg >= 1) & (seg <= P)
+    pts = jnp.where(fg[..., None], pts, 0.0)  # background points are inf
+
+    def per_cam(seg_c, pts_c, pix_c, fg_c):
+        k = jnp.clip(seg_c - 1, 0, P - 1)
+        Tk = T[k]  # link of each pixel's patch
+        local = jnp.einsum("nji,nj->ni", Tk[:, :3, :3], pts_c - Tk[:, :3, 3])  # R^T (X - t)
+        w = fg_c.astype(dt)
+        sums = jax.ops.segment_sum(local * w[:, None], seg_c, P + 2)[1 : P + 1]
+        sum_uv = jax.ops.segment_sum(pix_c * w[:, None], seg_c, P + 2)[1 : P + 1]
+        count = jax.ops.segment_sum(w, seg_c, P + 2)[1 : P + 1]
+        safe = jnp.maximum(count, 1.0)[:, None]
+        return sums / safe, sum_uv / safe, count
+
+    off, c2d, count = jax.vmap(per_cam)(seg, pts, pix, fg)
+    use = count >= min_pixels
+    off = jnp.where(use[..., None], off, anchors.offset.astype(dt)[None])
+    X = jnp.einsum("pij,cpj->cpi", T[:, :3, :3], off) + T[None, :, :3, 3]
+    shift = jnp.where(use[..., None], c2d - jax.vmap(project)(cams, X), 0.0)
+    return jax.lax.stop_gradient(PatchAnchors(anchors.link, off, shift))
 
 
 # ----------------------------------------------------------------------------- covariances
@@ -329,7 +413,7 @@ class _Terms(eqx.Module):
 
 
 def _centroid_residual(X: Array, t: _Terms) -> Array:
-    d = _project_all(t.cams, X) - t.obs  # (C, P, 2)
+    d = _project_anchor_points(t.cams, X, t.anchors.shift) - t.obs  # (C, P, 2)
     r = jnp.einsum("pij,cpj->cpi", t.Wc, d)
     return jnp.where(t.vis[..., None], r, 0.0).reshape(-1)
 
@@ -586,6 +670,8 @@ def initial_root(
         return root_prev, jnp.array(False)
     vis = jnp.asarray(visible, bool)
     X = anchor_positions(chain, anchors, _root_frame(q_b))
+    if X.ndim == 3:  # per-view anchors: their mean over cameras
+        X = X.mean(0)
     Y = triangulate(cams, centroids.astype(dt), refine=False, weights=vis.astype(dt))
     seen = vis.sum(0) >= 2
     Y = jnp.where(seen[:, None], Y, 0.0)
@@ -660,13 +746,14 @@ def _solve_global(
 
     @_dense_jacobian
     def fn(y, args):
-        X, R0, t0, cams, obs, vis, Wc = args
+        X, R0, t0, cams, obs, vis, Wc, shift = args
         R, t = place(y, R0, t0)
-        d = _project_all(cams, X @ R.T + t[None, :]) - obs
+        d = _project_anchor_points(cams, X @ R.T + t.reshape((1,) * (X.ndim - 1) + (3,)), shift)
+        d = d - obs
         r = jnp.einsum("pij,cpj->cpi", Wc, d)
         return jnp.where(vis[..., None], r, 0.0).reshape(-1)
 
-    args = (X, R0, t0, cams, obs, vis, Wc)
+    args = (X, R0, t0, cams, obs, vis, Wc, anchors.shift)
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(
         fn,
