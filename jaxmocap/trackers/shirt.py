@@ -73,7 +73,14 @@ from jaxmocap.color.pose_assisted import (
     pose_assisted_classify,
 )
 from jaxmocap.garment import Garment
-from jaxmocap.ik import IKCovariances, PatchAnchors, initial_root, solve_global, solve_ik
+from jaxmocap.ik import (
+    IKCovariances,
+    PatchAnchors,
+    initial_root,
+    solve_global,
+    solve_ik,
+)
+from jaxmocap.ik import view_anchors as _view_anchors
 from jaxmocap.posedb._sample import canonical_camera, pose_in_camera
 from jaxmocap.posedb._search import PoseDB, estimate_pose
 from jaxmocap.render import TINY_SIZE, render_uv, resample_ids, tiny_hits, window_from_mask
@@ -86,6 +93,9 @@ MIN_VALID_PATCHES = 4  # measured patch centroids (all cameras) for a frame to c
 # Ablation without pose prior: the per-pixel cost of distance that only breaks colour ties
 # between the two patches of one colour (standard deviations per working pixel).
 TIE_BREAK_WEIGHT = 1e-4
+# Not in the paper: IK passes per frame, each with the model centroids re-rendered at the
+# previous pass's pose (the paper renders the model's centroids once per IK iteration).
+IK_PASSES = 2
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
 
@@ -120,6 +130,8 @@ class ShirtParams(eqx.Module):
     work_size: int = eqx.field(static=True, default=WORK_SIZE)
     scales: tuple[int, ...] = eqx.field(static=True, default=())
     crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
+    view_anchors: bool = eqx.field(static=True, default=True)
+    ik_passes: int = eqx.field(static=True, default=IK_PASSES)
 
     @property
     def n_cams(self) -> int:
@@ -167,8 +179,16 @@ def make_params(
     work_size: int = WORK_SIZE,
     scales: Sequence[int] | None = None,
     crop_factor: float = CROP_FACTOR,
+    view_anchors: bool = True,
+    ik_passes: int = IK_PASSES,
 ) -> ShirtParams:
-    """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`."""
+    """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
+
+    ``view_anchors`` (default on) predicts each patch's centroid from the model's render in
+    the camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
+    centroid; ``ik_passes`` IK solves per frame, each re-rendering the model at the last."""
+    if ik_passes < 1:
+        raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if cams.K.ndim != 3:
         raise ValueError("make_params: cams must be stacked (jaxmocap.camera.stack_cameras)")
     if anchors.n_patches != garment.n_patches:
@@ -186,6 +206,7 @@ def make_params(
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
+        bool(view_anchors), int(ik_passes),
     )  # fmt: skip
 
 
@@ -350,10 +371,12 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     q_g = glob.q
 
     # step 3: pose-assisted classification on r^b rendered in each crop, centroids
-    meas = []
+    meas, rb_hits, uvs = [], [], []
     for i in range(n_cams):
         uv = crop_uv(windows[i], n)
-        rb = render_uv(params.body, params.garment, q_g, cam_i[i], uv).patch
+        hits = render_uv(params.body, params.garment, q_g, cam_i[i], uv)
+        rb = hits.patch
+        rb_hits.append(hits), uvs.append(uv)
         dist = patch_distance_maps(rb, P, dt)
         W_i = cls[i].W
         if params.pose_prior:
@@ -372,10 +395,29 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     v_obs = jnp.stack([m.valid for m in meas])
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
 
-    # step 4: IK with the blend and temporal priors
+    # step 4: IK with the blend and temporal priors. The model's centroids are those of its
+    # render (per-view anchors, jaxmocap.ik.view_anchors): first from r^b at q_g, then, for
+    # each further pass, from a render at the previous pass's solution.
     q_h = jnp.where(state.valid, state.q, q_g)
-    sol = solve_ik(params.body.chain, cams, params.anchors, c_obs, v_obs, q_g, q_h, params.cov, q_g)
-    q_star = jnp.where(valid, sol.q, state.q)
+    chain = params.body.chain
+    uv_all = jnp.stack(uvs)
+
+    def anchors_at(q, hits):
+        if not params.view_anchors:
+            return params.anchors
+        return _view_anchors(chain, params.anchors, cams, q, jnp.stack([h.patch for h in hits]),
+                            jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
+
+    q_sol = q_g
+    hits = rb_hits
+    for k in range(params.ik_passes):
+        if k > 0:
+            hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
+                    for i in range(n_cams)]  # fmt: skip
+        sol = solve_ik(chain, cams, anchors_at(q_sol, hits), c_obs, v_obs, q_g, q_h, params.cov,
+                       q_sol)  # fmt: skip
+        q_sol = sol.q
+    q_star = jnp.where(valid, q_sol, state.q)
 
     # step 5: white balance for the next frame from r* (q* rendered in each crop)
     W_new, refs_new, added = [], [], []
