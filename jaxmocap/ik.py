@@ -410,11 +410,24 @@ class _Terms(eqx.Module):
     Wc: Array  # (P, 2, 2)
     Wb: Array
     Wp: Array
+    robust: Array  # () Cauchy scale of the whitened centroid residuals; inf: plain squares
+
+
+def robust_centroid_residual(r: Float[Array, "*b 2"], scale: Float[Array, ""]) -> Array:
+    """Cauchy-robustified whitened 2D residuals: ``r`` rescaled so that its squared norm is
+    ``rho(|r|^2) = c^2 log(1 + |r|^2 / c^2)`` (``c = scale``; ``inf``: unchanged). Smooth;
+    ~``r`` for ``|r| << c``, and an outlier's pull fades as ``c^2 / |r|``."""
+    n2 = jnp.sum(r**2, axis=-1, keepdims=True)
+    big = n2 > jnp.finfo(r.dtype).tiny
+    n2s = jnp.where(big, n2, 1.0)
+    c2 = jnp.where(jnp.isfinite(scale), scale, 1.0) ** 2
+    f = jnp.where(big, jnp.sqrt(c2 * jnp.log1p(n2s / c2) / n2s), 1.0)
+    return jnp.where(jnp.isfinite(scale), f, 1.0) * r
 
 
 def _centroid_residual(X: Array, t: _Terms) -> Array:
     d = _project_anchor_points(t.cams, X, t.anchors.shift) - t.obs  # (C, P, 2)
-    r = jnp.einsum("pij,cpj->cpi", t.Wc, d)
+    r = robust_centroid_residual(jnp.einsum("pij,cpj->cpi", t.Wc, d), t.robust)
     return jnp.where(t.vis[..., None], r, 0.0).reshape(-1)
 
 
@@ -425,7 +438,7 @@ def _residual(q: Array, t: _Terms) -> Array:
     )
 
 
-def _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov) -> _Terms:
+def _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov, robust=None) -> _Terms:
     dt = q_b.dtype
     vis = jnp.asarray(visible, bool)
     obs = jnp.where(vis[..., None], centroids.astype(dt), 0.0)
@@ -441,9 +454,10 @@ def _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov) -> _Ter
             f"IK: covariances are for {cov.blend.shape[0]} DOFs, the pose has {q_b.shape[0]}"
         )
     Wc = jnp.broadcast_to(_whitener(cov.centroid, dt), (n_p, 2, 2))
+    robust = jnp.asarray(jnp.inf if robust is None else robust, dt)
     return _Terms(
         chain, cams, anchors, obs, vis, q_b, q_h.astype(dt), Wc,
-        _whitener(cov.blend, dt), _whitener(cov.prior, dt),
+        _whitener(cov.blend, dt), _whitener(cov.prior, dt), robust,
     )  # fmt: skip
 
 
@@ -538,6 +552,7 @@ def solve_ik(
     rtol: float | Float[Array, ""] = DEFAULT_RTOL,
     atol: float | Float[Array, ""] = DEFAULT_ATOL,
     max_steps: int = DEFAULT_MAX_STEPS,
+    robust: float | Float[Array, ""] | None = None,
 ) -> IKSolution:
     """Pose refinement by IK (Wang et al. §5.2 step 4), Levenberg-Marquardt in optimistix.
 
@@ -548,10 +563,16 @@ def solve_ik(
     does not recompile; ``free_dofs`` and ``max_steps`` are static. Never raises on
     non-convergence: check ``result`` / ``converged``. Differentiable (implicit adjoint)
     w.r.t. every array input, covariances included. Batch frames with ``jax.vmap``.
+
+    ``robust`` (not in the paper; default None = the paper's plain squares) replaces each
+    patch's whitened centroid term ``|r|^2`` by the Cauchy ``c^2 log(1 + |r|^2 / c^2)`` with
+    ``c = robust`` (in standard deviations of Sigma_c; traced), so that a centroid corrupted
+    by misclassified pixels cannot drag the whole pose (:func:`robust_centroid_residual`).
     """
     tol = lambda x: jnp.asarray(x, dtype=q_b.dtype)
+    rob = tol(jnp.inf if robust is None else robust)
     return _solve_ik(chain, cams, anchors, centroids, visible, q_b, q_h, cov, q_init,
-                     free_dofs, tol(rtol), tol(atol), max_steps)  # fmt: skip
+                     free_dofs, tol(rtol), tol(atol), max_steps, rob)  # fmt: skip
 
 
 @functools.partial(jax.jit, static_argnames=("free_dofs", "max_steps"))
@@ -569,9 +590,10 @@ def _solve_ik(
     rtol: Float[Array, ""],
     atol: Float[Array, ""],
     max_steps: int,
+    robust: Float[Array, ""],
 ) -> IKSolution:
     """The jitted core of :func:`solve_ik` (every argument explicit, tolerances arrays)."""
-    terms = _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov)
+    terms = _make_terms(chain, cams, anchors, centroids, visible, q_b, q_h, cov, robust)
     dt = q_b.dtype
     q0 = q_b if q_init is None else q_init.astype(dt)
     idx = _free_index(free_dofs, q_b.shape[0])

@@ -486,3 +486,32 @@ def test_view_anchors_predict_the_rendered_visible_centroids(scene):
                                                   *_render_views(model, cams, q1)),
                      c, v, q_p, q_p, cov, q1).q  # fmt: skip
     assert kp_error(oracle, q2, q_gt) < min(0.02, kp_error(oracle, q_p, q_gt) / 3)
+
+
+def test_robust_centroid_term(scene, frame, rng):
+    """Cauchy rho: |r~|^2 = c^2 log(1 + |r|^2/c^2), identity for c = inf, smooth at 0
+    (finite differences); an IK with one grossly wrong centroid keeps the pose with it and
+    loses it without."""
+    r = jnp.asarray(rng.normal(size=(5, 2)) * 4.0)
+    c = jnp.asarray(3.0)
+    out = ik.robust_centroid_residual(r, c)
+    n2 = np.sum(np.asarray(r) ** 2, -1)
+    np.testing.assert_allclose(np.sum(np.asarray(out) ** 2, -1), 9.0 * np.log1p(n2 / 9.0),
+                               rtol=1e-12)  # fmt: skip
+    np.testing.assert_array_equal(ik.robust_centroid_residual(r, jnp.asarray(jnp.inf)), r)
+    f = lambda x: jnp.sum(ik.robust_centroid_residual(x, c) ** 2)
+    for x in (np.asarray(r[0]), np.zeros(2)):
+        g = np.asarray(jax.grad(f)(jnp.asarray(x)))
+        fd = [(f(jnp.asarray(x + e)) - f(jnp.asarray(x - e))) / 2e-6 for e in np.eye(2) * 1e-6]
+        np.testing.assert_allclose(g, fd, atol=1e-6)
+        assert np.all(np.isfinite(g))
+
+    oracle = scene[4]
+    q_gt, cen, q_b = frame
+    bad = cen.copy()
+    bad[0, 0] += [150.0, -120.0]  # a patch centroid dragged by misclassified clutter
+    cov = diag_cov(1.0, 1.0, 1.0)
+    plain = solve(scene, bad, ALL_VISIBLE, q_b, q_b, cov)
+    robust = solve(scene, bad, ALL_VISIBLE, q_b, q_b, cov, robust=3.0)
+    assert kp_error(oracle, robust.q, q_gt) < 0.01
+    assert kp_error(oracle, plain.q, q_gt) > 3 * kp_error(oracle, robust.q, q_gt)

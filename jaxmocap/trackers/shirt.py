@@ -20,7 +20,10 @@ One frame, for 1..n calibrated cameras (all inside one jitted function):
 5. **Pose-assisted classification** (step 3): ``r^b`` rendered in each crop, one exact EDT per
    patch, ``argmin_p ||W I - mu_k(p)||_Sigma + C d_p`` with ``C = 6 / s'``, ``T = 5``.
 6. **IK** (step 4): patch centroids ``c^{ki}`` in every camera, then
-   ``q* = argmin sum ||c^{*i}(q) - c^{ki}||^2_Sc + ||q - q_b||^2_Sb + ||q - q_h||^2_Sp``.
+   ``q* = argmin sum ||c^{*i}(q) - c^{ki}||^2_Sc + ||q - q_b||^2_Sb + ||q - q_h||^2_Sp``,
+   with ``c^{*i}`` the centroids of the model's render (per-view anchors,
+   :func:`jaxmocap.ik.view_anchors`) and a Cauchy-robust centroid term (``robust``).
+   Steps 5–6 run ``ik_passes`` times (default 2), the model re-rendered at the last pose.
 7. **White balance** (step 5): ``q*`` rendered in each crop, ``W*`` refitted on its colour
    ids (eroded by one pixel so that silhouettes off by a pixel do not mix colours), and
    ``W*`` joins the reference illuminations when ``min ||W* - W||_F > 0.5``.
@@ -93,9 +96,12 @@ MIN_VALID_PATCHES = 4  # measured patch centroids (all cameras) for a frame to c
 # Ablation without pose prior: the per-pixel cost of distance that only breaks colour ties
 # between the two patches of one colour (standard deviations per working pixel).
 TIE_BREAK_WEIGHT = 1e-4
-# Not in the paper: IK passes per frame, each with the model centroids re-rendered at the
-# previous pass's pose (the paper renders the model's centroids once per IK iteration).
+# Not in the paper: rounds of (render, pose-assisted classification, IK) per frame, each with
+# the model re-rendered at the previous round's pose (the paper renders r^b once, at q_b).
 IK_PASSES = 2
+# Not in the paper: Cauchy scale (standard deviations of Sigma_c) of the IK's centroid terms
+# (jaxmocap.ik.solve_ik(robust=...)); None: the paper's plain least squares.
+ROBUST_SCALE = 3.0
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
 
@@ -132,6 +138,7 @@ class ShirtParams(eqx.Module):
     crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
     view_anchors: bool = eqx.field(static=True, default=True)
     ik_passes: int = eqx.field(static=True, default=IK_PASSES)
+    robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
 
     @property
     def n_cams(self) -> int:
@@ -181,12 +188,15 @@ def make_params(
     crop_factor: float = CROP_FACTOR,
     view_anchors: bool = True,
     ik_passes: int = IK_PASSES,
+    robust: float | None = ROBUST_SCALE,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
     ``view_anchors`` (default on) predicts each patch's centroid from the model's render in
     the camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
-    centroid; ``ik_passes`` IK solves per frame, each re-rendering the model at the last."""
+    centroid; ``ik_passes`` rounds of pose-assisted classification + IK per frame, each with
+    the model re-rendered at the last round's pose; ``robust`` the Cauchy scale of the IK's
+    centroid terms (None: plain least squares, as the paper)."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if cams.K.ndim != 3:
@@ -206,7 +216,7 @@ def make_params(
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
-        bool(view_anchors), int(ik_passes),
+        bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
     )  # fmt: skip
 
 
@@ -370,14 +380,18 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     )
     q_g = glob.q
 
-    # step 3: pose-assisted classification on r^b rendered in each crop, centroids
-    meas, rb_hits, uvs = [], [], []
-    for i in range(n_cams):
-        uv = crop_uv(windows[i], n)
-        hits = render_uv(params.body, params.garment, q_g, cam_i[i], uv)
-        rb = hits.patch
-        rb_hits.append(hits), uvs.append(uv)
-        dist = patch_distance_maps(rb, P, dt)
+    # steps 3 + 4, repeated ``ik_passes`` times: the model rendered in each crop (r^b at q_g
+    # first, then at the previous pass's IK solution) is the prior of the pose-assisted
+    # classification (step 3, one exact EDT per patch) and, with per-view anchors
+    # (jaxmocap.ik.view_anchors), the model whose centroids the IK (step 4) matches to the
+    # measured ones, under the blend and temporal priors.
+    uvs = [crop_uv(windows[i], n) for i in range(n_cams)]
+    uv_all = jnp.stack(uvs)
+    q_h = jnp.where(state.valid, state.q, q_g)
+    chain = params.body.chain
+
+    def measure(hits_i, i):
+        dist = patch_distance_maps(hits_i.patch, P, dt)
         W_i = cls[i].W
         if params.pose_prior:
             weight = PRIOR_SCALE / s_found[i] * (windows[i][2] / n)  # C = 6/s', d in image px
@@ -390,33 +404,25 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
                 THRESHOLD,
             )  # fmt: skip
         c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
-        meas.append(PatchCentroids(c.xy, c.count, c.valid & okq[i]))
-    c_obs = jnp.stack([m.xy for m in meas])
-    v_obs = jnp.stack([m.valid for m in meas])
-    valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-
-    # step 4: IK with the blend and temporal priors. The model's centroids are those of its
-    # render (per-view anchors, jaxmocap.ik.view_anchors): first from r^b at q_g, then, for
-    # each further pass, from a render at the previous pass's solution.
-    q_h = jnp.where(state.valid, state.q, q_g)
-    chain = params.body.chain
-    uv_all = jnp.stack(uvs)
-
-    def anchors_at(q, hits):
-        if not params.view_anchors:
-            return params.anchors
-        return _view_anchors(chain, params.anchors, cams, q, jnp.stack([h.patch for h in hits]),
-                            jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
+        return PatchCentroids(c.xy, c.count, c.valid & okq[i])
 
     q_sol = q_g
-    hits = rb_hits
-    for k in range(params.ik_passes):
-        if k > 0:
-            hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
-                    for i in range(n_cams)]  # fmt: skip
-        sol = solve_ik(chain, cams, anchors_at(q_sol, hits), c_obs, v_obs, q_g, q_h, params.cov,
-                       q_sol)  # fmt: skip
+    for _ in range(params.ik_passes):
+        hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
+                for i in range(n_cams)]  # fmt: skip
+        meas = [measure(hits[i], i) for i in range(n_cams)]
+        c_obs = jnp.stack([m.xy for m in meas])
+        v_obs = jnp.stack([m.valid for m in meas])
+        if params.view_anchors:
+            anchors = _view_anchors(chain, params.anchors, cams, q_sol,
+                                    jnp.stack([h.patch for h in hits]),
+                                    jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
+        else:
+            anchors = params.anchors
+        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q_sol,
+                       robust=params.robust)  # fmt: skip
         q_sol = sol.q
+    valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
     q_star = jnp.where(valid, q_sol, state.q)
 
     # step 5: white balance for the next frame from r* (q* rendered in each crop)
