@@ -161,6 +161,33 @@ def setup():
     return model, cams, obs, lik, jnp.asarray(s)
 
 
+def _half_width(limbs, k, T, ends3, cam):
+    """Silhouette half-width (m) of limb k seen from ``cam``, by brute force: the largest
+    extent of its cross-section ellipse (half-widths ``radius`` along ``side``, ``depth``
+    along axis x side) along u, the direction normal to the axis and to the viewing ray
+    (scipy's bounded scalar maximisation over the ellipse's angle)."""
+    from scipy.optimize import minimize_scalar
+
+    R, t = np.asarray(cam.R), np.asarray(cam.t)
+    axis = (ends3[1] - ends3[0]) / np.linalg.norm(ends3[1] - ends3[0])
+    side = T[:3, :3] @ np.asarray(limbs.side[k])
+    front = np.cross(axis, side)
+    ray = R.T @ (R @ (0.5 * (ends3[0] + ends3[1])) + t)  # camera centre -> midpoint, world
+    u = np.cross(axis, ray)
+    u /= np.linalg.norm(u)
+    r, d = float(limbs.radius[k]), float(limbs.depth[k])
+
+    def extent(th):
+        return -((r * np.cos(th)) * (side @ u) + (d * np.sin(th)) * (front @ u))
+
+    best = min(
+        (minimize_scalar(extent, bounds=(lo, lo + np.pi), method="bounded",
+                         options={"xatol": 1e-12}) for lo in (-np.pi, 0.0)),
+        key=lambda res: res.fun,
+    )  # fmt: skip
+    return -best.fun
+
+
 def _reference_loglik(model, cams, obs, lik, tr):
     """Independent NumPy/OpenCV evaluation (cv2.projectPoints, explicit bilinear weights) given
     the links' transforms ``tr`` (body.fk is checked against pytorch-kinematics elsewhere)."""
@@ -183,7 +210,7 @@ def _reference_loglik(model, cams, obs, lik, tr):
             d = (b - a) / np.linalg.norm(b - a)
             n = np.array([-d[1], d[0]])
             f = float(cam.K[0, 0])
-            ra, rb = (f * radii[k] / z for z in depth)
+            ra, rb = (f * _half_width(limbs, k, T, ends3, cam) / z for z in depth)
             lines = [(a + sgn * n * ra, b + sgn * n * rb) for sgn in (1, -1)]
             for p0, p1 in lines:
                 for j in range(m):
@@ -261,3 +288,22 @@ def test_limb_model_errors():
     limbs = cues.limb_model(model)
     assert limbs.names[-1] == "abdomen+thorax"
     np.testing.assert_allclose(np.asarray(limbs.radius), [0.05, 0.04, 0.05, 0.04, 0.16])
+    # the torso's cross-section is elliptic: half-depth (body x) 0.115 m, round limbs equal
+    np.testing.assert_allclose(np.asarray(limbs.depth), [0.05, 0.04, 0.05, 0.04, 0.115])
+
+
+def test_silhouette_radius_of_the_elliptic_torso():
+    """Seen from the front the torso's silhouette half-width is its left-right half-width
+    (radius), seen from the side its front-back one (depth); round limbs keep their radius
+    from any side. Camera on the +x axis looking at the origin, body yawed by psi."""
+    model = default_body()
+    limbs = cues.limb_model(model)
+    cam = camlib.look_at(jnp.array([3.0, 0.0, 1.2]), jnp.array([0.0, 0.0, 1.2]), width=80,
+                         height=60, fx=77.0)  # fmt: skip
+    for psi, want in ((0.0, limbs.radius[-1]), (np.pi / 2, limbs.depth[-1])):
+        q = jnp.zeros(model.n_dof).at[2].set(0.9).at[5].set(psi)
+        tr = fk(model.chain, q)
+        a, b = cues.limb_endpoints(limbs, tr)
+        h = cues.silhouette_radius(cam, limbs, tr, a, b)
+        np.testing.assert_allclose(h[-1], want, rtol=1e-6)
+        np.testing.assert_allclose(h[:4], limbs.radius[:4], rtol=1e-12)

@@ -1,6 +1,11 @@
 """Render the held-out stereo sequences of the Azad experiments (320x240 pair, single-colour
 shirt, plain background) once, cached under /tmp (not committed: regenerate from the config).
 
+The cache holds the frames, the ground-truth poses and keypoints, and the renderer's per-pixel
+patch ids (``patch_ids`` (T, 2, H, W): 0 background / skin, 1.. the shirt's geoms in
+``jaxmocap.synth.sequence.garment_for("single").patch_names`` order) for the oracle ladder of
+``azad_ladder.py``.
+
     python benchmarks/experiments/azad_render.py [n_frames]
 """
 
@@ -15,6 +20,7 @@ from jaxmocap.synth.sequence import render_sequence
 
 CACHE = Path("/tmp/azad_sequences")
 CLIPS = HELDOUT_CLIPS[:2]  # punch (Azad Fig. 5 tracks a punch), dance_b
+KEYS = ("frames", "q", "keypoints", "patch_ids")
 
 
 def config(clip: str, n_frames: int) -> SceneConfig:
@@ -36,11 +42,14 @@ def path(clip: str, n_frames: int) -> Path:
 
 def load(clip: str, n_frames: int) -> dict:
     p = path(clip, n_frames)
-    if not p.exists():
-        CACHE.mkdir(parents=True, exist_ok=True)
-        seq = render_sequence(config(clip, n_frames))
-        gt = seq.groundtruth
-        np.savez(p, frames=seq.frames, q=gt["q"], keypoints=gt["keypoints"])
+    if p.exists():
+        d = dict(np.load(p))
+        if all(k in d for k in KEYS):
+            return d
+    CACHE.mkdir(parents=True, exist_ok=True)
+    seq = render_sequence(config(clip, n_frames))
+    gt = seq.groundtruth
+    np.savez(p, frames=seq.frames, q=gt["q"], keypoints=gt["keypoints"], patch_ids=gt["patch_ids"])
     return dict(np.load(p))
 
 

@@ -67,6 +67,7 @@ __all__ = [
     "region_samples",
     "sample_bilinear",
     "sample_nearest",
+    "silhouette_radius",
 ]
 
 # sigma_g: with the SAD form a particle whose contour sees a mean edge value 0.1 lower than
@@ -89,11 +90,19 @@ DEFAULT_LIMBS = ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm", ("abdom
 
 class LimbModel(eqx.Module):
     """Cylinders of the contour model: axis end points ``p0``, ``p1`` (m) in the frame of link
-    ``link``, radius ``radius`` (m). ``link`` is static (the FK is unrolled over it)."""
+    ``link``, radius ``radius`` (m). ``link`` is static (the FK is unrolled over it).
+
+    A limb may have an elliptic cross-section (the torso): half-width ``radius`` along the
+    link-frame unit axis ``side`` and ``depth`` along ``front = axis x side``; a round limb has
+    ``depth == radius`` (then ``side`` is any unit vector normal to the axis). See
+    :func:`silhouette_radius`.
+    """
 
     p0: Float[Array, "n_limbs 3"]
     p1: Float[Array, "n_limbs 3"]
     radius: Float[Array, " n_limbs"]
+    depth: Float[Array, " n_limbs"]
+    side: Float[Array, "n_limbs 3"]
     link: tuple[int, ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
 
@@ -108,9 +117,11 @@ def limb_model(
     """Contour model from the body geometry.
 
     An entry ``"name"`` is a capsule or cylinder geom: its axis (geom z, +-half length) and
-    radius. An entry ``("a", "b")`` is two ellipsoid geoms of the same link (a torso): the
-    segment between their centres, radius the mean of their half-widths along the link's y
-    axis (the body's left-right axis, the silhouette width seen from the front).
+    radius (round cross-section). An entry ``("a", "b")`` is two ellipsoid geoms of the same
+    link (a torso): the segment between their centres, an elliptic cross-section with
+    half-widths the mean of the two ellipsoids' half-widths along the link's y axis (the body's
+    left-right axis: ``radius``, the silhouette half-width seen from the front) and along its x
+    axis (``depth``: the half-width seen from the side).
     """
     geo = model.geometry
     pose = np.asarray(geo.pose, np.float64)
@@ -123,7 +134,7 @@ def limb_model(
             raise ValueError(f"limb_model: unknown geom {name!r}; the model has {geo.names}")
         return geo.names.index(name)
 
-    p0, p1, rad, link, names = [], [], [], [], []
+    p0, p1, rad, dep, side, link, names = [], [], [], [], [], [], []
     for entry in limbs:
         if isinstance(entry, str):
             g = geom(entry)
@@ -133,6 +144,8 @@ def limb_model(
             p0.append(pose[g, :3, :3] @ [0, 0, -h] + pose[g, :3, 3])
             p1.append(pose[g, :3, :3] @ [0, 0, h] + pose[g, :3, 3])
             rad.append(r)
+            dep.append(r)
+            side.append(pose[g, :3, :3] @ [1.0, 0.0, 0.0])
             link.append(int(glink[g]))
             names.append(entry)
         else:
@@ -141,16 +154,20 @@ def limb_model(
                 raise ValueError(f"limb_model: {entry} must be two ellipsoids of one link")
             p0.append(pose[ga, :3, 3])
             p1.append(pose[gb, :3, 3])
-            width = [
-                np.linalg.norm(pose[g, :3, :3] @ np.diag(size[g]), axis=1)[1] for g in (ga, gb)
-            ]
-            rad.append(float(np.mean(width)))
+            half = [np.linalg.norm(pose[g, :3, :3] @ np.diag(size[g]), axis=1) for g in (ga, gb)]
+            rad.append(float(np.mean([h[1] for h in half])))
+            dep.append(float(np.mean([h[0] for h in half])))
+            axis = p1[-1] - p0[-1]
+            y = np.array([0.0, 1.0, 0.0]) - axis * axis[1] / (axis @ axis)  # link y, normal to axis
+            side.append(y / np.linalg.norm(y))
             link.append(int(glink[ga]))
             names.append("+".join(entry))
     return LimbModel(
         p0=jnp.asarray(np.array(p0)),
         p1=jnp.asarray(np.array(p1)),
         radius=jnp.asarray(np.array(rad)),
+        depth=jnp.asarray(np.array(dep)),
+        side=jnp.asarray(np.array(side)),
         link=tuple(link),
         names=tuple(names),
     )
@@ -166,6 +183,37 @@ def limb_endpoints(
     a = (rot @ limbs.p0.astype(dt)[:, :, None])[..., 0] + trans
     b = (rot @ limbs.p1.astype(dt)[:, :, None])[..., 0] + trans
     return a, b
+
+
+def silhouette_radius(
+    cam: Camera,
+    limbs: LimbModel,
+    transforms: Float[Array, "n_links 4 4"],
+    a: Float[Array, "n_limbs 3"],
+    b: Float[Array, "n_limbs 3"],
+) -> Float[Array, " n_limbs"]:
+    """Half-width (m) of every limb's silhouette seen from ``cam``.
+
+    For an elliptic cross-section with half-widths r (along ``side``) and d (along ``front``),
+    the silhouette lies at +- h along u, the unit vector normal to both the limb axis and the
+    viewing ray to the limb's midpoint, with the support function
+
+        h = sqrt((r u . side)^2 + (d u . front)^2)      (m; h = r for a round limb).
+
+    Computed in the camera frame (the ray is the midpoint's camera coordinates).
+    """
+    dt = a.dtype
+    rot = transforms[np.asarray(limbs.link)][:, :3, :3]
+    R = cam.R.astype(dt)
+    side = (R[None] @ rot @ limbs.side.astype(dt)[:, :, None])[..., 0]
+    axis = _unit(to_camera(cam, b) - to_camera(cam, a))
+    front = jnp.cross(axis, side)
+    ray = to_camera(cam, 0.5 * (a + b))
+    u = _unit(jnp.cross(axis, ray))
+    r, d = limbs.radius.astype(dt), limbs.depth.astype(dt)
+    us, uf = jnp.sum(u * side, -1), jnp.sum(u * front, -1)
+    h = jnp.sqrt(jnp.square(r * us) + jnp.square(d * uf))
+    return jnp.where(d == r, r, h)  # round: exactly r (also when the axis points at the camera)
 
 
 def _unit(v: Array) -> Array:
@@ -373,7 +421,8 @@ class StereoLikelihood(eqx.Module):
             a, b = limb_endpoints(self.limbs, tr)
 
             def per_cam(cam, edges, fg):
-                starts, ends = project_limbs(cam, a, b, self.limbs.radius)
+                radius = silhouette_radius(cam, self.limbs, tr, a, b)
+                starts, ends = project_limbs(cam, a, b, radius)
                 out = jnp.zeros((), s.dtype)
                 if self.use_edges:
                     g = sample_bilinear(

@@ -77,6 +77,10 @@ INIT_YAW = 0.8  # the subject roughly faces the cameras: turn about the vertical
 INIT_TILT = 0.1  # std of the lean about the horizontal axes
 INIT_ROOT_STD = 0.03  # std of the root position around the head-derived one
 INIT_BETAS = tuple(float(b) for b in np.geomspace(0.02, 1.0, 12))  # 12 annealing layers
+# Annealing layers per tracked frame (Deutscher et al. 2000, Azad's ref. [4]): (1.0,) is the
+# plain Condensation step of Azad §II; more layers search the 14-D space better at a cost of one
+# likelihood evaluation of the N particles per layer (see docs/results/stereo_pf.md).
+STEP_BETAS = (1.0,)
 FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in frame 0
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
@@ -93,6 +97,7 @@ class StereoPFParams(eqx.Module):
     prior_lower: Float[Array, " d"]  # uniform prior box of the joints (subset DOFs)
     prior_upper: Float[Array, " d"]
     init_betas: Float[Array, " m"]
+    step_betas: Float[Array, " k"]  # annealing layers per frame; (1.0,) = plain step
     head_rest: Float[Array, " 3"]  # head keypoint in the root frame at default_q
     init_yaw: Float[Array, ""]
     init_tilt: Float[Array, ""]
@@ -130,6 +135,7 @@ def make_params(
     default_q: ArrayLike | None = None,
     segment: SegmentParams | None = None,
     init_betas: Sequence[float] = INIT_BETAS,
+    step_betas: Sequence[float] = STEP_BETAS,
     error_scale: float = ERROR_SCALE,
     damping: float = DAMPING,
     dtype=jnp.float32,
@@ -190,6 +196,7 @@ def make_params(
         prior_lower=jnp.asarray(np.where(np.isfinite(lower), lower, 0.0), dtype),
         prior_upper=jnp.asarray(np.where(np.isfinite(upper), upper, 0.0), dtype),
         init_betas=jnp.asarray(init_betas, dtype),
+        step_betas=jnp.asarray(step_betas, dtype),
         head_rest=head_rest.astype(dtype),
         init_yaw=jnp.asarray(INIT_YAW, dtype),
         init_tilt=jnp.asarray(INIT_TILT, dtype),
@@ -278,9 +285,13 @@ def init(
 def filter_step(
     params: StereoPFParams, state: TrackerState, obs: Observation
 ) -> tuple[TrackerState, StereoEstimate]:
-    """One particle-filter frame on a precomputed observation (one jitted call)."""
+    """One particle-filter frame on a precomputed observation (one jitted call): the
+    Condensation step, or ``len(step_betas)`` annealing layers when there are several."""
     k_step, k_next = jax.random.split(state.key)
-    ps, est = pf.step(params.filter, state.particles, obs, k_step)
+    if params.step_betas.shape[0] == 1:
+        ps, est = pf.step(params.filter, state.particles, obs, k_step)
+    else:
+        ps, est = pf.anneal_step(params.filter, state.particles, obs, k_step, params.step_betas)
     return TrackerState(ps, k_next), _estimate(params, est)
 
 
