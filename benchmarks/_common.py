@@ -18,6 +18,19 @@ import jax
 import numpy as np
 
 RESULTS = Path(__file__).parent / "results"
+QUICK_ENV = "JAXMOCAP_BENCH_QUICK"
+_SIZED = {"called": False}  # set by sized(): the script chose its sizes through the switch
+
+
+def is_quick() -> bool:
+    """Whether ``JAXMOCAP_BENCH_QUICK=1`` asks for the small sizes."""
+    return os.environ.get(QUICK_ENV, "").strip() == "1"
+
+
+def sized(*, full, quick):
+    """``quick`` under ``JAXMOCAP_BENCH_QUICK=1``, else ``full`` (sizes, repetitions)."""
+    _SIZED["called"] = True
+    return quick if is_quick() else full
 
 
 @dataclass
@@ -68,10 +81,11 @@ def machine() -> dict:
 def write_results(name: str, rows: list[Row], summary: list[str] | None = None) -> Path:
     """Write ``results/<name>.json`` and a markdown table ``results/<name>.md``."""
     RESULTS.mkdir(parents=True, exist_ok=True)
-    payload = {"benchmark": name, "machine": machine(), "rows": [asdict(r) for r in rows],
-               "summary": summary or []}
+    size = "quick" if is_quick() and _SIZED["called"] else "full"
+    payload = {"benchmark": name, "machine": machine(), "size": size,
+               "rows": [asdict(r) for r in rows], "summary": summary or []}
     (RESULTS / f"{name}.json").write_text(json.dumps(payload, indent=2) + "\n")
-    lines = [f"# {name}", "", f"Machine: {payload['machine']}", ""]
+    lines = [f"# {name}", "", f"Machine: {payload['machine']}", "", f"Size: {size}", ""]
     lines += [f"- {s}" for s in summary or []]
     lines += ["", "| kernel | implementation | median ms | min ms | n | compile ms | notes |",
               "|---|---|---|---|---|---|---|"]

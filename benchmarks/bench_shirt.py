@@ -1,26 +1,90 @@
-"""Colour-shirt tracker speed (Wang et al. 2011): one two-camera 640x480 frame step, and the
-pose-assisted classification stage against a NumPy/OpenCV implementation of the same maths.
+"""Colour-shirt tracker speed (Wang et al. 2011): one two-camera frame step end to end, and the
+same frame split into the paper's stages, each jitted and timed alone beside the NumPy/OpenCV
+baseline of that stage where ``benchmarks/`` has one (measured in the same run).
 
-Paper anchor: 120 ms per frame (Java, 2.4 GHz Core 2 Quad). Goal (PERF-NOTES): <= 10 ms.
-Set-up: a 2,000-pose database (the paper uses 80,000; the fast search's cost grows with it),
-white-light renders over a grey background, float32.
+Stages of one frame (``jaxmocap.trackers.shirt._step`` rebuilt from the same library calls,
+both cameras per stage; :func:`staged_step` composes them and :func:`stage_rows` checks that
+the composition reproduces ``shirt.step``):
+
+1. histogram search (§4) on each full frame;
+2. crop resampling, white balance and Gaussian classification (§5.2 step 1, with the
+   reference-illumination fallback);
+3. pose-database query (10-NN, tiny 40x40 map) and blend over cameras (step 2);
+4. global placement: root guess + 6-DOF IK on ``r^b``'s patch centroids (step 2);
+5. ``r^b`` rendered in each crop, one EDT per patch, pose-assisted classification and patch
+   centroids (step 3);
+6. full IK with the blend and temporal priors (step 4);
+7. ``r*`` rendered, ``W*`` refitted, reference illuminations updated (step 5).
+
+Baselines: 1 ``bench_color.np_search_cells``; 2 ``cv2.remap`` + ``bench_color.np_gemm_classify``
+(no reference fallback); 3 ``bench_posedb.numpy_packed_knn`` (the 10-NN only); 5
+:func:`numpy_pose_assisted` (without rendering ``r^b``); 6 ``scipy.optimize.least_squares``
+on ``bench_ik``'s NumPy residual. Stages 4 and 7 have none.
+
+Paper anchor: 120 ms per frame (two 640x480 cameras, Java, 2.4 GHz Core 2 Quad). Goal
+(PERF-NOTES): <= 10 ms. Set-up: a ``DB_SIZE``-pose database (the paper uses 80,000; the fast
+search's cost grows with it), white-light renders over a grey background, float32.
+``JAXMOCAP_BENCH_QUICK=1``: 320x240 and a 500-pose database.
 """
 
+from __future__ import annotations
+
+import time
+
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.body import default_body
 from jaxmocap.camera import look_at, stack_cameras
-from jaxmocap.color.pose_assisted import patch_distance_maps, pose_assisted_classify
+from jaxmocap.color import (
+    classify_with_references,
+    histogram_search,
+    maybe_add_reference,
+    white_balance_from_ids,
+)
+from jaxmocap.color.classify import THRESHOLD
+from jaxmocap.color.pose_assisted import (
+    POSE_THRESHOLD,
+    PRIOR_SCALE,
+    patch_centroids,
+    patch_distance_maps,
+    pose_assisted_classify,
+)
 from jaxmocap.garment import default_garment
-from jaxmocap.ik import IKCovariances, anchors_from_garment
+from jaxmocap.ik import IKCovariances, anchors_from_garment, initial_root, solve_global, solve_ik
 from jaxmocap.posedb._sample import SamplingConfig, canonical_camera, sample_poses
-from jaxmocap.posedb._search import make_posedb
-from jaxmocap.render import render_rgb, render_uv, tiny_id_maps
+from jaxmocap.posedb._search import estimate_pose, make_posedb
+from jaxmocap.render import (
+    TINY_SIZE,
+    render_rgb,
+    render_uv,
+    resample_ids,
+    tiny_hits,
+    tiny_id_maps,
+    window_from_mask,
+)
 from jaxmocap.trackers import shirt
+
+PAPER_MS = 120.0  # Wang et al. §7: 120 ms per frame, two 640x480 cameras
+GOAL_MS = 10.0  # docs/PERF-NOTES.md
+DB_SIZE = 2000
+SIGMA_C, SIGMA_B, SIGMA_P = 2.0, 0.3, 0.5  # isotropic IK covariances (px, rad, rad), the demo's
+STAGES = (
+    "1 histogram search",
+    "2 crop + white balance + classification",
+    "3 DB query (10-NN) + blend",
+    "4 global placement (6-DOF IK)",
+    "5 r^b + EDT + pose-assisted classification",
+    "6 full IK",
+    "7 W* re-fit + references",
+)
+
+
+# ----------------------------------------------------------------------------- NumPy baselines
 
 
 def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
@@ -49,111 +113,414 @@ def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
     return np.where(cost.min(-1) < T, best + 1, 0).reshape(prior.shape)
 
 
-def main():
+# ----------------------------------------------------------------------------- set-up
+
+
+def _cameras(width: int, height: int):
+    fx = 554.0 * width / 640
+    return [
+        look_at([2.75, y, 1.3], [0.0, 0.0, 1.15], width=width, height=height, fx=fx)
+        for y in (-0.75, 0.75)
+    ]
+
+
+def _assemble(model, garment, color, db, frames, W0, q_true, width, height) -> dict:
+    params = shirt.make_params(
+        color,
+        model,
+        garment,
+        stack_cameras(_cameras(width, height)),
+        anchors_from_garment(model, garment),
+        IKCovariances.isotropic(SIGMA_C, SIGMA_B, SIGMA_P, model.n_dof),
+        db,
+    )
+    state = shirt.init(params, jnp.asarray(W0), jnp.zeros(model.n_dof, jnp.float32))
+    return {"params": params, "state": state, "frames": jnp.asarray(frames),
+            "q_true": jnp.asarray(q_true)}  # fmt: skip
+
+
+def save_setup(path, s: dict) -> None:
+    """Store a :func:`setup` (database maps and poses, colour model, frames, ``W0``) as .npz."""
+    p = s["params"]
+    maps = np.asarray(tiny_id_maps(p.body, p.garment, p.db.poses, p.canon))
+    np.savez_compressed(
+        path, maps=maps, poses=np.asarray(p.db.poses), mean=np.asarray(p.color.mean),
+        cov=np.asarray(p.color.cov), frames=np.asarray(s["frames"]), W0=np.asarray(s["state"].W),
+        q_true=np.asarray(s["q_true"]),
+    )  # fmt: skip
+
+
+def load_setup(path) -> dict:
+    """A :func:`setup` stored by :func:`save_setup` (no rendering, no fitting)."""
+    from jaxmocap.color import ColorModel
+
+    d = np.load(path)
     model = default_body()
     garment = default_garment(model)
-    rng = np.random.default_rng(0)
+    db = make_posedb(d["maps"], d["poses"], garment.n_colours)
+    color = ColorModel(jnp.asarray(d["mean"]), jnp.asarray(d["cov"]), garment.colour_names)
+    h, w = d["frames"].shape[1:3]
+    return _assemble(model, garment, color, db, d["frames"], d["W0"], d["q_true"], w, h)
+
+
+def setup(width: int = 640, height: int = 480, db_size: int = DB_SIZE, seed: int = 0) -> dict:
+    """A two-camera scene: database of ``db_size`` random poses, colour model from white-light
+    renders, one rendered frame pair (pose 7 of the database, over grey), ``W0`` from its
+    scribbles; returns ``params``, ``state``, ``frames`` (2, height, width, 3) and ``q_true``."""
+    model = default_body()
+    garment = default_garment(model)
+    rng = np.random.default_rng(seed)
     lo, hi = np.asarray(model.chain.lower)[6:], np.asarray(model.chain.upper)[6:]
     pool = np.zeros((300, model.n_dof), np.float32)
     pool[:, 6:] = np.clip(rng.uniform(-0.6, 0.6, (300, model.n_dof - 6)), lo, hi)
-    poses = sample_poses(SamplingConfig(size=2000, yaw_range=0.5), model, pool)
+    poses = sample_poses(SamplingConfig(size=db_size, yaw_range=0.5), model, pool)
     db = make_posedb(
         np.asarray(tiny_id_maps(model, garment, jnp.asarray(poses), canonical_camera())),
         poses,
         garment.n_colours,
     )
-    cams_l = [
-        look_at([2.75, y, 1.3], [0.0, 0.0, 1.15], width=640, height=480, fx=554.0)
-        for y in (-0.75, 0.75)
-    ]
-    cams = stack_cameras(cams_l)
+    cams_l = _cameras(width, height)
     root = np.zeros(model.n_dof, np.float32)
     root[2] = 0.85
     color = shirt.fit_color_model_from_renders(model, garment, poses[:5] + root, cams_l[0])
-    bg = jnp.full((480, 640, 3), 128, jnp.uint8)
+    bg = jnp.full((height, width, 3), 128, jnp.uint8)
     q = jnp.asarray(poses[7] + root)
     outs = [render_rgb(model, garment, q, c, bg) for c in cams_l]
     frames = jnp.stack([o[0] for o in outs])
     labels = np.stack([shirt.scribbles(np.asarray(o[1].colour)) for o in outs])
     W0 = shirt.initial_white_balance(color, np.asarray(frames), labels)
-    params = shirt.make_params(
-        color,
-        model,
-        garment,
-        cams,
-        anchors_from_garment(model, garment),
-        IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof),
-        db,
+    return _assemble(model, garment, color, db, frames, W0, q, width, height)
+
+
+# ----------------------------------------------------------------------------- the stages
+
+
+def _cam(params, i):
+    return jax.tree.map(lambda a: a[i], params.cams)
+
+
+def _stack(xs):
+    return jax.tree.map(lambda *a: jnp.stack(a), *xs)
+
+
+@eqx.filter_jit
+def stage_search(params, frames):
+    """1: ``(x', y', s')`` per camera -> crop windows (n_cams, 4), ``s'`` and ``found``."""
+    dt = params.cams.K.dtype
+    wins, s, found = [], [], []
+    for i in range(params.n_cams):
+        r = histogram_search(frames[i], None, scales=params.scales)
+        wins.append(
+            shirt.crop_window(r.x.astype(dt), r.y.astype(dt), r.s.astype(dt), params.crop_factor)
+        )
+        s.append(r.s.astype(dt)), found.append(r.found)
+    return jnp.stack(wins), jnp.stack(s), jnp.stack(found)
+
+
+@eqx.filter_jit
+def stage_classify(params, state, frames, windows):
+    """2: crops (n_cams, n, n, 3) and the step-1 classification (batched over cameras)."""
+    crops, cls = [], []
+    min_fraction = {} if params.adaptive_white_balance else {"min_fraction": 0.0}
+    for i in range(params.n_cams):
+        crop = shirt.sample_bilinear(frames[i], shirt.crop_uv(windows[i], params.work_size))
+        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
+        cls.append(
+            classify_with_references(
+                params.color, refs_i, state.W[i], crop, None, THRESHOLD, **min_fraction
+            )
+        )
+        crops.append(crop)
+    return jnp.stack(crops), _stack(cls)
+
+
+@eqx.filter_jit
+def stage_database(params, ids, windows, found):
+    """3: per camera the 10-NN blend ``q_db``, its tiny patch map and canonical window, the
+    query window in the image; joint angles averaged over the cameras that found the shirt."""
+    dt = params.cams.K.dtype
+    q_dbs, win_qs, tiny_patch, win_dbs, okq = [], [], [], [], []
+    for i in range(params.n_cams):
+        win_c = window_from_mask(ids[i] > 0)
+        q_db = estimate_pose(params.db, resample_ids(ids[i], win_c, TINY_SIZE))[0].astype(dt)
+        hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
+        q_dbs.append(q_db), tiny_patch.append(hits.patch), win_dbs.append(win_db)
+        win_qs.append(shirt._crop_to_image(win_c, windows[i], params.work_size))
+        okq.append(found[i] & (jnp.sum(ids[i] > 0) > 0))
+    okq = jnp.stack(okq)
+    q_dbs = jnp.stack(q_dbs)
+    wq = okq.astype(dt) / jnp.maximum(jnp.sum(okq), 1)
+    q_b = jnp.concatenate([jnp.zeros(6, dt), jnp.sum(wq[:, None] * q_dbs[:, 6:], axis=0)])
+    return q_dbs, jnp.stack(win_qs), jnp.stack(tiny_patch), jnp.stack(win_dbs), okq, q_b
+
+
+@eqx.filter_jit
+def stage_global(params, q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b):
+    """4: ``r^b``'s patch centroids moved into the query windows, root guess, 6-DOF IK."""
+    dt = q_b.dtype
+    P = params.garment.n_patches
+    cons = [
+        patch_centroids(tiny_patch[i], P, win_qs[i], min_pixels=2, dtype=dt)
+        for i in range(params.n_cams)
+    ]
+    c_xy = jnp.stack([c.xy for c in cons])
+    c_vis = jnp.stack([c.valid for c in cons]) & okq[:, None]
+    guesses = jnp.stack(
+        [
+            shirt._root_guess(params, q_dbs[i], win_dbs[i], win_qs[i], i)
+            for i in range(params.n_cams)
+        ]
     )
-    state = shirt.init(params, W0, jnp.zeros(model.n_dof, jnp.float32))
+    root0, _ = initial_root(
+        params.cams, params.body.chain, params.anchors, c_xy, c_vis, q_b, guesses[jnp.argmax(okq)]
+    )
+    return solve_global(
+        params.body.chain, params.cams, params.anchors, c_xy, c_vis, q_b, root0, params.cov.centroid
+    ).q
+
+
+@eqx.filter_jit
+def stage_pose_assisted(params, crops, windows, s_found, W, okq, q_g):
+    """5: measured patch centroids (n_cams, P, 2), their validity and the frame's validity."""
+    n, P, dt = params.work_size, params.garment.n_patches, q_g.dtype
+    xy, vis = [], []
+    for i in range(params.n_cams):
+        uv = shirt.crop_uv(windows[i], n)
+        rb = render_uv(params.body, params.garment, q_g, _cam(params, i), uv).patch
+        dist = patch_distance_maps(rb, P, dt)
+        if params.pose_prior:
+            weight, T = PRIOR_SCALE / s_found[i] * (windows[i][2] / n), POSE_THRESHOLD
+        else:
+            weight, T = shirt.TIE_BREAK_WEIGHT, THRESHOLD
+        pa = pose_assisted_classify(
+            params.color, W[i], crops[i], dist, params.garment.patch_colour, weight, None, T
+        )
+        c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
+        xy.append(c.xy), vis.append(c.valid & okq[i])
+    c_obs, v_obs = jnp.stack(xy), jnp.stack(vis)
+    valid = jnp.any(okq) & (jnp.sum(v_obs) >= shirt.MIN_VALID_PATCHES)
+    return c_obs, v_obs, valid
+
+
+@eqx.filter_jit
+def stage_ik(params, state, c_obs, v_obs, valid, q_g):
+    """6: ``q*`` (the previous pose when the frame is not valid)."""
+    q_h = jnp.where(state.valid, state.q, q_g)
+    sol = solve_ik(
+        params.body.chain, params.cams, params.anchors, c_obs, v_obs, q_g, q_h, params.cov, q_g
+    )
+    return jnp.where(valid, sol.q, state.q)
+
+
+@eqx.filter_jit
+def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
+    """7: ``W*`` per camera from ``r*`` and the updated reference illuminations."""
+    W_new, refs_new = [], []
+    for i in range(params.n_cams):
+        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
+        uv = shirt.crop_uv(windows[i], params.work_size)
+        r_star = shirt._erode(
+            render_uv(params.body, params.garment, q_star, _cam(params, i), uv).colour
+        )
+        W_star = white_balance_from_ids(
+            params.color, crops[i], r_star, W_cls[i], None, min_pixels=shirt.REFERENCE_PIXELS
+        )
+        ok = valid & okq[i] & jnp.all(jnp.isfinite(W_star))
+        W_star = jnp.where(ok, W_star, W_cls[i])
+        refs_i2, _ = maybe_add_reference(refs_i, W_star)
+        refs_new.append(jax.tree.map(lambda a, b, ok=ok: jnp.where(ok, a, b), refs_i2, refs_i))
+        W_new.append(W_star)
+    return jnp.stack(W_new), _stack(refs_new)
+
+
+def staged_step(params, state, frames) -> dict:
+    """The seven stages in order (each its own jitted call); every intermediate, by name."""
+    r = {}
+    r["windows"], r["s_found"], r["found"] = stage_search(params, frames)
+    r["crops"], r["cls"] = stage_classify(params, state, frames, r["windows"])
+    db = stage_database(params, r["cls"].ids, r["windows"], r["found"])
+    r["q_dbs"], r["win_qs"], r["tiny_patch"], r["win_dbs"], r["okq"], r["q_b"] = db
+    r["q_g"] = stage_global(params, *db)
+    r["c_obs"], r["v_obs"], r["valid"] = stage_pose_assisted(
+        params, r["crops"], r["windows"], r["s_found"], r["cls"].W, r["okq"], r["q_g"]
+    )
+    r["q_star"] = stage_ik(params, state, r["c_obs"], r["v_obs"], r["valid"], r["q_g"])
+    r["W_new"], r["refs"] = stage_refit(
+        params, state, r["crops"], r["windows"], r["cls"].W, r["okq"], r["valid"], r["q_star"]
+    )
+    return r
+
+
+def _stage_calls(params, state, frames, r) -> list:
+    """One zero-argument call per stage, on the intermediates ``r`` of :func:`staged_step`."""
+    db = (r["q_dbs"], r["win_qs"], r["tiny_patch"], r["win_dbs"], r["okq"], r["q_b"])
+    return [
+        lambda: stage_search(params, frames),
+        lambda: stage_classify(params, state, frames, r["windows"]),
+        lambda: stage_database(params, r["cls"].ids, r["windows"], r["found"]),
+        lambda: stage_global(params, *db),
+        lambda: stage_pose_assisted(
+            params, r["crops"], r["windows"], r["s_found"], r["cls"].W, r["okq"], r["q_g"]
+        ),
+        lambda: stage_ik(params, state, r["c_obs"], r["v_obs"], r["valid"], r["q_g"]),
+        lambda: stage_refit(
+            params, state, r["crops"], r["windows"], r["cls"].W, r["okq"], r["valid"], r["q_star"]
+        ),
+    ]
+
+
+def _baseline_calls(params, state, frames, r) -> dict:
+    """NumPy/OpenCV/SciPy baselines of stages 1, 2, 3, 5, 6 on the same inputs (both cameras)."""
+    from benchmarks import bench_color, bench_posedb
+
+    x64 = jax.config.jax_enable_x64
+    from benchmarks import bench_ik  # sets jax_enable_x64 at import: restored below
+
+    jax.config.update("jax_enable_x64", x64)
+    n_cams, n = params.n_cams, params.work_size
+    imgs = [np.asarray(frames[i]) for i in range(n_cams)]
+    mean = np.asarray(params.color.mean, np.float64)
+    cov = np.asarray(params.color.cov, np.float64)
+    wins = np.asarray(r["windows"], np.float64)
+    maps = []
+    for w in wins:
+        f = (np.arange(n) + 0.5) / n
+        mx, my = np.meshgrid(w[0] + f * w[2], w[1] + f * w[3])
+        maps.append((mx.astype(np.float32), my.astype(np.float32)))
+    W_cls = np.asarray(r["cls"].W, np.float64)
+    W_state = np.asarray(state.W, np.float64)
+
+    def classify_np():
+        out = []
+        for i in range(n_cams):
+            crop = cv2.remap(imgs[i], *maps[i], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            out.append(bench_color.np_gemm_classify(crop, W_state[i], mean, cov))
+        return out
+
+    db = params.db
+    codes_rows = np.asarray(db.codes).transpose(0, 2, 1).reshape(-1, db.codes.shape[1])
+    codes_rows = np.ascontiguousarray(codes_rows[: db.size])
+    ids = np.asarray(r["cls"].ids)
+    qcodes = []
+    from jaxmocap.posedb import pack_map
+
+    for i in range(n_cams):
+        win_c = window_from_mask(jnp.asarray(ids[i] > 0))
+        qcodes.append(np.asarray(pack_map(resample_ids(jnp.asarray(ids[i]), win_c, TINY_SIZE))))
+
+    crops = np.asarray(r["crops"], np.float64)
+    priors = [
+        np.asarray(
+            render_uv(params.body, params.garment, r["q_g"], _cam(params, i),
+                      shirt.crop_uv(r["windows"][i], n)).patch
+        )
+        for i in range(n_cams)
+    ]  # fmt: skip
+    Cs = [PRIOR_SCALE / float(r["s_found"][i]) * (wins[i][2] / n) for i in range(n_cams)]
+    pc = np.asarray(params.garment.patch_colour)
+
+    cov_ik = params.cov
+    vc = float(np.asarray(cov_ik.centroid)[0, 0])
+    diag = lambda a: np.diag(a) if a.ndim == 2 else a  # noqa: E731 - full or diagonal
+    vb = diag(np.asarray(cov_ik.blend, np.float64))
+    vp = diag(np.asarray(cov_ik.prior, np.float64))
+    q_g = np.asarray(r["q_g"], np.float64)
+    q_h = np.asarray(state.q, np.float64) if bool(state.valid) else q_g
+    residual, z0, to_q = bench_ik.make_np_residual(
+        params.body.chain, params.cams, params.anchors, np.asarray(r["c_obs"], np.float64),
+        np.asarray(r["v_obs"]), q_g, q_h, vc, vb, vp,
+    )  # fmt: skip
+    from scipy.optimize import least_squares
+
+    return {
+        0: ("NumPy cells (bench_color)",
+            lambda: [bench_color.np_search_cells(im, params.scales) for im in imgs]),
+        1: ("cv2.remap + NumPy GEMM (bench_color)", classify_np),
+        2: ("NumPy packed 10-NN (bench_posedb)",
+            lambda: [bench_posedb.numpy_packed_knn(codes_rows, qc) for qc in qcodes]),
+        4: ("NumPy + cv2.distanceTransform",
+            lambda: [numpy_pose_assisted(mean, cov, W_cls[i], crops[i], priors[i], pc, Cs[i],
+                                         POSE_THRESHOLD) for i in range(n_cams)]),
+        5: ("scipy least_squares (lm, NumPy, FD jac; bench_ik)",
+            lambda: to_q(least_squares(residual, z0, method="lm", xtol=1e-10, ftol=1e-10).x)),
+    }  # fmt: skip
+
+
+def stage_rows(
+    params, state, frames, reps: int = 10, baselines: bool = True
+) -> tuple[list[Row], dict]:
+    """Time every stage (cold = first call incl. compile, warm = median/min of ``reps``), the
+    end-to-end ``shirt.step`` and the stage baselines; check the staged pipeline against
+    ``shirt.step``. Returns rows and a dict of checks (max |dq| etc.)."""
+    size = f"2 cameras {frames.shape[2]}x{frames.shape[1]}"
     rows = []
+    t0 = time.perf_counter()
+    r = staged_step(params, state, frames)  # compiles every stage once
+    jax.block_until_ready(r)
+    staged_compile_s = time.perf_counter() - t0
+    calls = _stage_calls(params, state, frames, r)
+    base = _baseline_calls(params, state, frames, r) if baselines else {}
+    for k, (name, call) in enumerate(zip(STAGES, calls, strict=True)):
+        med, mn = time_call(call, n=reps, warmup=1)
+        rows.append(Row(f"stage {name}, {size}", "jaxmocap jit", med, mn, reps, None,
+                        "cold: see staged pipeline row"))  # fmt: skip
+        if k in base:
+            label, fn = base[k]
+            bm, bn = time_call(fn, n=max(3, reps // 2), warmup=1)
+            rows.append(Row(f"stage {name}, {size}", label, bm, bn, max(3, reps // 2)))
     comp = time_compile(lambda: shirt.step(params, state, frames))
-    med, mn = time_call(lambda: shirt.step(params, state, frames), n=10, warmup=1)
-    rows.append(
-        Row(
-            "frame step, 2 cameras 640x480",
-            "jaxmocap jit (all five steps)",
-            med,
-            mn,
-            10,
-            comp,
-            "paper: 120 ms; goal 10 ms",
-        )
-    )
-    # stage: pose-assisted classification on the 128x128 working crop
-    n = params.work_size
-    win = jnp.asarray([220.0, 140.0, 220.0, 220.0])
-    uv = shirt.crop_uv(win, n)
-    crop = shirt.sample_bilinear(frames[0], uv)
-    prior = render_uv(model, garment, q, cams_l[0], uv).patch
-    C = 6.0 / 85.0 * (220.0 / n)
+    med, mn = time_call(lambda: shirt.step(params, state, frames), n=reps, warmup=1)
+    rows.append(Row(f"frame step, {size}", "jaxmocap jit (shirt.step, all stages)", med, mn,
+                    reps, comp, f"paper: {PAPER_MS:.0f} ms; goal {GOAL_MS:.0f} ms"))  # fmt: skip
+    sm, sn = time_call(lambda: staged_step(params, state, frames), n=reps, warmup=1)
+    rows.append(Row(f"frame step, {size}", "jaxmocap, 7 separately jitted stages", sm, sn,
+                    reps, staged_compile_s * 1e3, "sum of the stages + dispatch"))  # fmt: skip
+    new_state, out = shirt.step(params, state, frames)
+    checks = {
+        "max_abs_dq_star": float(jnp.max(jnp.abs(out.q - r["q_star"]))),
+        "max_abs_dq_blend": float(jnp.max(jnp.abs(out.q_blend - r["q_g"]))),
+        "max_abs_dW": float(jnp.max(jnp.abs(new_state.W - r["W_new"]))),
+        "same_valid": bool(out.valid == r["valid"]),
+        "same_visible": bool(jnp.all(out.visible == r["v_obs"])),
+    }
+    return rows, checks
 
-    @jax.jit
-    def stage(crop, prior):
-        d = patch_distance_maps(prior, garment.n_patches, crop.dtype)
-        return pose_assisted_classify(color, W0[0], crop, d, garment.patch_colour, C).patch
 
-    comp = time_compile(lambda: stage(crop, prior))
-    med_j, mn_j = time_call(lambda: stage(crop, prior), n=30)
-    args = (
-        np.asarray(color.mean, np.float64),
-        np.asarray(color.cov, np.float64),
-        np.asarray(W0[0], np.float64),
-        np.asarray(crop, np.float64),
-        np.asarray(prior),
-        np.asarray(garment.patch_colour),
-        C,
-        5.0,
-    )
-    med_n, mn_n = time_call(lambda: numpy_pose_assisted(*args), n=30)
-    agree = float(np.mean(numpy_pose_assisted(*args) == np.asarray(stage(crop, prior))))
-    rows.append(
-        Row(
-            "pose-assisted classification 128x128, 20 patches",
-            "jaxmocap jit",
-            med_j,
-            mn_j,
-            30,
-            comp,
-            f"agreement with NumPy {agree:.4f}",
-        )
-    )
-    rows.append(
-        Row(
-            "pose-assisted classification 128x128, 20 patches",
-            "NumPy + cv2.distanceTransform",
-            med_n,
-            mn_n,
-            30,
-        )
+def main():
+    width, height = sized(full=(640, 480), quick=(320, 240))
+    db_size = sized(full=DB_SIZE, quick=500)
+    reps = sized(full=10, quick=3)
+    s = setup(width, height, db_size)
+    params, state, frames = s["params"], s["state"], s["frames"]
+    rows, checks = stage_rows(params, state, frames, reps)
+    summary_rows = {(r.kernel, r.implementation): r for r in rows}
+    step = [r for r in rows if r.implementation.startswith("jaxmocap jit (shirt.step")][0]
+    stage_sum = sum(
+        r.median_ms
+        for r in rows
+        if r.kernel.startswith("stage") and r.implementation == "jaxmocap jit"
     )
     summary = [
-        f"frame step (two 640x480 cameras): {med:.1f} ms (paper 120 ms, goal 10 ms)",
-        f"pose-assisted classification: {med_j:.2f} ms jaxmocap vs {med_n:.2f} ms NumPy/OpenCV "
-        f"({med_n / med_j:.1f}x)",
-        "No NumPy/OpenCV implementation of the whole frame step yet (only this stage).",
-        "Measured on a shared 2-core machine under heavy contention from other jobs.",
+        f"frame step (two {width}x{height} cameras, DB {db_size} poses): {step.median_ms:.1f} ms "
+        f"median, {step.min_ms:.1f} ms min (paper {PAPER_MS:.0f} ms, goal {GOAL_MS:.0f} ms); "
+        f"sum of the 7 stage medians {stage_sum:.1f} ms",
+        f"staged pipeline vs shirt.step: max |dq*| {checks['max_abs_dq_star']:.2e}, "
+        f"max |dq_b| {checks['max_abs_dq_blend']:.2e}, max |dW| {checks['max_abs_dW']:.2e}, "
+        f"same validity {checks['same_valid']}, same visible patches {checks['same_visible']}",
     ]
+    for name in STAGES:
+        ours = [r for (kern, impl), r in summary_rows.items()
+                if kern.startswith(f"stage {name},") and impl == "jaxmocap jit"][0]  # fmt: skip
+        bases = [r for (kern, impl), r in summary_rows.items()
+                 if kern.startswith(f"stage {name},") and impl != "jaxmocap jit"]  # fmt: skip
+        line = f"stage {name}: {ours.median_ms:.2f} ms"
+        if bases:
+            line += (
+                f" vs {bases[0].median_ms:.2f} ms {bases[0].implementation} "
+                f"({bases[0].median_ms / ours.median_ms:.1f}x)"
+            )
+        summary.append(line)
+    summary.append("Measured on a shared 2-core machine under contention from other jobs.")
     print(write_results("bench_shirt", rows, summary).read_text())
 
 
