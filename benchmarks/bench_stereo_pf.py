@@ -55,7 +55,7 @@ def numpy_fk_project_edge(chain_np, limbs_np, cams_np, q, edges):
         else:
             rots.append(rots[p] @ local)
             trans.append(np.einsum("nij,j->ni", rots[p], o_t[i]) + trans[p])
-    link, p0, p1, rad = limbs_np
+    link, p0, p1, rad, dep, side = limbs_np
     r = np.stack([rots[i] for i in link], 1)
     t = np.stack([trans[i] for i in link], 1)
     a = np.einsum("nlij,lj->nli", r, p0) + t
@@ -69,7 +69,16 @@ def numpy_fk_project_edge(chain_np, limbs_np, cams_np, q, edges):
         d = pb - pa
         d /= np.linalg.norm(d, axis=-1, keepdims=True) + 1e-12
         nrm = np.stack([-d[..., 1], d[..., 0]], -1)
-        ra, rb = f * rad / xa[..., 2], f * rad / xb[..., 2]
+        # silhouette half-width of the (elliptic) cross-section seen along the midpoint ray
+        ax = xb - xa
+        ax /= np.linalg.norm(ax, axis=-1, keepdims=True)
+        sd = np.einsum("nlij,lj->nli", r, side) @ R.T
+        fr = np.cross(ax, sd)
+        u = np.cross(ax, 0.5 * (xa + xb))
+        u /= np.linalg.norm(u, axis=-1, keepdims=True)
+        h = np.sqrt((rad * np.sum(u * sd, -1)) ** 2 + (dep * np.sum(u * fr, -1)) ** 2)
+        h = np.where(dep == rad, rad, h)
+        ra, rb = f * h / xa[..., 2], f * h / xb[..., 2]
         tt = (np.arange(12) + 0.5) / 12
         pts = []
         for s in (1, -1):
@@ -112,8 +121,13 @@ def main():
 
     def fk_proj(x):
         def one(s):
-            a, b = cues.limb_endpoints(limbs, fk(lik.model.chain, lik.full_q(s)))
-            return jax.vmap(lambda c: cues.project_limbs(c, a, b, limbs.radius))(lik.cams)
+            tr = fk(lik.model.chain, lik.full_q(s))
+            a, b = cues.limb_endpoints(limbs, tr)
+
+            def cam(c):
+                return cues.project_limbs(c, a, b, cues.silhouette_radius(c, limbs, tr, a, b))
+
+            return jax.vmap(cam)(lik.cams)
 
         return jax.vmap(one)(x)
 
@@ -138,7 +152,8 @@ def main():
         [t[2] for t in ch.topology],
     )
     limbs_np = (list(limbs.link), np.asarray(limbs.p0), np.asarray(limbs.p1),
-                np.asarray(limbs.radius))  # fmt: skip
+                np.asarray(limbs.radius), np.asarray(limbs.depth),
+                np.asarray(limbs.side))  # fmt: skip
     cams_np = [(np.asarray(c.K, np.float64), np.asarray(c.R, np.float64),
                 np.asarray(c.t, np.float64)) for c in cams]  # fmt: skip
     qn = np.asarray(jax.vmap(lik.full_q)(parts), np.float64)

@@ -75,7 +75,10 @@ VELOCITY_SMOOTHING = 0.6  # weight of the newest difference in the velocity esti
 # a fraction of a millimetre of the reprojection-error minimiser, and compiles in half the time
 REFINE_TRIANGULATION = False
 MAX_AREA_CHANGE = 0.3  # a matched blob pair shrinking/growing more than this per frame is
-# treated as (partly) occluded: its centroid is biased, the entity is predicted instead
+# treated as (partly) occluded: its centroid is biased, the entity is predicted instead ...
+AREA_PATIENCE = 2  # ... unless the new size persists: after this many consecutive rejected
+# frames the blob is accepted at its new size (a hand turning or nearing the cameras; without
+# it a dance_b hand was coasted for 8 frames while seen, 85 cm off at the end)
 COAST_DAMPING = 1.0  # velocity factor per coasting frame: a hand hidden mid-swing stops near
 # where it vanished instead of flying on (undamped, 8 coasting frames of a 25 Hz punch carried
 # the hand 1-1.7 m away on our held-out clips; the distance cue then pulls the arm off)
@@ -99,11 +102,12 @@ class BlobParams:
     velocity_smoothing: float = VELOCITY_SMOOTHING
     max_area_change: float = MAX_AREA_CHANGE
     coast_damping: float = COAST_DAMPING
+    area_patience: int = AREA_PATIENCE
     subject_faces_cameras: bool = True
     refine_triangulation: bool = REFINE_TRIANGULATION
 
     def __post_init__(self):
-        for name in ("min_area", "max_blobs", "max_coast"):
+        for name in ("min_area", "max_blobs", "max_coast", "area_patience"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < (1 if name == "max_blobs" else 0):
                 raise ValueError(f"BlobParams.{name}: expected a non-negative int, got {v!r}")
@@ -175,6 +179,9 @@ class BlobState:
     candidates: Float[np.ndarray, "k 3"] = dataclasses.field(
         default_factory=lambda: np.zeros((0, 3))
     )  # this frame's stereo-matched, triangulated blobs (for inspection)
+    area_rejected: Int[np.ndarray, " 3"] = dataclasses.field(
+        default_factory=lambda: np.zeros(3, np.int64)
+    )  # consecutive frames whose candidate failed the area test
 
     @property
     def valid(self) -> Bool[np.ndarray, " 3"]:
@@ -339,11 +346,16 @@ def update(
     last_seen, status = state.last_seen.copy(), state.status.copy()
     coast, n_meas, area = state.coast + 1, state.n_measured.copy(), state.area.copy()
     lo = 1 - p.max_area_change
+    rejected = np.zeros(3, np.int64)
     for ent in range(3):
         if ent in assigned and status[ent] != MISSING:
             ratio = cand_area[assigned[ent]] / state.area[ent]
             if not lo <= ratio <= 1 / lo:  # partly occluded: the centroid is biased
-                del assigned[ent]  # (the candidate stays claimed)
+                rejected[ent] = state.area_rejected[ent] + 1
+                if rejected[ent] <= p.area_patience:
+                    del assigned[ent]  # (the candidate stays claimed)
+                else:  # the new size has persisted: accept it
+                    rejected[ent] = 0
     for ent in range(3):
         if ent in assigned:
             x = cand[assigned[ent]]
@@ -363,7 +375,8 @@ def update(
             if status[ent] == MISSING:
                 velocity[ent] = 0.0
     new = BlobState(
-        p, position, velocity, last_seen, status, coast, n_meas, area, state.frame + 1, cand
+        p, position, velocity, last_seen, status, coast, n_meas, area, state.frame + 1, cand,
+        rejected,
     )
     return new, new.points3d, new.valid
 

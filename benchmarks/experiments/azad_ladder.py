@@ -195,7 +195,8 @@ def ladder(
             if rung.startswith("gt_init"):
                 state = gt_state(params, s_gt[0], key)
             else:
-                state, _ = sp.init(params, key, jax.tree.map(lambda a: a[0], obs))
+                first = jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs)
+                state, _ = sp.init(params, key, first)
             _, est = sp.run(params, state, obs)
             err = joint_errors(model, np.asarray(est.q), d["keypoints"])
             per_frame.append(100 * err.mean(1))

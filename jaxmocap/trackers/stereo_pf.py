@@ -48,6 +48,7 @@ from jaxmocap.segment import SegmentParams, segment_cv
 __all__ = [
     "N_PARTICLES",
     "SYNTH_SKIN_HSV",
+    "anchor_frame",
     "StereoEstimate",
     "StereoPFParams",
     "TrackerState",
@@ -364,6 +365,18 @@ def step(
     return filter_step(params, state, obs)
 
 
+def anchor_frame(observations: Observation) -> int:
+    """The frame to initialise on: the first whose head is triangulated, else the first with
+    any hand / head point, else 0. The blob tracker acquires its entities only once it sees
+    three candidates (:mod:`jaxmocap.blobs`), which can take a few frames; initialising on a
+    frame without any point would leave the root prior unanchored."""
+    valid = np.asarray(observations.valid)
+    for col in (valid[:, 0], valid.any(axis=1)):
+        if col.any():
+            return int(np.argmax(col))
+    return 0
+
+
 def track(
     params: StereoPFParams,
     key: PRNGKeyArray,
@@ -371,8 +384,10 @@ def track(
     blob_params: bloblib.BlobParams | None = None,
 ) -> StereoEstimate:
     """Track a whole stereo sequence: observations on the host, automatic initialisation on
-    frame 0, then the filter over frames 0..T-1 in one ``lax.scan``. Estimates (T, ...)."""
+    the :func:`anchor_frame` (a few frames at most), then the filter over frames 0..T-1 in one
+    ``lax.scan``. Estimates (T, ...)."""
     obs = observe_sequence(params, frames, blob_params)
-    state, _ = init(params, key, jax.tree.map(lambda a: a[0], obs))
+    t0 = anchor_frame(obs)
+    state, _ = init(params, key, jax.tree.map(lambda a: a[t0], obs))
     _, est = run(params, state, obs)
     return est
