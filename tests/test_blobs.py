@@ -204,3 +204,50 @@ def test_partly_occluded_blob_is_predicted_not_measured(rng):
         expected = B.PREDICTED if k == 2 else B.MEASURED
         assert state.status[2] == expected and np.all(state.status[:2] == B.MEASURED)
         assert_close(cams, pts, centres)
+
+
+def test_blob_cut_by_the_image_border_is_not_matched(rng):
+    """The right hand moves out of the image (its disc cut by the border in one view, then
+    in both): a cut blob's centroid is biased, so it is not triangulated; the hand is carried
+    by its motion model, never measured off its true position."""
+    cams = stereo_cams()
+    head, left = [0.0, 0.0, 1.6], [0.15, 0.3, 1.1]
+    # image x runs along world -y: the right hand (subject's right = -y) leaves on the left
+    ys = [-0.70, -0.76, -0.82, -0.88, -0.94, -1.05, -1.08, -1.11]  # 3-11 cm per frame
+    traj = [np.array([head, left, [0.1, y, 1.2]]) for y in ys]
+    out = run(cams, traj, rng)
+    disc = FX * RADII[2] / 2.1  # px
+    for (state, pts, _), true in zip(out, traj, strict=True):
+        u_min = min(float(np.asarray(C.project(c, true[2]))[0]) for c in cams)
+        assert np.all(state.status[:2] == B.MEASURED)
+        if u_min > disc + 1:  # whole disc inside both images: measured
+            assert state.status[2] == B.MEASURED
+            assert_close(cams, pts[:2], true[:2])
+            assert np.linalg.norm(pts[2] - true[2]) < 0.06  # oblique, 0.4 m off-axis
+        else:  # cut by the border in a view: not measured (predicted)
+            assert u_min < disc - 1
+            assert state.status[2] == B.PREDICTED
+    assert sum(s.status[2] == B.PREDICTED for s, _, _ in out) == 3
+
+
+def test_persistent_blob_size_change_is_accepted(rng):
+    """A hand whose blob grows for good (e.g. it nears the cameras) is predicted for
+    ``area_patience`` frames, then measured again at its new size."""
+    cams = stereo_cams()
+    pose = np.array([[0.0, 0.0, 1.6], [0.15, 0.3, 1.1], [0.1, -0.32, 1.2]])
+    state = B.init()
+    statuses = []
+    for k in range(6):
+        radii = RADII * ([1.0, 1.0, 1.0] if k < 2 else [1.0, 1.0, 1.5])  # area x 2.25
+        imgs = [render(c, pose, radii, rng) for c in cams]
+        ml, mr = (S.segment_cv(S.SegmentParams(), im).skin for im in imgs)
+        state, pts, valid = B.update(state, ml, mr, cams)
+        statuses.append(state.status[2])
+        assert valid.all()
+    patience = B.BlobParams().area_patience
+    assert statuses[:2] == [B.MEASURED] * 2
+    assert statuses[2 : 2 + patience] == [B.PREDICTED] * patience
+    assert all(s == B.MEASURED for s in statuses[2 + patience :])
+    assert_close(cams, pts[:2], pose[:2])
+    # the bigger disc (r ~ 11 px) quantises differently: its depth is within 5 cm
+    assert np.linalg.norm(pts[2] - pose[2]) < 0.05

@@ -300,14 +300,10 @@ def test_silhouette_radius_of_the_elliptic_torso():
     limbs = cues.limb_model(model)
     cam = camlib.look_at(jnp.array([3.0, 0.0, 1.2]), jnp.array([0.0, 0.0, 1.2]), width=80,
                          height=60, fx=77.0)  # fmt: skip
-
-    @jax.jit
-    def half_widths(psi):
-        tr = fk(model.chain, jnp.zeros(model.n_dof).at[2].set(0.9).at[5].set(psi))
-        a, b = cues.limb_endpoints(limbs, tr)
-        return cues.silhouette_radius(cam, limbs, tr, a, b)
-
     for psi, want in ((0.0, limbs.radius[-1]), (np.pi / 2, limbs.depth[-1])):
-        h = half_widths(psi)
+        q = jnp.zeros(model.n_dof).at[2].set(0.9).at[5].set(psi)
+        tr = fk(model.chain, q)
+        a, b = cues.limb_endpoints(limbs, tr)
+        h = cues.silhouette_radius(cam, limbs, tr, a, b)
         np.testing.assert_allclose(h[-1], want, rtol=1e-6)
         np.testing.assert_allclose(h[:4], limbs.radius[:4], rtol=1e-12)
