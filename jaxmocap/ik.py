@@ -809,7 +809,31 @@ def _regularise(S: Array, floor: float) -> Array:
     return S + ridge[..., None, None] * jnp.eye(n, dtype=S.dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("per_patch",))
+ROBUST_CHI2 = 9.21  # chi^2_2 99% quantile: the inlier gate of the robust Sigma_c
+ROBUST_ITERATIONS = 10
+
+
+def _robust_second_moment(err: Array, w: Array, S0: Array) -> Array:
+    """Sigma of the inliers of 2D errors ``err`` (n, 2) with weights ``w``: errors with
+    Mahalanobis^2 < ROBUST_CHI2 under the current estimate are kept, their second moment is
+    corrected for the truncation of a Gaussian at that radius, and this is iterated from
+    ``S0``. For Gaussian data it is the ML covariance; outliers (misclassified patches) get
+    no weight."""
+    c = ROBUST_CHI2
+    # E[e e^T | m^2 < c] = S (1 - exp(-c/2)(1 + c/2)) / (1 - exp(-c/2)) for a 2D Gaussian
+    shrink = (1 - np.exp(-c / 2) * (1 + c / 2)) / (1 - np.exp(-c / 2))
+
+    def body(_, S):
+        m2 = jnp.einsum("ni,ij,nj->n", err, jnp.linalg.inv(S), err)
+        wi = w * (m2 < c)
+        S_in, n_in = _second_moment(err, wi)
+        S_new = S_in / jnp.maximum(n_in, 1.0) / shrink
+        return jnp.where(n_in >= 3, _regularise(S_new, COV_FLOOR_PX2), S)
+
+    return jax.lax.fori_loop(0, ROBUST_ITERATIONS, body, S0)
+
+
+@functools.partial(jax.jit, static_argnames=("per_patch", "robust"))
 def estimate_covariances(
     cams: Camera,
     chain: KinematicChain,
@@ -820,6 +844,8 @@ def estimate_covariances(
     q_b: Float[Array, "n_frames n_dof"],
     *,
     per_patch: bool = False,
+    predicted: Float[Array, "n_frames n_cams n_patches 2"] | None = None,
+    robust: bool = False,
 ) -> IKCovariances:
     """Train Sigma_c, Sigma_b, Sigma_p on a ground-truth sequence (Wang et al. §5.2 step 4).
 
@@ -835,7 +861,13 @@ def estimate_covariances(
     symmetrised and given a small ridge (``COV_REL_RIDGE`` of its mean variance plus
     ``COV_FLOOR_*``), so DOFs that never vary stay positive definite. With ``per_patch``,
     Sigma_c is (P, 2, 2), patch k's moment shrunk by one pseudo-observation of the shared
-    Sigma_c (patches rarely or never seen fall back to it).
+    Sigma_c (patches rarely or never seen fall back to it). ``predicted`` gives the model's
+    centroids at the ground truth directly (e.g. from a render of ``q_gt`` in the tracker's
+    crops, what per-view anchors predict there); default: ``anchors`` projected at ``q_gt``.
+    ``robust`` (not in the paper) estimates Sigma_c from the inliers only (iterated 99%
+    chi-square gate with the truncation corrected, :func:`_robust_second_moment`): the scale
+    of the centroid noise that the IK's robust term (``solve_ik(robust=...)``) assumes, not
+    inflated by the gross errors of misclassified patches.
     """
     if q_gt.ndim != 2 or q_gt.shape[0] < 2 or q_b.shape != q_gt.shape:
         raise ValueError(
@@ -849,12 +881,17 @@ def estimate_covariances(
             f"({n_f}, {cams.K.shape[0]}, {anchors.n_patches})"
         )
     dt = q_gt.dtype
-    proj = jax.vmap(project_anchors, in_axes=(None, None, None, 0))(cams, chain, anchors, q_gt)
+    if predicted is None:
+        proj = jax.vmap(project_anchors, in_axes=(None, None, None, 0))(cams, chain, anchors, q_gt)
+    else:
+        proj = predicted.astype(dt)
     vis = jnp.asarray(visible, bool)
     err = jnp.where(vis[..., None], proj - centroids.astype(dt), 0.0)  # (T, C, P, 2)
     w = vis.astype(dt)
     S_all, n_all = _second_moment(err.reshape(-1, 2), w.reshape(-1))
     shared = _regularise(S_all / jnp.maximum(n_all, 1.0), COV_FLOOR_PX2)
+    if robust:
+        shared = _robust_second_moment(err.reshape(-1, 2), w.reshape(-1), shared)
     if per_patch:
         S_p = jnp.einsum("tcp,tcpi,tcpj->pij", w, err, err)
         n_p = w.sum((0, 1))

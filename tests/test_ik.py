@@ -395,6 +395,11 @@ def test_estimate_covariances_and_file_round_trip(scene, rng, tmp_path):
     np.testing.assert_allclose(cov.prior, ridge(dp.T @ dp / (T - 1), ik.COV_FLOOR_Q), rtol=1e-8)
     assert np.all(np.linalg.eigvalsh(np.asarray(cov.blend)) > 0)  # 6 frames, 24 DOFs: ridge
     assert abs(cov.centroid[0, 0] / 4.0 - 1) < 0.3 and abs(cov.centroid[1, 1] - 1) < 0.3
+    # the model's centroids at the truth given directly (e.g. rendered): same moments
+    cov2 = ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(obs),
+                                   jnp.asarray(vis), jnp.asarray(q_b),
+                                   predicted=jnp.asarray(exact))  # fmt: skip
+    np.testing.assert_allclose(cov2.centroid, ridge(ref_c, ik.COV_FLOOR_PX2), rtol=1e-9)
 
     path = tmp_path / "ik_cov.npz"
     cov.save(path)
@@ -515,3 +520,25 @@ def test_robust_centroid_term(scene, frame, rng):
     robust = solve(scene, bad, ALL_VISIBLE, q_b, q_b, cov, robust=3.0)
     assert kp_error(oracle, robust.q, q_gt) < 0.01
     assert kp_error(oracle, plain.q, q_gt) > 3 * kp_error(oracle, robust.q, q_gt)
+
+
+def test_robust_covariance_ignores_outliers(scene, rng):
+    """Sigma_c with robust=True: Gaussian centroid noise (std 2 / 1 px) plus 10% gross
+    errors (50-150 px) -> the inlier covariance (NumPy), the plain one is inflated."""
+    _, chain, anchors, cams, oracle = scene
+    T = 40
+    q_gt = np.stack([random_pose(chain, rng) for _ in range(T)])
+    exact = np.stack([oracle.centroids(q) for q in q_gt])
+    noise = rng.normal(0, [2.0, 1.0], exact.shape)
+    gross = rng.uniform(size=exact.shape[:3]) < 0.1
+    noise[gross] = rng.uniform(50, 150, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
+    vis = np.ones(exact.shape[:3], bool)
+    args = (cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(exact - noise),
+            jnp.asarray(vis), jnp.asarray(q_gt))  # fmt: skip
+    plain = np.asarray(ik.estimate_covariances(*args).centroid)
+    rob = np.asarray(ik.estimate_covariances(*args, robust=True).centroid)
+    inl = noise[~gross]
+    ref = inl.T @ inl / len(inl)
+    assert plain[0, 0] > 100 * ref[0, 0]
+    np.testing.assert_allclose(np.diag(rob), np.diag(ref), rtol=0.1)
+    assert abs(rob[0, 1]) < 0.2

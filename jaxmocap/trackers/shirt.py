@@ -23,7 +23,9 @@ One frame, for 1..n calibrated cameras (all inside one jitted function):
    ``q* = argmin sum ||c^{*i}(q) - c^{ki}||^2_Sc + ||q - q_b||^2_Sb + ||q - q_h||^2_Sp``,
    with ``c^{*i}`` the centroids of the model's render (per-view anchors,
    :func:`jaxmocap.ik.view_anchors`) and a Cauchy-robust centroid term (``robust``).
-   Steps 5–6 run ``ik_passes`` times (default 2), the model re-rendered at the last pose.
+   Steps 5–6 run ``ik_passes`` times (default 2), the model re-rendered at the last pose,
+   from the blend and from the previous pose (``temporal_start``); the result whose render
+   agrees best with the step-1 classification is kept.
 7. **White balance** (step 5): ``q*`` rendered in each crop, ``W*`` refitted on its colour
    ids (eroded by one pixel so that silhouettes off by a pixel do not mix colours), and
    ``W*`` joins the reference illuminations when ``min ||W* - W||_F > 0.5``.
@@ -139,6 +141,7 @@ class ShirtParams(eqx.Module):
     view_anchors: bool = eqx.field(static=True, default=True)
     ik_passes: int = eqx.field(static=True, default=IK_PASSES)
     robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
+    temporal_start: bool = eqx.field(static=True, default=True)
 
     @property
     def n_cams(self) -> int:
@@ -189,6 +192,7 @@ def make_params(
     view_anchors: bool = True,
     ik_passes: int = IK_PASSES,
     robust: float | None = ROBUST_SCALE,
+    temporal_start: bool = True,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -196,7 +200,11 @@ def make_params(
     the camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
     centroid; ``ik_passes`` rounds of pose-assisted classification + IK per frame, each with
     the model re-rendered at the last round's pose; ``robust`` the Cauchy scale of the IK's
-    centroid terms (None: plain least squares, as the paper)."""
+    centroid terms (None: plain least squares, as the paper); ``temporal_start`` runs the
+    rounds from two starts, the placed blend ``q_b`` and the previous frame's pose, under
+    ``jax.vmap``, keeping the result whose render agrees best with the step-1 colour
+    classification (the paper starts from ``q_b`` only; a bad database match then leaves
+    the IK in a wrong basin although the previous frame was right)."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if cams.K.ndim != 3:
@@ -217,6 +225,7 @@ def make_params(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
+        bool(temporal_start),
     )  # fmt: skip
 
 
@@ -406,22 +415,45 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
         return PatchCentroids(c.xy, c.count, c.valid & okq[i])
 
-    q_sol = q_g
-    for _ in range(params.ik_passes):
-        hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
-                for i in range(n_cams)]  # fmt: skip
-        meas = [measure(hits[i], i) for i in range(n_cams)]
-        c_obs = jnp.stack([m.xy for m in meas])
-        v_obs = jnp.stack([m.valid for m in meas])
-        if params.view_anchors:
-            anchors = _view_anchors(chain, params.anchors, cams, q_sol,
-                                    jnp.stack([h.patch for h in hits]),
-                                    jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
-        else:
-            anchors = params.anchors
-        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q_sol,
-                       robust=params.robust)  # fmt: skip
-        q_sol = sol.q
+    def rounds(q_start):
+        q_sol = q_start
+        for _ in range(params.ik_passes):
+            hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
+                    for i in range(n_cams)]  # fmt: skip
+            meas = [measure(hits[i], i) for i in range(n_cams)]
+            c_obs = jnp.stack([m.xy for m in meas])
+            v_obs = jnp.stack([m.valid for m in meas])
+            if params.view_anchors:
+                anchors = _view_anchors(chain, params.anchors, cams, q_sol,
+                                        jnp.stack([h.patch for h in hits]),
+                                        jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
+            else:
+                anchors = params.anchors
+            sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q_sol,
+                           robust=params.robust)  # fmt: skip
+            q_sol = sol.q
+        # agreement of the result's render with the step-1 colour classification (shared by
+        # all starts, so comparable between them): agreeing minus disagreeing pixels
+        score = jnp.zeros((), dt)
+        for i in range(n_cams):
+            col = render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i]).colour
+            c1 = cls[i].ids
+            both = (col > 0) & (c1 > 0) & okq[i]
+            score = score + jnp.sum(both & (col == c1)) - jnp.sum(both & (col != c1))
+        return q_sol, c_obs, v_obs, score
+
+    if params.temporal_start:
+        # starts: the placed blend, the placed blend with each camera's own database joints
+        # (the cameras' queries can disagree, e.g. an arm in front of / behind the torso),
+        # and the previous pose
+        per_cam = [q_g.at[6:].set(jnp.where(okq[i], q_dbs[i][6:], q_g[6:]))
+                   for i in range(n_cams)] if n_cams > 1 else []  # fmt: skip
+        starts = jnp.stack([q_g, *per_cam, jnp.where(state.valid, state.q, q_g)])
+        q_all, c_all, v_all, scores = jax.vmap(rounds)(starts)
+        best = jnp.argmax(scores)
+        q_sol, c_obs, v_obs = q_all[best], c_all[best], v_all[best]
+    else:
+        q_sol, c_obs, v_obs, _ = rounds(q_g)
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
     q_star = jnp.where(valid, q_sol, state.q)
 
@@ -457,6 +489,25 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         visible=v_obs,
     )
     return new_state, out
+
+
+@eqx.filter_jit
+def model_centroids(
+    params: ShirtParams, q: Float[Array, " n_dof"], windows: Float[Array, "n_cams 4"]
+) -> PatchCentroids:
+    """The model's patch centroids at pose ``q`` as the tracker sees them: ``q`` rendered on
+    each camera's ``params.work_size`` crop grid of ``windows`` (e.g. ``ShirtOutput.window``),
+    centroids in image pixels, batched over cameras. With ``q`` the ground truth these are
+    what per-view anchors predict there, the model term of covariance training
+    (:func:`jaxmocap.ik.estimate_covariances` ``predicted=``)."""
+    n, P = params.work_size, params.garment.n_patches
+    out = []
+    for i in range(params.n_cams):
+        cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
+        win = windows[i].astype(q.dtype)
+        ids = render_uv(params.body, params.garment, q, cam, crop_uv(win, n)).patch
+        out.append(patch_centroids(ids, P, win, dtype=q.dtype))
+    return jax.tree.map(lambda *a: jnp.stack(a), *out)
 
 
 TRACE_COUNT = {"step": 0}  # incremented each time ``step`` is traced (tests count recompiles)
