@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.camera import look_at, project, stack_cameras, triangulate
 
-N_PROJECT = 100_000
-N_TRIANGULATE = 10_000
+N_PROJECT = sized(full=100_000, quick=10_000)
+N_TRIANGULATE = sized(full=10_000, quick=1_000)
 DIST = (-0.28, 0.09, 0.0012, -0.0008, -0.012)
 
 

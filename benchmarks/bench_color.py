@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.color import ColorModel, classify, histogram_search
 from jaxmocap.color.classify import quadratic_coefficients
 from jaxmocap.color.search import DEFAULT_SCALES, MIN_INTENSITY, STRIDE, TAU
@@ -189,7 +189,7 @@ def main() -> None:
     res = search(jimg)
     ours = np.array([float(res.x), float(res.y), float(res.s)])
     k = "chroma-hist search 640x480"
-    t_j = time_call(lambda: search(jimg), n=50)
+    t_j = time_call(lambda: search(jimg), n=sized(full=50, quick=10))
     rows.append(
         Row(
             k,
@@ -237,12 +237,12 @@ def main() -> None:
     for name, (h, w) in [
         ("Mahalanobis 10 colours 200x200", (200, 200)),
         ("Mahalanobis 10 colours 640x480", (480, 640)),
-    ]:
+    ][: sized(full=2, quick=1)]:
         px = mean[rng.integers(0, 10, h * w)] + rng.normal(0, 15, (h * w, 3))
         im = np.clip(px @ np.linalg.inv(W).T, 0, 255).astype(np.uint8).reshape(h, w, 3)
         jim = jnp.asarray(im)
         truth = reference_ids(im, W, mean, cov)
-        n = 200 if h == 200 else 50
+        n = sized(full=200 if h == 200 else 50, quick=10)
         comp = time_compile(lambda jim=jim: cls(model, jW, jim))
         t_j = time_call(lambda jim=jim: cls(model, jW, jim), n=n)
         mism = int((np.asarray(cls(model, jW, jim)[0]) != truth).sum())

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.distance import edt, id_map_distances
 
 
@@ -81,7 +81,7 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
 def main() -> None:
     rng = np.random.default_rng(0)
     rows, summary = [], []
-    for side in (40, 160):
+    for side in sized(full=(40, 160), quick=(40,)):
         r, s = _bench_size(rng, side)
         rows += r
         summary.append(s)

@@ -14,7 +14,7 @@ import numpy as np
 import pytorch_kinematics as pk
 import torch
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.body import FIXED, PRISMATIC, REVOLUTE, default_body, fk
 from jaxmocap.body.model import DEFAULT_URDF
 from jaxmocap.body.urdf import prepare_urdf, read_urdf_text
@@ -69,7 +69,7 @@ def main() -> None:
     fk_v = jax.jit(jax.vmap(fk, in_axes=(None, 0)))
     fk_1 = jax.jit(fk)
     rows, summary = [], ["float32; CPU shared with other jobs (numbers are noisy, ratios matter)"]
-    for n in (1, 1000, 100_000):
+    for n in sized(full=(1, 1000, 100_000), quick=(1, 1000)):
         lo, hi = np.asarray(chain.lower[6:]), np.asarray(chain.upper[6:])
         q = np.concatenate(
             [np.zeros((n, 6)), rng.uniform(lo, hi, size=(n, lo.shape[0]))], axis=1

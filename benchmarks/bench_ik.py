@@ -20,13 +20,13 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
-from benchmarks._common import Row, time_call, time_compile, write_results  # noqa: E402
+from benchmarks._common import Row, sized, time_call, time_compile, write_results  # noqa: E402
 from jaxmocap import ik  # noqa: E402
 from jaxmocap.body import FIXED, PRISMATIC, REVOLUTE, default_body  # noqa: E402
 from jaxmocap.camera import look_at, stack_cameras  # noqa: E402
 from jaxmocap.garment import default_garment  # noqa: E402
 
-BATCH = 32
+BATCH = sized(full=32, quick=4)
 
 
 # ----------------------------------------------------------------------------- NumPy baseline

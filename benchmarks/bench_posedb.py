@@ -24,16 +24,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap import posedb
 from jaxmocap._config import enable_compilation_cache
 from jaxmocap.body import default_body, keypoints
 from jaxmocap.garment import default_garment
 from jaxmocap.synth import HELDOUT_CLIPS, TRAIN_CLIPS
 
-BUILD_SIZE = 20_000
-SEARCH_SIZE = 80_000
-N_QUERIES = 200
+BUILD_SIZE = sized(full=20_000, quick=2_000)
+SEARCH_SIZE = sized(full=80_000, quick=8_000)
+N_QUERIES = sized(full=200, quick=20)
 NP_CHUNK = 4096
 
 
@@ -105,7 +105,8 @@ def main() -> None:
 
     # --- build rate (2,048 maps, compiled program already warm after the first batch)
     pool = posedb.source_pool(model, TRAIN_CLIPS)
-    probe = posedb.sample_poses(posedb.SamplingConfig(size=2048, seed=1), model, pool)
+    n_probe = sized(full=2048, quick=512)
+    probe = posedb.sample_poses(posedb.SamplingConfig(size=n_probe, seed=1), model, pool)
     posedb.render_maps(model, garment, probe[:256], progress=False)
     t0 = time.perf_counter()
     posedb.render_maps(model, garment, probe, progress=False)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap import render
 from jaxmocap.body import CAPSULE, ELLIPSOID, SPHERE, default_body, fk, geom_world_poses
 from jaxmocap.camera import look_at, stack_cameras
@@ -189,5 +189,7 @@ def main(n_maps: int = 8000) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--maps", type=int, default=8000)
-    main(parser.parse_args().maps)
+    parser.add_argument("--maps", type=int, default=None,
+                        help="tiny maps to render (default 8000; 800 with JAXMOCAP_BENCH_QUICK=1)")
+    n = parser.parse_args().maps
+    main(n if n is not None else sized(full=8000, quick=800))

@@ -457,9 +457,9 @@ def _x(size):
     return size
 
 
-def main(quick: bool = False) -> None:
-    sizes = QUICK if quick else FULL
-    reps = 5 if quick else 20
+def main() -> None:
+    sizes, reps = common.sized(full=(FULL, 20), quick=(QUICK, 5))
+    quick = common.is_quick()
     rows = []
     for fn, key in (
         (image, "image"),
@@ -497,4 +497,6 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small sizes")
     args = parser.parse_args()
-    main(args.quick or os.environ.get("JAXMOCAP_BENCH_QUICK") == "1")
+    if args.quick:
+        os.environ[common.QUICK_ENV] = "1"
+    main()

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.body import BOX, CAPSULE, SPHERE, default_body, fk, geom_world_poses
 from jaxmocap.camera import stack_cameras
 from jaxmocap.render import CAMERA_GAMMA
@@ -36,7 +36,7 @@ from jaxmocap.synth.sequence import (
     render_sequence,
 )
 
-N_SEQ = 8
+N_SEQ = sized(full=8, quick=3)
 
 
 # ----------------------------------------------------------------------------- NumPy baseline

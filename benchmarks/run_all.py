@@ -10,9 +10,9 @@ resident memory is measured alone (``os.wait4`` rusage, ``ru_maxrss``) and a cra
 in one script does not stop the others. The child points ``benchmarks._common.RESULTS`` at the
 output folder, so a quick run never overwrites the committed full-size results.
 
-``--quick`` sets ``JAXMOCAP_BENCH_QUICK=1`` in the children's environment; scripts that honour
-it (``bench_scaling``) shrink their sizes, the others run at their normal size (listed in the
-summary as "full size").
+``--quick`` sets ``JAXMOCAP_BENCH_QUICK=1`` in the children's environment; every script picks
+its small sizes through ``benchmarks._common.sized`` and records ``"size": "quick"`` in its
+JSON, which the summary's "size" column shows (a script that did not shrink says "full").
 
 The summary (``SUMMARY.md``) has one table per tracker: every stage's jaxmocap time against the
 fastest plain NumPy/OpenCV/SciPy/PyTorch baseline of the same kernel measured in the same run,
@@ -49,8 +49,6 @@ GROUPS = {
     "Shared building blocks": ("bench_camera", "bench_fk", "bench_synth"),
     "Scaling curves": ("bench_scaling",),
 }  # fmt: skip
-# Scripts that take a size argument: (full-size argv, quick argv).
-ARGV = {"bench_render": ([], ["--maps", "800"]), "bench_scaling": ([], ["--quick"])}
 # A jaxmocap row whose baseline was measured under a different kernel label.
 BASELINE_KERNEL = {
     ("bench_stereo_pf", "1000 likelihood evaluations (incl. FK)"):
@@ -85,8 +83,7 @@ def _child(name: str, out: Path, quick: bool) -> None:
     import benchmarks._common as common
 
     common.RESULTS = out
-    full, small = ARGV.get(name, ([], []))
-    sys.argv = [str(HERE / f"{name}.py"), *(small if quick else full)]
+    sys.argv = [str(HERE / f"{name}.py")]
     runpy.run_module(f"benchmarks.{name}", run_name="__main__", alter_sys=True)
 
 
@@ -125,9 +122,15 @@ def run_one(name: str, out: Path, quick: bool, timeout_s: float) -> dict:
         "wall_s": round(time.perf_counter() - t0, 2),
         "peak_rss_mib": round(usage.ru_maxrss / 1024, 1),  # Linux: ru_maxrss in KiB
         "quick": quick,
-        "honours_quick": name in ARGV,
+        "honours_quick": _size(out, name) == "quick",
         "log": str(log),
     }
+
+
+def _size(out: Path, name: str) -> str | None:
+    """The ``size`` a script's JSON in ``out`` records (None: no JSON)."""
+    path = out / f"{name}.json"
+    return json.loads(path.read_text()).get("size", "full") if path.exists() else None
 
 
 # ----------------------------------------------------------------------------- summary
@@ -229,10 +232,10 @@ def write_summary(out: Path) -> Path:
     for n in sorted(set(results) | set(runs)):
         run = runs.get(n)
         date = results[n]["machine"]["date"] if n in results else "—"
+        size = results[n].get("size", "full") if n in results else "—"
         if run is None:
-            lines.append(f"| `{n}` | {date} | not run by run_all | — | — | full |")
+            lines.append(f"| `{n}` | {date} | not run by run_all | — | — | {size} |")
             continue
-        size = "quick" if run["quick"] and run["honours_quick"] else "full"
         lines.append(f"| `{n}` | {date} | {run['status']} | {run['wall_s']:.0f} "
                      f"| {run['peak_rss_mib']:.0f} | {size} |")  # fmt: skip
     path = out / "SUMMARY.md"

@@ -64,3 +64,30 @@ def test_notebook_runs_small(path, tmp_path):
     assert not [o for c in code for o in c.outputs if o.output_type == "error"]
     images = [o for c in code for o in c.outputs if "image/png" in o.get("data", {})]
     assert images, f"{path.name}: no figure was drawn"
+
+
+def test_benchmark_runner_quick(tmp_path):
+    """``python -m benchmarks --quick --only distance`` runs one cheap script at its quick size
+    into a chosen folder and writes its JSON/markdown and the summary (the committed results
+    are not touched)."""
+    import json
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ)
+    env.pop("JAXMOCAP_BENCH_QUICK", None)  # the runner must set it for the child
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "--quick", "--only", "distance", "--out",
+         str(tmp_path)],
+        cwd=root, env=env, capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    payload = json.loads((tmp_path / "bench_distance.json").read_text())
+    assert payload["size"] == "quick"
+    sides = {r["kernel"] for r in payload["rows"]}
+    assert sides and not any("160" in k for k in sides), sides  # the quick size only
+    run = json.loads((tmp_path / "run_all.json").read_text())["runs"]
+    assert [(r["name"], r["status"], r["honours_quick"]) for r in run] == [
+        ("bench_distance", "ok", True)
+    ]
+    summary = (tmp_path / "SUMMARY.md").read_text()
+    assert "`bench_distance`" in summary and "| quick |" in summary
