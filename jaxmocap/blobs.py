@@ -375,7 +375,16 @@ def update(
             if status[ent] == MISSING:
                 velocity[ent] = 0.0
     new = BlobState(
-        p, position, velocity, last_seen, status, coast, n_meas, area, state.frame + 1, cand,
+        p,
+        position,
+        velocity,
+        last_seen,
+        status,
+        coast,
+        n_meas,
+        area,
+        state.frame + 1,
+        cand,
         rejected,
     )
     return new, new.points3d, new.valid

@@ -1,9 +1,9 @@
 """Accuracy of the stereo particle filter on held-out synthetic stereo sequences (Azad §V).
 
-320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on frame 0; mean per-joint
-error (cm) on shoulders, elbows and hands vs the ground-truth keypoints, with and without the
-distance cue, for the 14-DOF model of the paper and for 17 DOFs (+ the spine: the clips lean
-and twist the torso, which the 14-DOF model cannot represent). Writes
+320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on the first frame with a
+triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
+keypoints, with and without the distance cue, with 1 (Azad) or 3 annealing layers per frame,
+for the 14-DOF model of the paper and for 17 DOFs (+ the spine). Writes
 ``docs/results/stereo_pf_accuracy.json`` and ``docs/images/stereo_pf_accuracy.png``.
 
     python benchmarks/experiments/azad_accuracy.py [n_frames]

@@ -119,9 +119,9 @@ def fit_subset(model, dofs: np.ndarray, q: np.ndarray, kp: np.ndarray) -> np.nda
     for t in range(len(q)):
         x = jnp.asarray(kp[t])
         r = least_squares(
-            lambda s: np.asarray(f(jnp.asarray(s), x)),
+            lambda s, x=x: np.asarray(f(jnp.asarray(s), x)),
             q[t, dofs].astype(np.float64),
-            jac=lambda s: np.asarray(jac(jnp.asarray(s), x)),
+            jac=lambda s, x=x: np.asarray(jac(jnp.asarray(s), x)),
         )
         out.append(r.x)
     return np.array(out)
@@ -195,7 +195,8 @@ def ladder(
             if rung.startswith("gt_init"):
                 state = gt_state(params, s_gt[0], key)
             else:
-                first = jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs)
+                t0 = sp.anchor_frame(obs)
+                first = jax.tree.map(lambda a, t0=t0: a[t0], obs)
                 state, _ = sp.init(params, key, first)
             _, est = sp.run(params, state, obs)
             err = joint_errors(model, np.asarray(est.q), d["keypoints"])

@@ -18,7 +18,10 @@ are held at ``default_q``. Estimates are the weighted particle mean.
 drawn from a broad prior -- the root placed so that the model's head lies on the triangulated
 head (the mean of the valid blobs when the head is missing), a random turn about the vertical
 in +-``INIT_YAW`` and small tilts, arm joints uniform in their limits -- and refined by
-``len(init_betas)`` annealing layers (Deutscher et al. 2000) on the first frame.
+``len(init_betas)`` annealing layers (Deutscher et al. 2000) on the first frame (in
+:func:`track`: the first frame with a triangulated head, :func:`anchor_frame`). Tracking runs
+one Condensation step per frame (Azad §II), or ``len(step_betas)`` annealing layers per frame
+when ``step_betas`` has several entries (better search, one likelihood pass per layer).
 
 Sequences with precomputed observations run as one ``lax.scan`` (:func:`run`); a live loop
 calls :func:`step` per frame (host image processing + one jitted filter step). Deterministic
