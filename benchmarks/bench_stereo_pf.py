@@ -55,6 +55,12 @@ def numpy_fk_project_edge(chain_np, limbs_np, cams_np, q, edges):
         else:
             rots.append(rots[p] @ local)
             trans.append(np.einsum("nij,j->ni", rots[p], o_t[i]) + trans[p])
+    if len(limbs_np) == 4:  # (link, p0, p1, radius): round limbs only
+        limbs_np = (
+            *limbs_np,
+            np.asarray(limbs_np[3]),
+            np.tile([1.0, 0.0, 0.0], (len(limbs_np[0]), 1)),
+        )
     link, p0, p1, rad, dep, side = limbs_np
     r = np.stack([rots[i] for i in link], 1)
     t = np.stack([trans[i] for i in link], 1)
