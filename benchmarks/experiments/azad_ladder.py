@@ -229,10 +229,31 @@ def ladder(
     return out
 
 
+def plot(res: list[dict], path: Path) -> None:
+    """Per-frame error of every rung, one panel per clip."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(res), figsize=(5.5 * len(res), 3.4), squeeze=False)
+    for ax, r in zip(axes[0], res, strict=True):
+        for rung, row in r["rungs"].items():
+            ax.plot(row["per_frame_cm"], label=rung, lw=2 if rung == "pipeline" else 1)
+        ax.set_title(f"{r['clip']} (model floor {r['model_floor_cm']:.1f} cm)")
+        ax.set_xlabel("frame (25 Hz)")
+        ax.set_ylabel("mean joint error (cm)")
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+
+
 def main(clips=("humanoid3d_punch", "humanoid3d_dance_b"), n_frames: int = 40) -> None:
     res = [ladder(c, n_frames) for c in clips]
     out = ROOT / "docs" / "results" / "stereo_pf_ladder.json"
     out.write_text(json.dumps(res, indent=1) + "\n")
+    plot(res, ROOT / "docs" / "images" / "stereo_pf_ladder.png")
 
 
 if __name__ == "__main__":
