@@ -11,10 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap import pf
 
-N, D, T_SEQ = 1000, 14, 50
+N, D = 1000, 14
+T_SEQ = sized(full=50, quick=10)  # frames of the lax.scan run
 LIK_STD = 0.3
 DAMPING = 0.5
 
@@ -71,7 +72,7 @@ def _bench_jax(resampling, target, z, lo, hi, smin, smax, np_ms):
         return rows, summary
     zs = jnp.broadcast_to(zj, (T_SEQ, D))
     comp = time_compile(lambda: pf.run(params, state, zs, key))
-    ms_seq, mn_seq = time_call(lambda: pf.run(params, state, zs, key), n=20)
+    ms_seq, mn_seq = time_call(lambda: pf.run(params, state, zs, key), n=sized(full=20, quick=3))
     rows.append(
         Row(
             f"PF sequence T={T_SEQ} N={N} d={D}, per frame",

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._common import Row, time_call, time_compile, write_results
+from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap import blobs as B
 from jaxmocap import camera as C
 from jaxmocap import segment as S
@@ -30,9 +30,11 @@ SKIN = (224, 172, 105)
 SHIRT = (30, 60, 200)
 
 
-def interleaved(fns: dict, rounds: int = 8, n: int = 40) -> dict:
+def interleaved(fns: dict, rounds: int | None = None, n: int | None = None) -> dict:
     """Median / min ms of each fn, timed in alternating rounds so that all of them see the same
     CPU contention (this machine is shared); returns {name: (median, min, calls)}."""
+    rounds = rounds or sized(full=8, quick=2)
+    n = n or sized(full=40, quick=5)
     per = {k: [] for k in fns}
     for _ in range(rounds):
         for k, f in fns.items():

@@ -18,7 +18,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent / "experiments"))
 from azad_render import config, load  # noqa: E402
 
-from benchmarks._common import Row, time_call, time_compile, write_results  # noqa: E402
+from benchmarks._common import Row, sized, time_call, time_compile, write_results  # noqa: E402
 from jaxmocap import blobs  # noqa: E402
 from jaxmocap.body import fk  # noqa: E402
 from jaxmocap.pf import cues  # noqa: E402
@@ -120,7 +120,9 @@ def main():
 
     # 1. image processing line, both images (OpenCV, host)
     frame = d["frames"][5]
-    med, mn = time_call(lambda: [segment_cv(seg, frame[i]) for i in range(2)], n=100)
+    med, mn = time_call(
+        lambda: [segment_cv(seg, frame[i]) for i in range(2)], n=sized(full=100, quick=10)
+    )
     rows.append(Row("image processing line, 320x240 pair", "OpenCV (segment_cv x2)", med, mn, 100))
     # 2. N FK + projection (jit, vmap over particles)
     limbs = lik.limbs
@@ -166,7 +168,10 @@ def main():
     edges = np.asarray(first.edges, np.float64)
     ref = numpy_fk_project_edge(chain_np, limbs_np, cams_np, qn, edges)
     ours = np.asarray(jax.jit(jax.vmap(lambda s: eqx_replace(lik)(s, first)))(parts), np.float64)
-    med, mn = time_call(lambda: numpy_fk_project_edge(chain_np, limbs_np, cams_np, qn, edges), n=20)
+    med, mn = time_call(
+        lambda: numpy_fk_project_edge(chain_np, limbs_np, cams_np, qn, edges),
+        n=sized(full=20, quick=3),
+    )
     note = f"max |ll diff| vs jaxmocap edge-only {np.abs(ref - ours).max():.2e}"
     rows.append(Row("1000 likelihood evaluations (edge cue, incl. FK)", "NumPy batched", med, mn,
                     20, notes=note))  # fmt: skip
@@ -178,7 +183,7 @@ def main():
     )
     # 5. run over the sequence (lax.scan), per frame
     sp.run(params, state, obs)
-    med_r, mn_r = time_call(lambda: sp.run(params, state, obs), n=5, warmup=1)
+    med_r, mn_r = time_call(lambda: sp.run(params, state, obs), n=sized(full=5, quick=1), warmup=1)
     rows.append(Row(f"filter over {FRAMES} frames (lax.scan), per frame", "jaxmocap jit scan",
                     med_r / FRAMES, mn_r / FRAMES, 5))  # fmt: skip
     # 6. whole live frame: image pipeline + blob tracker + filter step
@@ -191,7 +196,7 @@ def main():
         pts_valid["v"] = o.valid
         return sp.filter_step(params, state, o)
 
-    med, mn = time_call(live, n=50)
+    med, mn = time_call(live, n=sized(full=50, quick=5))
     rows.append(Row("whole frame: image line + blobs + filter step", "jaxmocap (host + jit)", med,
                     mn, 50))  # fmt: skip
     summary = [
