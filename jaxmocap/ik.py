@@ -833,7 +833,7 @@ def _robust_second_moment(err: Array, w: Array, S0: Array) -> Array:
     return jax.lax.fori_loop(0, ROBUST_ITERATIONS, body, S0)
 
 
-@functools.partial(jax.jit, static_argnames=("per_patch", "robust"))
+@functools.partial(jax.jit, static_argnames=("per_patch", "robust", "diagonal"))
 def estimate_covariances(
     cams: Camera,
     chain: KinematicChain,
@@ -846,6 +846,9 @@ def estimate_covariances(
     per_patch: bool = False,
     predicted: Float[Array, "n_frames n_cams n_patches 2"] | None = None,
     robust: bool = False,
+    diagonal: bool = False,
+    q_h: Float[Array, "n_frames n_dof"] | None = None,
+    min_centroid_std: float | Float[Array, ""] = 0.0,
 ) -> IKCovariances:
     """Train Sigma_c, Sigma_b, Sigma_p on a ground-truth sequence (Wang et al. §5.2 step 4).
 
@@ -867,7 +870,15 @@ def estimate_covariances(
     ``robust`` (not in the paper) estimates Sigma_c from the inliers only (iterated 99%
     chi-square gate with the truncation corrected, :func:`_robust_second_moment`): the scale
     of the centroid noise that the IK's robust term (``solve_ik(robust=...)``) assumes, not
-    inflated by the gross errors of misclassified patches.
+    inflated by the gross errors of misclassified patches. ``diagonal`` keeps only the
+    variances of Sigma_b and Sigma_p: with fewer frames than DOFs their full moments are
+    rank-deficient and the ridge alone would make the priors almost rigid along every
+    direction the training frames did not move in. ``q_h`` are the poses the temporal term
+    compared with at each frame (the tracker's previous output: ``q_h[t] = q*[t - 1]``, row 0
+    unused); Sigma_p is then ``E[(q_gt[t] - q_h[t])(...)^T]``, the term as the tracker
+    evaluates it, tracking error included (default: the ground truth's previous frame, the
+    pure motion). ``min_centroid_std`` (pixels) floors the variances of Sigma_c (e.g. at the
+    tracker's working-grid pixel, below which its centroids are not resolved).
     """
     if q_gt.ndim != 2 or q_gt.shape[0] < 2 or q_b.shape != q_gt.shape:
         raise ValueError(
@@ -892,6 +903,8 @@ def estimate_covariances(
     shared = _regularise(S_all / jnp.maximum(n_all, 1.0), COV_FLOOR_PX2)
     if robust:
         shared = _robust_second_moment(err.reshape(-1, 2), w.reshape(-1), shared)
+    floor = jnp.asarray(min_centroid_std, dt) ** 2 * jnp.eye(2, dtype=dt)
+    shared = jnp.maximum(shared, floor)
     if per_patch:
         S_p = jnp.einsum("tcp,tcpi,tcpj->pij", w, err, err)
         n_p = w.sum((0, 1))
@@ -901,9 +914,9 @@ def estimate_covariances(
         sigma_c = shared
     ones = jnp.ones(n_f, dt)
     Sb, nb = _second_moment(q_gt - q_b.astype(dt), ones)
-    Sp, np_ = _second_moment(q_gt[1:] - q_gt[:-1], ones[1:])
-    return IKCovariances(
-        centroid=sigma_c,
-        blend=_regularise(Sb / nb, COV_FLOOR_Q),
-        prior=_regularise(Sp / np_, COV_FLOOR_Q),
-    )
+    prev = q_gt[:-1] if q_h is None else q_h[1:].astype(dt)
+    Sp, np_ = _second_moment(q_gt[1:] - prev, ones[1:])
+    blend, prior = _regularise(Sb / nb, COV_FLOOR_Q), _regularise(Sp / np_, COV_FLOOR_Q)
+    if diagonal:
+        blend, prior = jnp.diagonal(blend), jnp.diagonal(prior)
+    return IKCovariances(centroid=sigma_c, blend=blend, prior=prior)

@@ -400,6 +400,18 @@ def test_estimate_covariances_and_file_round_trip(scene, rng, tmp_path):
                                    jnp.asarray(vis), jnp.asarray(q_b),
                                    predicted=jnp.asarray(exact))  # fmt: skip
     np.testing.assert_allclose(cov2.centroid, ridge(ref_c, ik.COV_FLOOR_PX2), rtol=1e-9)
+    cov3 = ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(obs),
+                                   jnp.asarray(vis), jnp.asarray(q_b), diagonal=True)  # fmt: skip
+    np.testing.assert_allclose(cov3.blend, np.diag(np.asarray(cov.blend)), rtol=1e-12)
+    np.testing.assert_allclose(cov3.prior, np.diag(np.asarray(cov.prior)), rtol=1e-12)
+    # the temporal term against the tracker's previous output; a floor on Sigma_c
+    q_prev = q_gt + rng.normal(0, 0.05, q_gt.shape)
+    cov4 = ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(obs),
+                                   jnp.asarray(vis), jnp.asarray(q_b), q_h=jnp.asarray(q_prev),
+                                   min_centroid_std=3.0)  # fmt: skip
+    dh = q_gt[1:] - q_prev[1:]
+    np.testing.assert_allclose(cov4.prior, ridge(dh.T @ dh / (T - 1), ik.COV_FLOOR_Q), rtol=1e-8)
+    np.testing.assert_allclose(np.diag(cov4.centroid), [9.0, 9.0], rtol=1e-12)
 
     path = tmp_path / "ik_cov.npz"
     cov.save(path)

@@ -23,9 +23,9 @@ One frame, for 1..n calibrated cameras (all inside one jitted function):
    ``q* = argmin sum ||c^{*i}(q) - c^{ki}||^2_Sc + ||q - q_b||^2_Sb + ||q - q_h||^2_Sp``,
    with ``c^{*i}`` the centroids of the model's render (per-view anchors,
    :func:`jaxmocap.ik.view_anchors`) and a Cauchy-robust centroid term (``robust``).
-   Steps 5–6 run ``ik_passes`` times (default 2), the model re-rendered at the last pose,
-   from the blend and from the previous pose (``temporal_start``); the result whose render
-   agrees best with the step-1 classification is kept.
+   Steps 5–6 run ``ik_passes`` times (default 2), the model re-rendered at the last pose;
+   the first round from the blend and from the previous pose (``temporal_start``), the
+   later ones from the result whose render agrees best with the step-1 classification.
 7. **White balance** (step 5): ``q*`` rendered in each crop, ``W*`` refitted on its colour
    ids (eroded by one pixel so that silhouettes off by a pixel do not mix colours), and
    ``W*`` joins the reference illuminations when ``min ||W* - W||_F > 0.5``.
@@ -415,45 +415,48 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
         return PatchCentroids(c.xy, c.count, c.valid & okq[i])
 
-    def rounds(q_start):
-        q_sol = q_start
-        for _ in range(params.ik_passes):
-            hits = [render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i])
-                    for i in range(n_cams)]  # fmt: skip
-            meas = [measure(hits[i], i) for i in range(n_cams)]
-            c_obs = jnp.stack([m.xy for m in meas])
-            v_obs = jnp.stack([m.valid for m in meas])
-            if params.view_anchors:
-                anchors = _view_anchors(chain, params.anchors, cams, q_sol,
-                                        jnp.stack([h.patch for h in hits]),
-                                        jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
-            else:
-                anchors = params.anchors
-            sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q_sol,
-                           robust=params.robust)  # fmt: skip
-            q_sol = sol.q
+    def render_all(q):
+        return [render_uv(params.body, params.garment, q, cam_i[i], uvs[i])
+                for i in range(n_cams)]  # fmt: skip
+
+    def one_round(q, hits):
+        meas = [measure(hits[i], i) for i in range(n_cams)]
+        c_obs = jnp.stack([m.xy for m in meas])
+        v_obs = jnp.stack([m.valid for m in meas])
+        if params.view_anchors:
+            anchors = _view_anchors(chain, params.anchors, cams, q,
+                                    jnp.stack([h.patch for h in hits]),
+                                    jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
+        else:
+            anchors = params.anchors
+        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q,
+                       robust=params.robust)  # fmt: skip
+        return sol.q, c_obs, v_obs
+
+    def first_round(q_start):
+        q1, c_obs, v_obs = one_round(q_start, render_all(q_start))
+        hits = render_all(q1)
         # agreement of the result's render with the step-1 colour classification (shared by
         # all starts, so comparable between them): agreeing minus disagreeing pixels
         score = jnp.zeros((), dt)
         for i in range(n_cams):
-            col = render_uv(params.body, params.garment, q_sol, cam_i[i], uvs[i]).colour
             c1 = cls[i].ids
-            both = (col > 0) & (c1 > 0) & okq[i]
-            score = score + jnp.sum(both & (col == c1)) - jnp.sum(both & (col != c1))
-        return q_sol, c_obs, v_obs, score
+            both = (hits[i].colour > 0) & (c1 > 0) & okq[i]
+            score = score + jnp.sum(both & (hits[i].colour == c1))
+            score = score - jnp.sum(both & (hits[i].colour != c1))
+        return q1, c_obs, v_obs, hits, score
 
+    # the first round from each start (under vmap), the rest from the best one only
     if params.temporal_start:
-        # starts: the placed blend, the placed blend with each camera's own database joints
-        # (the cameras' queries can disagree, e.g. an arm in front of / behind the torso),
-        # and the previous pose
-        per_cam = [q_g.at[6:].set(jnp.where(okq[i], q_dbs[i][6:], q_g[6:]))
-                   for i in range(n_cams)] if n_cams > 1 else []  # fmt: skip
-        starts = jnp.stack([q_g, *per_cam, jnp.where(state.valid, state.q, q_g)])
-        q_all, c_all, v_all, scores = jax.vmap(rounds)(starts)
+        starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
+        q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts)
         best = jnp.argmax(scores)
-        q_sol, c_obs, v_obs = q_all[best], c_all[best], v_all[best]
+        q_sol, c_obs, v_obs, hits = jax.tree.map(lambda a: a[best], (q_all, c_all, v_all, h_all))
     else:
-        q_sol, c_obs, v_obs, _ = rounds(q_g)
+        q_sol, c_obs, v_obs, hits, _ = first_round(q_g)
+    for _ in range(params.ik_passes - 1):
+        q_sol, c_obs, v_obs = one_round(q_sol, hits)
+        hits = render_all(q_sol)
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
     q_star = jnp.where(valid, q_sol, state.q)
 
@@ -462,8 +465,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     for i in range(n_cams):
         refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
         if params.adaptive_white_balance:
-            uv = crop_uv(windows[i], n)
-            r_star = _erode(render_uv(params.body, params.garment, q_star, cam_i[i], uv).colour)
+            r_star = _erode(hits[i].colour)  # q* rendered in the crop (unused if not valid)
             W_star = white_balance_from_ids(
                 params.color, crops[i], r_star, cls[i].W, fgs[i], min_pixels=REFERENCE_PIXELS
             )
