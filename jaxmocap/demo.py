@@ -108,7 +108,8 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
                             segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
     obs = sp.observe_sequence(params, seq.frames)
     t0 = time.perf_counter()
-    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[0], obs))
+    t_init = sp.anchor_frame(obs)  # the first frame with a triangulated head
+    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[t_init], obs))
     _, est = sp.run(params, state, obs)
     jax.block_until_ready(est.q)
     cold = time.perf_counter() - t0

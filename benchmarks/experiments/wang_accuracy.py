@@ -131,8 +131,8 @@ def main(scale: str = "small", write: bool = True) -> dict:
         "mean_cm_isotropic": float(100 * e_tr.mean()),
         "mean_cm_shirt_isotropic": float(100 * e_tr[:, shirt_idx].mean()),
         "sigma_c_px": np.sqrt(np.diag(np.asarray(cov.centroid))).round(2).tolist(),
-        "sigma_b_rad_median": float(np.median(np.sqrt(np.diag(np.asarray(cov.blend))[6:]))),
-        "sigma_p_rad_median": float(np.median(np.sqrt(np.diag(np.asarray(cov.prior))[6:]))),
+        "sigma_b_rad_median": float(np.median(np.sqrt(_variances(cov.blend)[6:]))),
+        "sigma_p_rad_median": float(np.median(np.sqrt(_variances(cov.prior)[6:]))),
     }  # fmt: skip
     print(json.dumps(res["training"]), flush=True)
 
@@ -193,6 +193,12 @@ def main(scale: str = "small", write: bool = True) -> dict:
     if write:
         _write(res)
     return res
+
+
+def _variances(cov) -> np.ndarray:
+    """Per-DOF variances of a covariance given as a matrix or as a vector of variances."""
+    a = np.asarray(cov)
+    return np.diag(a) if a.ndim == 2 else a
 
 
 def _recovery(err: np.ndarray, body_pixels: np.ndarray, valid: np.ndarray) -> dict:

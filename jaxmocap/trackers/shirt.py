@@ -37,7 +37,8 @@ nearer of the two patches of its colour in ``r^b`` (that tie-break only, no cost
 of Wang Fig. 9–10 is both switches off).
 
 **Loss and recovery.** A frame is *valid* when the shirt was found in some camera and at
-least ``MIN_VALID_PATCHES`` patch centroids were measured; otherwise ``q*`` holds the previous
+least ``MIN_VALID_PATCHES`` patch centroids were measured, and the render of the result agrees
+with the step-1 classification on ``min_agreement`` of its pixels; otherwise ``q*`` holds the previous
 pose and ``W`` is not updated. After an invalid frame the temporal prior is dropped
 (``q_h := q_b``), so the next valid frame starts afresh from the database.
 
@@ -104,6 +105,11 @@ IK_PASSES = 2
 # Not in the paper: Cauchy scale (standard deviations of Sigma_c) of the IK's centroid terms
 # (jaxmocap.ik.solve_ik(robust=...)); None: the paper's plain least squares.
 ROBUST_SCALE = 3.0
+# Not in the paper: a frame is valid only if the render of its first-round pose agrees with the
+# step-1 colour classification on at least this share of the rendered shirt pixels (agreeing
+# minus disagreeing): when the subject has left the view the search finds some clutter, and
+# tracking it would corrupt W and the temporal prior.
+MIN_AGREEMENT = 0.25
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
 
@@ -142,6 +148,7 @@ class ShirtParams(eqx.Module):
     ik_passes: int = eqx.field(static=True, default=IK_PASSES)
     robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
     temporal_start: bool = eqx.field(static=True, default=True)
+    min_agreement: float = eqx.field(static=True, default=MIN_AGREEMENT)
 
     @property
     def n_cams(self) -> int:
@@ -193,6 +200,7 @@ def make_params(
     ik_passes: int = IK_PASSES,
     robust: float | None = ROBUST_SCALE,
     temporal_start: bool = True,
+    min_agreement: float = MIN_AGREEMENT,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -204,7 +212,8 @@ def make_params(
     rounds from two starts, the placed blend ``q_b`` and the previous frame's pose, under
     ``jax.vmap``, keeping the result whose render agrees best with the step-1 colour
     classification (the paper starts from ``q_b`` only; a bad database match then leaves
-    the IK in a wrong basin although the previous frame was right)."""
+    the IK in a wrong basin although the previous frame was right); a frame is valid only if
+    that render agrees with the step-1 classification on ``min_agreement`` of its pixels."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if cams.K.ndim != 3:
@@ -225,7 +234,7 @@ def make_params(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
-        bool(temporal_start),
+        bool(temporal_start), float(min_agreement),
     )  # fmt: skip
 
 
@@ -438,26 +447,30 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         hits = render_all(q1)
         # agreement of the result's render with the step-1 colour classification (shared by
         # all starts, so comparable between them): agreeing minus disagreeing pixels
-        score = jnp.zeros((), dt)
+        score, shown = jnp.zeros((), dt), jnp.zeros((), dt)
         for i in range(n_cams):
             c1 = cls[i].ids
             both = (hits[i].colour > 0) & (c1 > 0) & okq[i]
             score = score + jnp.sum(both & (hits[i].colour == c1))
             score = score - jnp.sum(both & (hits[i].colour != c1))
-        return q1, c_obs, v_obs, hits, score
+            shown = shown + jnp.sum((hits[i].colour > 0) & okq[i])
+        return q1, c_obs, v_obs, hits, score / jnp.maximum(shown, 1.0)
 
     # the first round from each start (under vmap), the rest from the best one only
     if params.temporal_start:
         starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
         q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts)
         best = jnp.argmax(scores)
-        q_sol, c_obs, v_obs, hits = jax.tree.map(lambda a: a[best], (q_all, c_all, v_all, h_all))
+        q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(
+            lambda a: a[best], (q_all, c_all, v_all, h_all, scores)
+        )
     else:
-        q_sol, c_obs, v_obs, hits, _ = first_round(q_g)
+        q_sol, c_obs, v_obs, hits, agreement = first_round(q_g)
     for _ in range(params.ik_passes - 1):
         q_sol, c_obs, v_obs = one_round(q_sol, hits)
         hits = render_all(q_sol)
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+    valid = valid & (agreement >= params.min_agreement)
     q_star = jnp.where(valid, q_sol, state.q)
 
     # step 5: white balance for the next frame from r* (q* rendered in each crop)
