@@ -37,9 +37,10 @@ nearer of the two patches of its colour in ``r^b`` (that tie-break only, no cost
 of Wang Fig. 9–10 is both switches off).
 
 **Loss and recovery.** A frame is *valid* when the shirt was found in some camera and at
-least ``MIN_VALID_PATCHES`` patch centroids were measured, and the render of the result agrees
-with the step-1 classification on ``min_agreement`` of its pixels; otherwise ``q*`` holds the previous
-pose and ``W`` is not updated. After an invalid frame the temporal prior is dropped
+least ``MIN_VALID_PATCHES`` patch centroids were measured, and (when step 1 classified at least
+``GATE_MIN_FRACTION`` of a crop) the render of the result agrees with the step-1
+classification on ``min_agreement`` of its pixels; otherwise ``q*`` holds the previous pose
+and ``W`` is not updated. After an invalid frame the temporal prior is dropped
 (``q_h := q_b``), so the next valid frame starts afresh from the database.
 
 **Live vs scan.** ``step`` is pure and jit-compiled once per (camera count, image size,
@@ -110,6 +111,7 @@ ROBUST_SCALE = 3.0
 # minus disagreeing): when the subject has left the view the search finds some clutter, and
 # tracking it would corrupt W and the temporal prior.
 MIN_AGREEMENT = 0.25
+GATE_MIN_FRACTION = 0.2  # the gate applies only if step 1 classified this share in some camera
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
 
@@ -180,6 +182,7 @@ class ShirtOutput(eqx.Module):
     added_reference: Bool[Array, " n_cams"]
     centroids: Float[Array, "n_cams n_patches 2"]
     visible: Bool[Array, "n_cams n_patches"]
+    agreement: Float[Array, ""]  # render vs step-1 classification (the validity gate)
 
 
 def make_params(
@@ -470,7 +473,10 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         q_sol, c_obs, v_obs = one_round(q_sol, hits)
         hits = render_all(q_sol)
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-    valid = valid & (agreement >= params.min_agreement)
+    # the gate needs a usable step-1 classification: after a sudden lighting change it
+    # classifies almost nothing until W is re-fitted, and then says nothing about the pose
+    seen = jnp.max(jnp.stack([c.fraction for c in cls]) * okq) >= GATE_MIN_FRACTION
+    valid = valid & ((agreement >= params.min_agreement) | ~seen)
     q_star = jnp.where(valid, q_sol, state.q)
 
     # step 5: white balance for the next frame from r* (q* rendered in each crop)
@@ -502,6 +508,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         added_reference=jnp.stack(added),
         centroids=c_obs,
         visible=v_obs,
+        agreement=agreement,
     )
     return new_state, out
 
