@@ -903,8 +903,9 @@ def estimate_covariances(
     shared = _regularise(S_all / jnp.maximum(n_all, 1.0), COV_FLOOR_PX2)
     if robust:
         shared = _robust_second_moment(err.reshape(-1, 2), w.reshape(-1), shared)
-    floor = jnp.asarray(min_centroid_std, dt) ** 2 * jnp.eye(2, dtype=dt)
-    shared = jnp.maximum(shared, floor)
+    # raise the variances to the floor (the diagonal only: correlations are kept)
+    var = jnp.diagonal(shared)
+    shared = shared + jnp.diag(jnp.maximum(jnp.asarray(min_centroid_std, dt) ** 2 - var, 0.0))
     if per_patch:
         S_p = jnp.einsum("tcp,tcpi,tcpj->pij", w, err, err)
         n_p = w.sum((0, 1))

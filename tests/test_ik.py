@@ -412,6 +412,13 @@ def test_estimate_covariances_and_file_round_trip(scene, rng, tmp_path):
     dh = q_gt[1:] - q_prev[1:]
     np.testing.assert_allclose(cov4.prior, ridge(dh.T @ dh / (T - 1), ik.COV_FLOOR_Q), rtol=1e-8)
     np.testing.assert_allclose(np.diag(cov4.centroid), [9.0, 9.0], rtol=1e-12)
+    # no floor asked: the covariance is untouched, a negative correlation included
+    corr = obs.copy()
+    corr[..., 1] = np.where(vis, exact[..., 1] + noise[..., 0], np.nan)  # y error = -x error
+    cov5 = ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(corr),
+                                   jnp.asarray(vis), jnp.asarray(q_b))  # fmt: skip
+    assert float(cov5.centroid[0, 1]) < -1.0
+    np.testing.assert_array_equal(cov5.centroid[0, 1], cov5.centroid[1, 0])
 
     path = tmp_path / "ik_cov.npz"
     cov.save(path)
