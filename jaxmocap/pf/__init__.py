@@ -18,6 +18,7 @@ from jaxmocap.pf.filter import (
     run,
     step,
 )
+from jaxmocap.pf.guided import GuidedProposal, min_norm_steps
 from jaxmocap.pf.resample import (
     effective_sample_size,
     multinomial,
@@ -29,6 +30,7 @@ __all__ = [
     "ANNEAL_ALPHA",
     "DAMPING",
     "ERROR_SCALE",
+    "GuidedProposal",
     "RESAMPLE_THRESHOLD",
     "PFEstimate",
     "PFParams",
@@ -37,6 +39,7 @@ __all__ = [
     "effective_sample_size",
     "init",
     "init_uniform",
+    "min_norm_steps",
     "multinomial",
     "normalize_log_weights",
     "run",

@@ -418,6 +418,14 @@ class StereoLikelihood(eqx.Module):
     def full_q(self, s: Float[Array, " d"]) -> Float[Array, " n_dof"]:
         return self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
 
+    def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " k3"]:
+        """The distance cue's residuals valid_i (f_i(s) - c_i), flattened (3 k,) in m (zero
+        for a missing c_i): log p_d' = -|r|^2 / (2 sigma_d^2). The residual of the guided
+        proposal (:class:`jaxmocap.pf.guided.GuidedProposal`)."""
+        f = distance_points(self.model, pose_transforms(self.model, self.full_q(s)))
+        r = f - z.points.astype(s.dtype)
+        return jnp.where(z.valid[:, None], r, jnp.zeros_like(r)).reshape(-1)
+
     def __call__(self, s: Float[Array, " d"], z: Observation) -> Float[Array, ""]:
         tr = pose_transforms(self.model, self.full_q(s))
         ll = jnp.zeros((), s.dtype)

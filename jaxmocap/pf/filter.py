@@ -75,6 +75,7 @@ _RESAMPLERS = {
 _BOUNDARIES = ("clip", "reflect")
 
 LogLik = Callable[[Float[Array, " d"], Any], Float[Array, ""]]
+Proposal = Callable[[Float[Array, "n d"], Any, PRNGKeyArray], Float[Array, "n d"]]
 
 
 def _as_array(x: ArrayLike) -> Array:
@@ -90,6 +91,10 @@ class PFParams(eqx.Module):
     Arrays of shape (d,): ``lower``/``upper`` (joint limits; +-inf allowed for ``clip``),
     ``sigma_min``/``sigma_max`` (noise std range, state units). Scalars (traced, no recompile
     when changed): ``damping`` delta, ``error_scale`` e_0, ``resample_threshold``.
+    ``proposal(x (N, d), z, key) -> x'`` (optional, default None = Azad's plain prediction):
+    moves the predicted particles before they are weighed (e.g. toward measurements,
+    :class:`jaxmocap.pf.guided.GuidedProposal`); the box is re-applied after it and the
+    weights are not corrected for it.
     """
 
     loglik: LogLik
@@ -104,10 +109,15 @@ class PFParams(eqx.Module):
     )
     resampling: str = eqx.field(static=True, default="systematic")
     boundary: str = eqx.field(static=True, default="clip")
+    proposal: Proposal | None = None
 
     def __check_init__(self):
         if not callable(self.loglik):
             raise ValueError(f"PFParams.loglik: expected a callable, got {type(self.loglik)}")
+        if self.proposal is not None and not callable(self.proposal):
+            raise ValueError(
+                f"PFParams.proposal: expected a callable or None, got {type(self.proposal)}"
+            )
         if self.resampling not in _RESAMPLERS:
             raise ValueError(
                 f"PFParams.resampling: expected one of {sorted(_RESAMPLERS)}, "
@@ -204,6 +214,22 @@ def _predict(params: PFParams, state: PFState, key: PRNGKeyArray):
     return _constrain(x_new, params), x, prior_lw
 
 
+def _propose(params: PFParams, x, observation, key):
+    """The optional proposal move after the prediction (then the box again)."""
+    if params.proposal is None:
+        return x
+    return _constrain(params.proposal(x, observation, key), params)
+
+
+def _split_proposal_key(params: PFParams, key: PRNGKeyArray):
+    """(key for the prediction, key for the proposal); without a proposal the prediction keeps
+    the whole key, so Azad's filter draws exactly the same numbers with or without the hook."""
+    if params.proposal is None:
+        return key, key
+    k_pred, k_prop = jax.random.split(key)
+    return k_pred, k_prop
+
+
 def _finish(params, x_new, x_prev, lw, ll, degenerate) -> tuple[PFState, PFEstimate]:
     w = jnp.exp(lw)
     mean = w @ x_new
@@ -275,8 +301,11 @@ def init_uniform(
 def step(
     params: PFParams, state: PFState, observation: PyTree, key: PRNGKeyArray
 ) -> tuple[PFState, PFEstimate]:
-    """One Condensation frame: resample, predict (motion + adaptive noise), weigh, estimate."""
-    x_new, x_prev, prior_lw = _predict(params, state, key)
+    """One Condensation frame: resample, predict (motion + adaptive noise), [propose,] weigh,
+    estimate."""
+    k_pred, k_prop = _split_proposal_key(params, key)
+    x_new, x_prev, prior_lw = _predict(params, state, k_pred)
+    x_new = _propose(params, x_new, observation, k_prop)
     ll = _weigh(params, x_new, observation)
     lw, degenerate = _resample.normalize_log_weights(prior_lw + ll)
     return _finish(params, x_new, x_prev, lw, ll, degenerate)
@@ -293,13 +322,15 @@ def anneal_step(
 ) -> tuple[PFState, PFEstimate]:
     """One frame of the annealed particle filter (Deutscher et al. 2000), M = len(betas) layers.
 
-    Predict as :func:`step`; then for m = 1..M-1: weigh with beta_m * loglik, resample,
-    diffuse with sigma_m = clip(alpha * weighted std, sigma_min, sigma_max) and re-apply the box;
-    the last layer weighs with beta_M (normally 1) and gives the estimate. ``degenerate`` is
-    True if any layer degenerated.
+    Predict (and propose) as :func:`step`; then for m = 1..M-1: weigh with beta_m * loglik,
+    resample, diffuse with sigma_m = clip(alpha * weighted std, sigma_min, sigma_max) and
+    re-apply the box; the last layer weighs with beta_M (normally 1) and gives the estimate.
+    ``degenerate`` is True if any layer degenerated.
     """
     k_pred, k_layers = jax.random.split(key)
+    k_pred, k_prop = _split_proposal_key(params, k_pred)
     x, x_prev, _ = _predict(params, state, k_pred)
+    x = _propose(params, x, observation, k_prop)
     dtype = x.dtype
     n, d = x.shape
     betas = betas.astype(dtype)

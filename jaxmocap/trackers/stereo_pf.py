@@ -45,6 +45,7 @@ from jaxmocap.body.chain import ROOT_DOFS, so3_exp
 from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
+from jaxmocap.pf import guided as pf_guided
 from jaxmocap.pf.cues import Observation, StereoLikelihood
 from jaxmocap.segment import SegmentParams, segment_cv
 
@@ -85,6 +86,10 @@ INIT_BETAS = tuple(float(b) for b in np.geomspace(0.02, 1.0, 12))  # 12 annealin
 # plain Condensation step of Azad §II; more layers search the 14-D space better at a cost of one
 # likelihood evaluation of the N particles per layer (see docs/results/stereo_pf.md).
 STEP_BETAS = (1.0,)
+# Distance-cue-guided proposal (an extension beyond Azad, jaxmocap.pf.guided): after the
+# prediction a fraction of the particles takes a few damped minimum-norm Gauss-Newton steps
+# toward the triangulated head / hands; the metric's unit per DOF is the noise maximum.
+GUIDED = False
 FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in frame 0
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
@@ -142,12 +147,20 @@ def make_params(
     step_betas: Sequence[float] = STEP_BETAS,
     error_scale: float = ERROR_SCALE,
     damping: float = DAMPING,
+    guided: bool = GUIDED,
+    guided_fraction: float = pf_guided.GUIDED_FRACTION,
+    guided_steps: int = pf_guided.GUIDED_STEPS,
+    guided_damping: float = pf_guided.GUIDED_DAMPING,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
 
     ``dofs``: indices of the filtered DOFs (default the 14 of :func:`stereo_dofs`; the six root
     DOFs must be among them); the others stay at ``default_q`` (default the rest pose).
+    ``guided``: the distance-cue-guided proposal (not in Azad's paper; module docstring):
+    ``guided_fraction`` of the particles take ``guided_steps`` minimum-norm Gauss-Newton steps
+    (Levenberg damping ``guided_damping``, m^2) toward the triangulated head / hands after the
+    prediction, in the filter step and in the initialisation. ``guided=False`` is Azad's filter.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -181,6 +194,24 @@ def make_params(
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
     upper = np.asarray(model.chain.upper, np.float64)[dofs]
     kind = np.where(dofs < 3, 0, np.where(dofs < ROOT_DOFS, 1, 2))
+    if not 0.0 <= guided_fraction <= 1.0:
+        raise InputError(
+            f"stereo_pf.make_params: guided_fraction: expected in [0, 1], got {guided_fraction}"
+        )
+    if guided_steps < 1 or guided_damping <= 0:
+        raise InputError(
+            "stereo_pf.make_params: guided_steps / guided_damping: expected >= 1 / > 0, got "
+            f"{guided_steps} / {guided_damping}"
+        )
+    proposal = None
+    if guided:
+        proposal = pf.GuidedProposal(
+            residual=lik.distance_residual,
+            scale=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
+            damping=jnp.asarray(guided_damping, dtype),
+            fraction=float(guided_fraction),
+            n_steps=int(guided_steps),
+        )
     filt = pf.PFParams(
         loglik=lik,
         lower=jnp.asarray(lower, dtype),
@@ -190,6 +221,7 @@ def make_params(
         damping=jnp.asarray(damping, dtype),
         error_scale=jnp.asarray(error_scale, dtype),
         boundary="reflect",
+        proposal=proposal,
     )
     q0 = default_q.at[:ROOT_DOFS].set(0.0)
     head_rest = keypoints(model, q0)[keypoint_index(model, "head")[0]]
