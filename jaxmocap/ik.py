@@ -849,6 +849,7 @@ def estimate_covariances(
     diagonal: bool = False,
     q_h: Float[Array, "n_frames n_dof"] | None = None,
     min_centroid_std: float | Float[Array, ""] = 0.0,
+    sequence_start: Bool[Array, " n_frames"] | None = None,
 ) -> IKCovariances:
     """Train Sigma_c, Sigma_b, Sigma_p on a ground-truth sequence (Wang et al. §5.2 step 4).
 
@@ -879,6 +880,9 @@ def estimate_covariances(
     evaluates it, tracking error included (default: the ground truth's previous frame, the
     pure motion). ``min_centroid_std`` (pixels) floors the variances of Sigma_c (e.g. at the
     tracker's working-grid pixel, below which its centroids are not resolved).
+    ``sequence_start`` marks the first frame of each of several training sequences stacked
+    along the frame axis (pooled training): a frame so marked has no temporal term (its
+    predecessor belongs to another sequence); frame 0 never has one.
     """
     if q_gt.ndim != 2 or q_gt.shape[0] < 2 or q_b.shape != q_gt.shape:
         raise ValueError(
@@ -916,8 +920,16 @@ def estimate_covariances(
     ones = jnp.ones(n_f, dt)
     Sb, nb = _second_moment(q_gt - q_b.astype(dt), ones)
     prev = q_gt[:-1] if q_h is None else q_h[1:].astype(dt)
-    Sp, np_ = _second_moment(q_gt[1:] - prev, ones[1:])
-    blend, prior = _regularise(Sb / nb, COV_FLOOR_Q), _regularise(Sp / np_, COV_FLOOR_Q)
+    w_p = ones[1:]
+    if sequence_start is not None:
+        if sequence_start.shape != (n_f,):
+            raise ValueError(
+                f"estimate_covariances: sequence_start {sequence_start.shape}, expected ({n_f},)"
+            )
+        w_p = jnp.where(jnp.asarray(sequence_start, bool)[1:], 0.0, w_p)
+    Sp, np_ = _second_moment(q_gt[1:] - prev, w_p)
+    blend = _regularise(Sb / nb, COV_FLOOR_Q)
+    prior = _regularise(Sp / jnp.maximum(np_, 1.0), COV_FLOOR_Q)
     if diagonal:
         blend, prior = jnp.diagonal(blend), jnp.diagonal(prior)
     return IKCovariances(centroid=sigma_c, blend=blend, prior=prior)

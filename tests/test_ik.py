@@ -420,6 +420,23 @@ def test_estimate_covariances_and_file_round_trip(scene, rng, tmp_path):
     assert float(cov5.centroid[0, 1]) < -1.0
     np.testing.assert_array_equal(cov5.centroid[0, 1], cov5.centroid[1, 0])
 
+    # pooled training: two sequences stacked, the second's first frame has no temporal pair
+    # (NumPy oracle: the moments of the within-sequence pairs only)
+    start = np.zeros(T, bool)
+    start[3] = True
+    cov6 = ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(obs),
+                                   jnp.asarray(vis), jnp.asarray(q_b), q_h=jnp.asarray(q_prev),
+                                   sequence_start=jnp.asarray(start))  # fmt: skip
+    pairs = np.delete(dh, 2, axis=0)  # the pair (frame 3 vs previous output) dropped
+    np.testing.assert_allclose(
+        cov6.prior, ridge(pairs.T @ pairs / (T - 2), ik.COV_FLOOR_Q), rtol=1e-8
+    )
+    np.testing.assert_allclose(cov6.blend, cov.blend, rtol=1e-12)  # every frame has a blend
+    with pytest.raises((ValueError, TypeError), match="sequence_start"):  # beartype first
+        ik.estimate_covariances(cams, chain, anchors, jnp.asarray(q_gt), jnp.asarray(obs),
+                                jnp.asarray(vis), jnp.asarray(q_b),
+                                sequence_start=jnp.zeros(T - 1, bool))  # fmt: skip
+
     path = tmp_path / "ik_cov.npz"
     cov.save(path)
     back = ik.IKCovariances.load(path)

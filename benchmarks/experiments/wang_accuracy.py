@@ -59,7 +59,10 @@ SHIRT_JOINTS = ("chest", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow
 # 128-px working grid spans about one 320x240 pixel per cell at these distances).
 MIN_CENTROID_STD_PX = 1.0
 RECOVERY_MARGIN_CM = 2.0  # "recovered": shirt-joint error within this of the pre-exit mean
-TRAIN_CLIP = "humanoid3d_dance_a"
+# Covariances are trained on these TRAIN_CLIPS sequences pooled (one clip's moments did not
+# transfer: dance_a alone gave Sigma_p a 2-3 cm root translation and left dance_b in a wrong
+# basin; docs/results/shirt.md)
+COV_TRAIN_CLIPS = ("humanoid3d_dance_a", "humanoid3d_walk", "humanoid3d_kick")
 SHOULDER_DOF = "r_shoulder"  # Fig. 10 traces the one of these DOFs that moves most
 
 
@@ -82,6 +85,29 @@ def _setup(seq, model, garment, db, cov, color, **flags):
         color, model, garment, cams, anchors_from_garment(model, garment), cov, db, **flags
     )
     return params, shirt.init(params, W0, jnp.zeros(model.n_dof, jnp.float32))
+
+
+def train_covariances(model, runs) -> IKCovariances:
+    """IK covariances pooled over tracked training sequences ``runs`` = [(params, seq, out)]
+    (module docstring, step 1): every run's frames stacked, each run's first frame without a
+    temporal term (``estimate_covariances(sequence_start=...)``)."""
+    q_gt, cen, vis, q_b, q_h, start = [], [], [], [], [], []
+    for params, seq, out in runs:
+        q = jnp.asarray(seq.groundtruth["q"], jnp.float32)
+        # the model's centroids at the truth as the tracker's per-view anchors predict them:
+        # the truth rendered in the tracker's crops
+        pred = jax.vmap(shirt.model_centroids, in_axes=(None, 0, 0))(params, q, out.window)
+        q_gt.append(q), cen.append(out.centroids), q_b.append(out.q_blend)
+        vis.append(out.visible & out.valid[:, None, None] & pred.valid)
+        q_h.append(jnp.concatenate([out.q[:1], out.q[:-1]]))  # temporal term: previous output
+        start.append(jnp.arange(q.shape[0]) == 0)
+    cat = lambda xs: jnp.concatenate(xs)  # noqa: E731
+    params = runs[0][0]
+    return estimate_covariances(
+        params.cams, model.chain, params.anchors, cat(q_gt), cat(cen), cat(vis), cat(q_b),
+        robust=True, diagonal=True, q_h=cat(q_h), min_centroid_std=MIN_CENTROID_STD_PX,
+        sequence_start=cat(start),
+    )  # fmt: skip
 
 
 def _track(params, state, frames):
@@ -109,25 +135,23 @@ def main(scale: str = "small", write: bool = True) -> dict:
     res: dict = {"scale": scale, "db_size": s["db_size"], "width": 320, "height": 240,
                  "runs": []}  # fmt: skip
 
-    # 1. covariance training on a TRAIN_CLIPS sequence (two cameras, no lighting step)
-    train = render_sequence(_scene(TRAIN_CLIP, s["train_frames"], 2, False), jnp.float32)
-    color = shirt.fit_color_model_from_renders(model, garment, poses, train.cameras[0])
+    # 1. covariance training on TRAIN_CLIPS sequences pooled (two cameras, no lighting step)
     iso = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
-    params, state = _setup(train, model, garment, db, iso, color)
-    out, wall = _track(params, state, train.frames)
-    q_gt = jnp.asarray(train.groundtruth["q"], jnp.float32)
-    # the model's centroids at the truth, as the tracker's per-view anchors predict them: the
-    # truth rendered in the tracker's crops
-    pred = jax.vmap(shirt.model_centroids, in_axes=(None, 0, 0))(params, q_gt, out.window)
-    vis_tr = out.visible & out.valid[:, None, None] & pred.valid
-    q_h = jnp.concatenate([out.q[:1], out.q[:-1]])  # the temporal term's q_h: previous output
-    cov = estimate_covariances(params.cams, model.chain, params.anchors, q_gt, out.centroids,
-                               vis_tr, out.q_blend, predicted=pred.xy, robust=True,
-                               diagonal=True, q_h=q_h, min_centroid_std=MIN_CENTROID_STD_PX)
-    cov.save(ROOT / "docs" / "results" / "shirt_ik_cov.npz")  # saved with the model
-    e_tr = np.linalg.norm(np.asarray(kp(out.q)) - train.groundtruth["keypoints"], axis=-1)
+    runs, e_tr = [], []
+    for k, clip in enumerate(COV_TRAIN_CLIPS):
+        train = render_sequence(_scene(clip, s["train_frames"], 2, False), jnp.float32)
+        if k == 0:
+            color = shirt.fit_color_model_from_renders(model, garment, poses, train.cameras[0])
+        params, state = _setup(train, model, garment, db, iso, color)
+        out, wall = _track(params, state, train.frames)
+        runs.append((params, train, out))
+        e_tr.append(np.linalg.norm(np.asarray(kp(out.q)) - train.groundtruth["keypoints"], -1))
+    cov = train_covariances(model, runs)
+    if write:
+        cov.save(ROOT / "docs" / "results" / "shirt_ik_cov.npz")  # saved with the model
+    e_tr = np.concatenate(e_tr)
     res["training"] = {
-        "clip": TRAIN_CLIP, "frames": s["train_frames"],
+        "clip": ", ".join(COV_TRAIN_CLIPS), "frames": s["train_frames"],
         "mean_cm_isotropic": float(100 * e_tr.mean()),
         "mean_cm_shirt_isotropic": float(100 * e_tr[:, shirt_idx].mean()),
         "sigma_c_px": np.sqrt(np.diag(np.asarray(cov.centroid))).round(2).tolist(),

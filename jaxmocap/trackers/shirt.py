@@ -41,7 +41,10 @@ least ``MIN_VALID_PATCHES`` patch centroids were measured, and (when step 1 clas
 ``GATE_MIN_FRACTION`` of a crop) the render of the result agrees with the step-1
 classification on ``min_agreement`` of its pixels; otherwise ``q*`` holds the previous pose
 and ``W`` is not updated. After an invalid frame the temporal prior is dropped
-(``q_h := q_b``), so the next valid frame starts afresh from the database.
+(``q_h := q_b``), so the next valid frame starts afresh from the database; on such a
+*reacquisition* frame (and the first frame) the second start is the blend measured without
+the pose prior and extra rounds run, and for a few frames after it the temporal prior is
+widened by Sigma_b (``make_params``: ``reacquire_*``; not in the paper).
 
 **Live vs scan.** ``step`` is pure and jit-compiled once per (camera count, image size,
 settings); ``run`` loops over frames in Python (live video, optionally with OpenCV's MOG2
@@ -111,6 +114,11 @@ ROBUST_SCALE = 3.0
 # minus disagreeing): when the subject has left the view the search finds some clutter, and
 # tracking it would corrupt W and the temporal prior.
 MIN_AGREEMENT = 0.25
+# Not in the paper: after a loss (first frame, or after an invalid frame) the second start's
+# first round uses the step-1 classification (no pose prior) and this many extra rounds run.
+REACQUIRE_PASSES = 2
+# Not in the paper: frames after a loss during which the temporal prior is widened by Sigma_b.
+REACQUIRE_FRAMES = 3
 GATE_MIN_FRACTION = 0.2  # the gate applies only if step 1 classified this share in some camera
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
@@ -151,6 +159,9 @@ class ShirtParams(eqx.Module):
     robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
     temporal_start: bool = eqx.field(static=True, default=True)
     min_agreement: float = eqx.field(static=True, default=MIN_AGREEMENT)
+    reacquire_start: bool = eqx.field(static=True, default=True)
+    reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
+    reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
 
     @property
     def n_cams(self) -> int:
@@ -165,6 +176,7 @@ class ShirtState(eqx.Module):
     refs: ReferenceIlluminations  # batched over cameras
     q: Float[Array, " n_dof"]
     valid: Bool[Array, ""]
+    tracked: Int[Array, ""]  # consecutive valid frames up to the previous one (0: lost)
 
 
 class ShirtOutput(eqx.Module):
@@ -204,6 +216,9 @@ def make_params(
     robust: float | None = ROBUST_SCALE,
     temporal_start: bool = True,
     min_agreement: float = MIN_AGREEMENT,
+    reacquire_start: bool = True,
+    reacquire_passes: int = REACQUIRE_PASSES,
+    reacquire_frames: int = REACQUIRE_FRAMES,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -216,9 +231,24 @@ def make_params(
     ``jax.vmap``, keeping the result whose render agrees best with the step-1 colour
     classification (the paper starts from ``q_b`` only; a bad database match then leaves
     the IK in a wrong basin although the previous frame was right); a frame is valid only if
-    that render agrees with the step-1 classification on ``min_agreement`` of its pixels."""
+    that render agrees with the step-1 classification on ``min_agreement`` of its pixels.
+
+    After a loss (the first frame, or any frame after an invalid one) there is no previous
+    pose to start from: with ``reacquire_start`` (and ``temporal_start``) the second start
+    is then the placed blend measured *without* the pose prior (step-1 classification, each
+    pixel given to the nearer patch of its colour), which a blend in a wrong basin cannot
+    mislead; ``reacquire_passes`` extra rounds run on such frames (``lax.cond``: no cost on
+    tracked frames). For the ``reacquire_frames`` frames after a loss the temporal term's
+    covariance is ``Sigma_p + Sigma_b``: its ``q_h`` comes from a cold start, whose error is of
+    the blend's order, not the tracked steady state that ``Sigma_p`` was trained on. All three
+    off (``reacquire_start=False, reacquire_passes=0, reacquire_frames=0``): the session-2
+    behaviour."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
+    if reacquire_frames < 0:
+        raise ValueError(f"make_params: reacquire_frames must be >= 0, got {reacquire_frames}")
+    if reacquire_passes < 0:
+        raise ValueError(f"make_params: reacquire_passes must be >= 0, got {reacquire_passes}")
     if cams.K.ndim != 3:
         raise ValueError("make_params: cams must be stacked (jaxmocap.camera.stack_cameras)")
     if anchors.n_patches != garment.n_patches:
@@ -237,7 +267,8 @@ def make_params(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
-        bool(temporal_start), float(min_agreement),
+        bool(temporal_start), float(min_agreement), bool(reacquire_start),
+        int(reacquire_passes), int(reacquire_frames),
     )  # fmt: skip
 
 
@@ -251,7 +282,9 @@ def init(
     if W0.shape != (params.n_cams, 3, 3):
         raise ValueError(f"init: W0 must be ({params.n_cams}, 3, 3), got {W0.shape}")
     refs = jax.vmap(init_references)(W0)
-    return ShirtState(W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False))
+    return ShirtState(
+        W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False), tracked=jnp.array(0, jnp.int32)
+    )
 
 
 # ----------------------------------------------------------------------------- image helpers
@@ -337,6 +370,15 @@ def _root_guess(params: ShirtParams, q_db: Array, win_db: Array, win_q: Array, i
     return q[:6]
 
 
+def _widened(prior: Array, blend: Array, fresh: Array) -> Array:
+    """``Sigma_p + Sigma_b`` where ``fresh``, else ``Sigma_p`` (each a matrix or a vector of
+    variances; a matrix if either is)."""
+    if prior.ndim != blend.ndim:
+        prior = jnp.diag(prior) if prior.ndim == 1 else prior
+        blend = jnp.diag(blend) if blend.ndim == 1 else blend
+    return jnp.where(fresh, prior + blend.astype(prior.dtype), prior)
+
+
 def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
     n = params.work_size
     P = params.garment.n_patches
@@ -410,14 +452,24 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     uv_all = jnp.stack(uvs)
     q_h = jnp.where(state.valid, state.q, q_g)
     chain = params.body.chain
+    cov = params.cov
+    if params.reacquire_frames:
+        # q_h from a cold start: its error is of the blend's order (Sigma_b), not Sigma_p's
+        fresh = state.tracked < params.reacquire_frames
+        cov = eqx.tree_at(
+            lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh)
+        )
 
-    def measure(hits_i, i):
+    def measure(hits_i, i, plain):
         dist = patch_distance_maps(hits_i.patch, P, dt)
         W_i = cls[i].W
         if params.pose_prior:
             weight = PRIOR_SCALE / s_found[i] * (windows[i][2] / n)  # C = 6/s', d in image px
+            # ``plain``: the ablation's measurement (step-1 threshold, distance a tie-break)
+            weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
+            thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
             pa = pose_assisted_classify(
-                params.color, W_i, crops[i], dist, patch_colour, weight, fgs[i], POSE_THRESHOLD
+                params.color, W_i, crops[i], dist, patch_colour, weight, fgs[i], thr
             )
         else:
             pa = pose_assisted_classify(
@@ -431,8 +483,8 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         return [render_uv(params.body, params.garment, q, cam_i[i], uvs[i])
                 for i in range(n_cams)]  # fmt: skip
 
-    def one_round(q, hits):
-        meas = [measure(hits[i], i) for i in range(n_cams)]
+    def one_round(q, hits, plain=False):
+        meas = [measure(hits[i], i, plain) for i in range(n_cams)]
         c_obs = jnp.stack([m.xy for m in meas])
         v_obs = jnp.stack([m.valid for m in meas])
         if params.view_anchors:
@@ -441,12 +493,12 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
                                     jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
         else:
             anchors = params.anchors
-        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, params.cov, q,
+        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, cov, q,
                        robust=params.robust)  # fmt: skip
         return sol.q, c_obs, v_obs
 
-    def first_round(q_start):
-        q1, c_obs, v_obs = one_round(q_start, render_all(q_start))
+    def first_round(q_start, plain):
+        q1, c_obs, v_obs = one_round(q_start, render_all(q_start), plain)
         hits = render_all(q1)
         # agreement of the result's render with the step-1 colour classification (shared by
         # all starts, so comparable between them): agreeing minus disagreeing pixels
@@ -460,18 +512,33 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         return q1, c_obs, v_obs, hits, score / jnp.maximum(shown, 1.0)
 
     # the first round from each start (under vmap), the rest from the best one only
+    # (after a loss there is no previous pose: the second start is then the blend measured
+    # without the pose prior, ``reacquire_start``)
+    reacquire = ~state.valid
     if params.temporal_start:
         starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
-        q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts)
+        plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
+        q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts, plain)
         best = jnp.argmax(scores)
         q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(
             lambda a: a[best], (q_all, c_all, v_all, h_all, scores)
         )
     else:
-        q_sol, c_obs, v_obs, hits, agreement = first_round(q_g)
-    for _ in range(params.ik_passes - 1):
-        q_sol, c_obs, v_obs = one_round(q_sol, hits)
-        hits = render_all(q_sol)
+        q_sol, c_obs, v_obs, hits, agreement = first_round(q_g, jnp.array(False))
+
+    def rounds(k, carry):
+        q_sol, c_obs, v_obs, hits = carry
+        for _ in range(k):
+            q_sol, c_obs, v_obs = one_round(q_sol, hits)
+            hits = render_all(q_sol)
+        return q_sol, c_obs, v_obs, hits
+
+    carry = rounds(params.ik_passes - 1, (q_sol, c_obs, v_obs, hits))
+    if params.reacquire_passes:
+        carry = jax.lax.cond(
+            reacquire, lambda c: rounds(params.reacquire_passes, c), lambda c: c, carry
+        )
+    q_sol, c_obs, v_obs, hits = carry
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
     # the gate needs a usable step-1 classification: after a sudden lighting change it
     # classifies almost nothing until W is re-fitted, and then says nothing about the pose
@@ -497,7 +564,8 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
             W_new.append(state.W[i]), added.append(jnp.array(False))
         refs_new.append(refs_i)
     refs = jax.tree.map(lambda *a: jnp.stack(a), *refs_new)
-    new_state = ShirtState(W=jnp.stack(W_new), refs=refs, q=q_star, valid=valid)
+    tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
+    new_state = ShirtState(W=jnp.stack(W_new), refs=refs, q=q_star, valid=valid, tracked=tracked)
     out = ShirtOutput(
         q=q_star,
         q_blend=q_g,
