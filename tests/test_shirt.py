@@ -114,6 +114,45 @@ def test_step_recovers_a_database_pose_without_recompiling(setup):
     assert not bool(jnp.any(out.added_reference))
 
 
+def test_loss_and_reacquisition(setup):
+    """The subject gone (a blank frame): the frame is invalid, the pose held and the tracked
+    count reset; back in view, the next frame is a reacquisition (second start without the
+    pose prior, extra rounds, widened temporal prior) and is within tolerance at once."""
+    p, model = setup["params"], setup["model"]
+    kp = jax.jit(lambda q: keypoints(model, q))
+    truth = np.asarray(kp(setup["q_true"]))
+    state = shirt.init(p, setup["W0"], jnp.zeros(model.n_dof))
+    assert int(state.tracked) == 0
+    for k in (1, 2):
+        state, out = shirt.step(p, state, setup["frames"])
+        assert bool(out.valid) and int(state.tracked) == k
+    blank = np.full_like(setup["frames"], 128)
+    held = np.asarray(state.q)
+    state, lost = shirt.step(p, state, blank)
+    assert not bool(lost.valid) and int(state.tracked) == 0
+    np.testing.assert_array_equal(np.asarray(lost.q), held)
+    state, back = shirt.step(p, state, setup["frames"])
+    assert bool(back.valid) and int(state.tracked) == 1
+    assert np.linalg.norm(np.asarray(kp(back.q)) - truth, axis=-1).mean() < 0.08
+
+
+def test_widened_temporal_covariance_matches_numpy(rng):
+    """Sigma_p + Sigma_b for the frames after a loss, for vectors of variances and matrices."""
+    a = rng.uniform(0.1, 1.0, 5)
+    B = rng.normal(size=(5, 5))
+    B = B @ B.T
+    for prior, blend, ref in (
+        (a, 2 * a, 3 * a),
+        (a, B, np.diag(a) + B),
+        (B, a, B + np.diag(a)),
+    ):
+        got = shirt._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(True))
+        np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-12)
+        kept = shirt._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(False))
+        np.testing.assert_allclose(np.asarray(kept), np.diag(prior) if ref.ndim > prior.ndim
+                                   else prior, rtol=1e-12)  # fmt: skip
+
+
 def test_ablation_switches_change_the_program(setup):
     p = setup["params"]
     state = shirt.init(p, setup["W0"], jnp.zeros(p.body.n_dof))
@@ -128,6 +167,10 @@ def test_ablation_switches_change_the_program(setup):
     no_prior = n_eqns(dataclasses.replace(p, pose_prior=False))
     assert no_wb < full  # no W* refit, no rendering of r*
     assert no_prior != full
+    paper_loss = dataclasses.replace(
+        p, reacquire_start=False, reacquire_passes=0, reacquire_frames=0
+    )
+    assert n_eqns(paper_loss) < full  # no lax.cond of extra rounds, no widened prior
 
 
 def test_invalid_inputs(setup):

@@ -49,7 +49,10 @@ SCALES = {
     "small": dict(n_frames=20, db_size=3000, train_frames=20, heldout=HELDOUT_CLIPS[:1],
                   cameras=(2, 1), recovery=(40, (3, 33))),
     "full": dict(n_frames=30, db_size=80000, train_frames=30, heldout=HELDOUT_CLIPS[:2],
-                 cameras=(2, 1), recovery=(40, (3, 33))),
+                 cameras=(2,), recovery=(40, (3, 33))),
+    # one camera at full scale (32-64 cm in session 2, far from the 3 cm goal) as its own run
+    "full1": dict(n_frames=30, db_size=80000, train_frames=30, heldout=HELDOUT_CLIPS[:2],
+                  cameras=(1,), recovery=None, load_cov=True),
 }  # fmt: skip
 # The joints the shirt observes (its patches cover the torso and arms): the head's and hands'
 # orientations are not seen by any patch and come from the database blend alone.
@@ -138,22 +141,29 @@ def main(scale: str = "small", write: bool = True) -> dict:
     # 1. covariance training on TRAIN_CLIPS sequences pooled (two cameras, no lighting step)
     iso = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
     runs, e_tr = [], []
+    cov_file = ROOT / "docs" / "results" / "shirt_ik_cov.npz"
     for k, clip in enumerate(COV_TRAIN_CLIPS):
         train = render_sequence(_scene(clip, s["train_frames"], 2, False), jnp.float32)
         if k == 0:
             color = shirt.fit_color_model_from_renders(model, garment, poses, train.cameras[0])
+        if s.get("load_cov"):  # the covariances of the committed "full" run
+            break
         params, state = _setup(train, model, garment, db, iso, color)
         out, wall = _track(params, state, train.frames)
         runs.append((params, train, out))
-        e_tr.append(np.linalg.norm(np.asarray(kp(out.q)) - train.groundtruth["keypoints"], -1))
-    cov = train_covariances(model, runs)
-    if write:
-        cov.save(ROOT / "docs" / "results" / "shirt_ik_cov.npz")  # saved with the model
-    e_tr = np.concatenate(e_tr)
+        e_tr.append(np.linalg.norm(np.asarray(kp(out.q)) - train.groundtruth["keypoints"], axis=-1))
+    if s.get("load_cov"):
+        cov = IKCovariances.load(cov_file)
+        e_tr = np.zeros((0, len(model.keypoint_names)))
+    else:
+        cov = train_covariances(model, runs)
+        if write:
+            cov.save(cov_file)  # saved with the model
+        e_tr = np.concatenate(e_tr)
     res["training"] = {
         "clip": ", ".join(COV_TRAIN_CLIPS), "frames": s["train_frames"],
-        "mean_cm_isotropic": float(100 * e_tr.mean()),
-        "mean_cm_shirt_isotropic": float(100 * e_tr[:, shirt_idx].mean()),
+        "mean_cm_isotropic": float(100 * e_tr.mean()) if e_tr.size else None,
+        "mean_cm_shirt_isotropic": float(100 * e_tr[:, shirt_idx].mean()) if e_tr.size else None,
         "sigma_c_px": np.sqrt(np.diag(np.asarray(cov.centroid))).round(2).tolist(),
         "sigma_b_rad_median": float(np.median(np.sqrt(_variances(cov.blend)[6:]))),
         "sigma_p_rad_median": float(np.median(np.sqrt(_variances(cov.prior)[6:]))),
@@ -201,6 +211,11 @@ def main(scale: str = "small", write: bool = True) -> dict:
                 res["runs"].append(r)
 
     # 3. recovery: the subject walks out of both views and back (full tracker, 2 cameras)
+    if s["recovery"] is None:
+        if write:  # a separate file: no plots, the main run's JSON untouched
+            path = ROOT / "docs" / "results" / f"shirt_accuracy_{scale}.json"
+            path.write_text(json.dumps(res, indent=1) + "\n")
+        return res
     n_rec, leave = s["recovery"]
     cfg = SceneConfig(clip=s["heldout"][0], n_frames=n_rec, n_cameras=2, width=320, height=240,
                       background="clutter", noise_sigma=0.01, seed=2, leave_view=leave)

@@ -37,6 +37,7 @@ CACHE = Path("/tmp/wang_dev")
 CACHE.mkdir(exist_ok=True)
 DB_SIZE = 3000
 N_FRAMES = 20
+DIAG = False
 
 
 def _seq(cfg: SceneConfig):
@@ -76,6 +77,9 @@ def _flags(args):
 
 
 def main(argv):
+    global DIAG
+    if argv[0] == "diag":
+        DIAG, argv = True, ["recovery"] + argv[1:]
     model, garment, db, color = _base()
     kp = jax.jit(jax.vmap(lambda q: keypoints(model, q)))
     sidx = [model.keypoint_names.index(n) for n in wa.SHIRT_JOINTS]
@@ -138,6 +142,16 @@ def _evaluate(cmd, cname, fargs, model, garment, db, color, kp, sidx):
         r = wa._recovery(err[:, sidx].mean(1), np.asarray(seq.groundtruth["body_pixels"]),
                          np.asarray(out.valid))  # fmt: skip
         r["valid"] = "".join("1" if v else "0" for v in r["valid"])
+        if DIAG:
+            e = np.linalg.norm(np.asarray(kp(out.q)) - seq.groundtruth["keypoints"], axis=-1)
+            eb = np.linalg.norm(np.asarray(kp(out.q_blend)) - seq.groundtruth["keypoints"], axis=-1)
+            bp = np.asarray(seq.groundtruth["body_pixels"])
+            for t in range(26, n_rec):
+                print(t, int(out.valid[t]), f"agr {float(out.agreement[t]):.2f}",
+                      f"blend {100 * eb[t][sidx].mean():.1f}",
+                      "frac", np.asarray(out.fraction[t]).round(2).tolist(),
+                      "px", bp[t].tolist(), "vis", int(np.asarray(out.visible[t]).sum()),
+                      dict(zip(wa.SHIRT_JOINTS, (100 * e[t][sidx]).round(1).tolist())))
         print(json.dumps(r | {"cov": cname, "flags": fargs, "wall": round(wall)}), flush=True)
 
 
