@@ -79,6 +79,9 @@ MAX_AREA_CHANGE = 0.3  # a matched blob pair shrinking/growing more than this pe
 AREA_PATIENCE = 2  # ... unless the new size persists: after this many consecutive rejected
 # frames the blob is accepted at its new size (a hand turning or nearing the cameras; without
 # it a dance_b hand was coasted for 8 frames while seen, 85 cm off at the end)
+REPORT_COAST = MAX_COAST  # coasting frames for which the predicted position is still output as
+# valid (the entity is tracked internally up to max_coast either way); fewer hands the distance
+# cue only measured points -- a hand hidden behind the torso drifts with its old velocity
 COAST_DAMPING = 1.0  # velocity factor per coasting frame: a hand hidden mid-swing stops near
 # where it vanished instead of flying on (undamped, 8 coasting frames of a 25 Hz punch carried
 # the hand 1-1.7 m away on our held-out clips; the distance cue then pulls the arm off)
@@ -98,6 +101,7 @@ class BlobParams:
     gate: float = GATE_M
     gate_growth: float = GATE_GROWTH_M
     max_coast: int = MAX_COAST
+    report_coast: int = REPORT_COAST
     reacquire: float = REACQUIRE_M
     velocity_smoothing: float = VELOCITY_SMOOTHING
     max_area_change: float = MAX_AREA_CHANGE
@@ -107,7 +111,7 @@ class BlobParams:
     refine_triangulation: bool = REFINE_TRIANGULATION
 
     def __post_init__(self):
-        for name in ("min_area", "max_blobs", "max_coast", "area_patience"):
+        for name in ("min_area", "max_blobs", "max_coast", "report_coast", "area_patience"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < (1 if name == "max_blobs" else 0):
                 raise ValueError(f"BlobParams.{name}: expected a non-negative int, got {v!r}")
@@ -185,7 +189,10 @@ class BlobState:
 
     @property
     def valid(self) -> Bool[np.ndarray, " 3"]:
-        return self.status != MISSING
+        """Measured, or predicted for at most ``params.report_coast`` frames."""
+        return (self.status == MEASURED) | (
+            (self.status == PREDICTED) & (self.coast <= self.params.report_coast)
+        )
 
     @property
     def points3d(self) -> Float[np.ndarray, "3 3"]:

@@ -251,3 +251,28 @@ def test_persistent_blob_size_change_is_accepted(rng):
     assert_close(cams, pts[:2], pose[:2])
     # the bigger disc (r ~ 11 px) quantises differently: its depth is within 5 cm
     assert np.linalg.norm(pts[2] - pose[2]) < 0.05
+
+
+def test_report_coast_limits_the_predicted_positions_handed_out(rng):
+    """``report_coast`` = 1: the same merge as above, but a hand carried by the motion model is
+    handed to the distance cue for one frame only (then zero / invalid, Azad's missing c_i)
+    while the tracker keeps it internally and re-acquires it with its identity."""
+    cams = stereo_cams()
+    n = 14
+    t = np.arange(n)
+    head = np.tile([0.0, 0.0, 1.6], (n, 1))
+    left = np.stack([0.2 + 0.0 * t, 0.35 - 0.005 * t, 1.05 + 0.004 * t], -1)
+    right = np.stack([-0.15 + 0.0 * t, -0.36 + 0.07 * t, 1.6 + 0.0 * t], -1)
+    traj = np.stack([head, left, right], 1)
+    out = run(cams, traj, rng, B.BlobParams(report_coast=1))
+    status = np.array([s.status for s, _, _ in out])
+    coast = np.array([s.coast for s, _, _ in out])
+    valid = np.array([v for _, _, v in out])
+    pts = np.array([p for _, p, _ in out])
+    predicted = status[:, 2] == B.PREDICTED
+    assert predicted.sum() >= 3
+    np.testing.assert_array_equal(valid[:, 2], ~predicted | (coast[:, 2] <= 1))
+    assert np.all(pts[~valid[:, 2], 2] == 0)
+    assert np.all(status[-3:, 2] == B.MEASURED) and valid[-3:].all()  # re-acquired
+    with pytest.raises(ValueError, match="report_coast"):
+        B.BlobParams(report_coast=-1)

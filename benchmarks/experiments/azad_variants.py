@@ -1,6 +1,7 @@
 """Ad-hoc variant runs of the stereo particle filter over several keys (the session's
 comparisons in ``docs/results/stereo_pf.md``): each variant is a set of ``make_params``
-keyword arguments; prints the mean joint error (cm, shoulders + elbows + hands) per clip and key
+keyword arguments (``"_blobs": {...}``: ``BlobParams`` overrides); prints the mean joint
+error (cm, shoulders + elbows + hands) per clip and key
 and the mean over keys. Observations are computed once per clip.
 
     python benchmarks/experiments/azad_variants.py CLIP[,CLIP] KEYS 'name:{"kw": v}' ...
@@ -21,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from azad_accuracy import JOINTS  # noqa: E402
 from azad_render import config, load  # noqa: E402
 
+from jaxmocap import blobs as bloblib  # noqa: E402
 from jaxmocap.body import default_body, keypoint_index, keypoints  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
@@ -54,14 +56,24 @@ def main(argv):
     for clip in clips:
         d = load(clip, 40)
         cams = make_cameras(config(clip, 40), jnp.float32)
-        obs = sp.observe_sequence(sp.make_params(cams, segment=SEG), d["frames"])
+        cache = {}
         for name, kw in variants:
+            kw = dict(kw)
+            bkw = kw.pop("_blobs", {})  # BlobParams overrides
+            tag = json.dumps(bkw, sort_keys=True)
+            if tag not in cache:
+                cache[tag] = sp.observe_sequence(
+                    sp.make_params(cams, segment=SEG), d["frames"], bloblib.BlobParams(**bkw)
+                )
+            obs = cache[tag]
             t = time.perf_counter()
             errs = [run_variant(clip, d, obs, kw, s, model) for s in range(keys)]
             means = [float(e.mean()) for e in errs]
             pj = [round(float(v), 1) for v in np.mean([e.mean(0) for e in errs], 0)]
+            pf_ = np.mean([e.mean(1) for e in errs], 0)
+            blocks = " ".join(f"{pf_[i : i + 10].mean():4.1f}" for i in range(0, len(pf_), 10))
             print(f"{clip:22s} {name:16s} mean {np.mean(means):5.1f}  keys "
-                  f"{' '.join(f'{m:5.1f}' for m in means)}  joints {pj}  "
+                  f"{' '.join(f'{m:5.1f}' for m in means)}  joints {pj}  10-frame blocks {blocks} "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)  # fmt: skip
 
 
