@@ -11,6 +11,7 @@ vectorised NumPy (batched over particles). Paper: 14 / 23 / 29 / 66 ms on a 3 GH
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -178,9 +179,21 @@ def main():
     # 4. full filter step (jit): resample + predict + weigh + estimate
     c3 = time_compile(lambda: sp.filter_step(params, state, first))
     med, mn = time_call(lambda: sp.filter_step(params, state, first))
-    rows.append(
-        Row("filter step N=1000 (resample, predict, weigh)", "jaxmocap jit", med, mn, 50, c3)
-    )
+    rows.append(Row("filter step N=1000 (resample, predict, guided proposal, weigh)",
+                    "jaxmocap jit", med, mn, 50, c3))  # fmt: skip
+    # 4b. the same step without the guided proposal (Azad's filter), and the proposal alone
+    paper = sp.make_params(cams, segment=seg, guided=False)
+    c4 = time_compile(lambda: sp.filter_step(paper, state, first))
+    med, mn = time_call(lambda: sp.filter_step(paper, state, first))
+    rows.append(Row("filter step N=1000, no guided proposal (Azad)", "jaxmocap jit", med, mn, 50,
+                    c4))  # fmt: skip
+    prop = params.filter.proposal
+    f5 = eqx.filter_jit(prop)
+    key = jax.random.key(1)
+    c5 = time_compile(lambda: f5(parts, first, key))
+    med, mn = time_call(lambda: f5(parts, first, key))
+    rows.append(Row(f"guided proposal: {prop.n_guided(len(parts))} particles x {prop.n_steps} "
+                    "min-norm GN steps", "jaxmocap jit(vmap)", med, mn, 50, c5))  # fmt: skip
     # 5. run over the sequence (lax.scan), per frame
     sp.run(params, state, obs)
     med_r, mn_r = time_call(lambda: sp.run(params, state, obs), n=sized(full=5, quick=1), warmup=1)

@@ -368,6 +368,39 @@ def pose_transforms(model: BodyModel, q: Float[Array, " n_dof"]) -> Float[Array,
     return fk(model.chain, q)
 
 
+def _skew(v: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1),
+                      jnp.stack([-y, x, o], -1)], -2)  # fmt: skip
+
+
+def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    """J_l(w) = I + (1 - cos t) / t^2 [w]_x + (t - sin t) / t^3 [w]_x^2, t = |w| (Taylor
+    branch near 0, "safe where" so that values and gradients stay finite)."""
+    t2 = jnp.sum(w * w)
+    small = t2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
+    t2s = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2s)
+    a = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2s)
+    b = jnp.where(small, 1.0 / 6.0 - t2 / 120.0, (t - jnp.sin(t)) / (t2s * t))
+    k = _skew(w)
+    return jnp.eye(3, dtype=w.dtype) + a * k + b * (k @ k)
+
+
+def _ancestry(topology) -> np.ndarray:
+    """(n_links, n_links) bool: ``[a, b]`` whether link a is link b or one of its ancestors
+    (from the chain's static topology table)."""
+    n = len(topology)
+    anc = np.zeros((n, n), bool)
+    for b in range(n):
+        a = b
+        while a >= 0:
+            anc[a, b] = True
+            a = topology[a][0]
+    return anc
+
+
 class Observation(eqx.Module):
     """What the likelihood reads of one stereo frame (leading time axis for a sequence).
 
@@ -425,6 +458,47 @@ class StereoLikelihood(eqx.Module):
         f = distance_points(self.model, pose_transforms(self.model, self.full_q(s)))
         r = f - z.points.astype(s.dtype)
         return jnp.where(z.valid[:, None], r, jnp.zeros_like(r)).reshape(-1)
+
+    def distance_linearize(
+        self, s: Float[Array, " d"], z: Observation
+    ) -> tuple[Float[Array, " k3"], Float[Array, "k3 d"]]:
+        """:meth:`distance_residual` and its Jacobian d r / d s (3 k, d) in closed form from
+        one forward kinematics (the guided proposal's Gauss-Newton steps): for a point p of a
+        link below a revolute joint with world axis a through the joint origin o,
+        dp/dtheta = a x (p - o); for the root translation dp/dt = I; for the root rotation
+        vector w (world frame, about the root position t), dp/dw = -[p - t]_x J_l(w) with J_l
+        the left Jacobian of SO(3). Rows of missing points are zero. Equals
+        ``jax.jacfwd(distance_residual)`` (tested) at ~1/15 of its cost."""
+        model = self.model
+        q = self.full_q(s)
+        tr = pose_transforms(model, q)
+        f = distance_points(model, tr)
+        idx = keypoint_index(model, DISTANCE_NAMES)
+        plink = model.keypoint_link[idx]  # traced when the model is a jit argument
+        topo = model.chain.topology
+        anc = jnp.asarray(_ancestry(topo))
+        link_of_dof = {d: i for i, (_, jt, d) in enumerate(topo) if d >= 0}
+        axis = model.chain.joint_axis.astype(s.dtype)
+        rel_root = f - q[None, :3]
+        jl = _so3_left_jacobian(q[3:6])
+        d_rot = -_skew(rel_root) @ jl[None]  # (k, 3, 3)
+        cols = []
+        for dof in self.dofs:
+            if dof < 3:
+                cols.append(jnp.zeros_like(f).at[:, dof].set(1.0))
+            elif dof < 6:
+                cols.append(d_rot[:, :, dof - 3])
+            else:
+                link = link_of_dof[dof]
+                below = anc[link, plink]
+                a = tr[link, :3, :3] @ axis[link]
+                col = jnp.cross(a[None, :], f - tr[link, :3, 3][None, :])
+                cols.append(jnp.where(below[:, None], col, 0.0))
+        jac = jnp.stack(cols, axis=-1)  # (k, 3, d)
+        r = f - z.points.astype(s.dtype)
+        r = jnp.where(z.valid[:, None], r, jnp.zeros_like(r)).reshape(-1)
+        jac = jnp.where(z.valid[:, None, None], jac, jnp.zeros_like(jac))
+        return r, jac.reshape(-1, len(self.dofs))
 
     def __call__(self, s: Float[Array, " d"], z: Observation) -> Float[Array, ""]:
         tr = pose_transforms(self.model, self.full_q(s))

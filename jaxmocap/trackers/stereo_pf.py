@@ -25,7 +25,7 @@ when ``step_betas`` has several entries (better search, one likelihood pass per 
 
 **Guided proposal** (an extension beyond the paper, ``make_params(guided=True)``, the
 default; ``guided=False`` is Azad's filter): after the prediction, half of the particles take
-three damped minimum-norm Gauss-Newton steps on the distance cue's residuals f_i(s) - c_i
+two damped minimum-norm Gauss-Newton steps on the distance cue's residuals f_i(s) - c_i
 (missing points masked) toward the triangulated head and hands
 (:class:`jaxmocap.pf.guided.GuidedProposal`): the directions the points do not fix (the
 elbow swivel, the torso's turn about the head-hands configuration) keep their random noise and
@@ -221,6 +221,7 @@ def make_params(
     if guided:
         proposal = pf.GuidedProposal(
             residual=lik.distance_residual,
+            linearize=lik.distance_linearize,
             scale=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
             damping=jnp.asarray(guided_damping, dtype),
             fraction=float(guided_fraction),
