@@ -288,7 +288,10 @@ def _write(res: dict) -> None:
                 ys.append(m[0])
         ax.bar(xs, ys, w, label=LEGEND[v])
     ax.set_xticks(range(len(groups)))
-    ax.set_xticklabels([f"{c.split('_')[-1]}\n{n} camera{'s' if n > 1 else ''}" for c, n in groups])
+    names = [c.replace("humanoid3d_", "") for c, _ in groups]
+    ax.set_xticklabels(
+        [f"{c}\n{n} camera{'s' if n > 1 else ''}" for c, (_, n) in zip(names, groups, strict=True)]
+    )
     ax.set_ylabel("mean per-joint error (cm)")
     ax.set_title(f"Fig. 9 analogue: held-out clips, lamp off + occluder, DB {res['db_size']} poses")
     ax.legend(fontsize=7)
