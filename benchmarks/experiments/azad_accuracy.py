@@ -2,11 +2,12 @@
 
 320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on the first frame with a
 triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
-keypoints, with and without the distance cue, with 1 (Azad) or 3 annealing layers per frame,
-for the 14-DOF model of the paper and for 17 DOFs (+ the spine). Writes
+keypoints, for Azad's filter with and without the distance cue and for the distance-cue-guided
+proposal (``make_params(guided=True)``, the default; with 1 or 3 annealing layers per frame,
+14 DOFs of the paper or 17 with the spine), over ``KEYS`` keys. Writes
 ``docs/results/stereo_pf_accuracy.json`` and ``docs/images/stereo_pf_accuracy.png``.
 
-    python benchmarks/experiments/azad_accuracy.py [n_frames]
+    python benchmarks/experiments/azad_accuracy.py [n_frames] [keys]
 """
 
 import json
@@ -31,18 +32,25 @@ JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 LAYER_BETAS = {1: (1.0,), 3: (0.25, 0.5, 1.0)}  # annealing layers per frame
 
 
+def observations(clip: str, n_frames: int) -> sp.Observation:
+    cams = make_cameras(config(clip, n_frames), jnp.float32)
+    params = sp.make_params(cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    return sp.observe_sequence(params, load(clip, n_frames)["frames"])
+
+
 def evaluate(
-    clip: str, n_frames: int, use_distance: bool, dofs, seed: int = 0, layers: int = 1
-) -> dict:
+    clip: str, n_frames: int, use_distance: bool, dofs, seed: int = 0, layers: int = 1,
+    guided: bool = True, obs=None,
+) -> dict:  # fmt: skip
     d = load(clip, n_frames)
     model = default_body()
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     params = sp.make_params(
         cams, dofs=dofs, use_distance=use_distance,
         segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)),
-        step_betas=LAYER_BETAS[layers],
+        step_betas=LAYER_BETAS[layers], guided=guided,
     )  # fmt: skip
-    obs = sp.observe_sequence(params, d["frames"])
+    obs = sp.observe_sequence(params, d["frames"]) if obs is None else obs
     t0 = time.perf_counter()
     state, _ = sp.init(
         params, jax.random.key(seed), jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs)
@@ -56,7 +64,7 @@ def evaluate(
     per_joint = dict(zip(JOINTS, (100 * err.mean(0)).round(2).tolist(), strict=True))
     return {
         "clip": clip, "frames": n_frames, "distance_cue": use_distance, "n_dofs": len(dofs),
-        "layers_per_frame": layers, "seed": seed,
+        "layers_per_frame": layers, "guided": guided, "seed": seed,
         "mean_cm": float(100 * err.mean()), "per_joint_cm": per_joint,
         "per_frame_cm": (100 * err.mean(1)).round(2).tolist(),
         "blobs_valid_fraction": float(np.asarray(obs.valid).mean()),
@@ -64,17 +72,27 @@ def evaluate(
     }  # fmt: skip
 
 
-def main(n_frames: int = 40) -> None:
+def label(r: dict) -> str:
+    return (f"{r['n_dofs']} DOF, {'guided' if r['guided'] else 'Azad'}, "
+            f"{'with' if r['distance_cue'] else 'without'} p_d, "
+            f"{r['layers_per_frame']} layer(s)/frame")  # fmt: skip
+
+
+def main(n_frames: int = 40, keys: int = 2) -> None:
     model = default_body()
     d14 = stereo_dofs(model)
     d17 = np.sort(np.concatenate([d14, dof_index(model, ["spine_x", "spine_y", "spine_z"])]))
     rows = []
-    configs = [(d14, True, 1), (d14, False, 1), (d14, True, 3), (d17, True, 1), (d17, True, 3)]
+    # (dofs, distance cue, layers per frame, guided proposal)
+    configs = [(d14, True, 1, False), (d14, False, 1, False), (d14, True, 1, True),
+               (d14, False, 1, True), (d14, True, 3, True), (d17, True, 1, True)]  # fmt: skip
     for clip in CLIPS:
-        for dofs, use_d, layers in configs:
-            r = evaluate(clip, n_frames, use_d, dofs, layers=layers)
-            print(json.dumps({k: v for k, v in r.items() if k != "per_frame_cm"}), flush=True)
-            rows.append(r)
+        obs = observations(clip, n_frames)  # the same image line + blob tracker for all
+        for dofs, use_d, layers, guided in configs:
+            for seed in range(keys):
+                r = evaluate(clip, n_frames, use_d, dofs, seed, layers, guided, obs)
+                print(json.dumps({k: v for k, v in r.items() if k != "per_frame_cm"}), flush=True)
+                rows.append(r)
     out = ROOT / "docs" / "results" / "stereo_pf_accuracy.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rows, indent=1) + "\n")
@@ -86,11 +104,9 @@ def main(n_frames: int = 40) -> None:
     fig, axes = plt.subplots(1, len(CLIPS), figsize=(5 * len(CLIPS), 3.2), squeeze=False)
     for ax, clip in zip(axes[0], CLIPS, strict=True):
         for r in rows:
-            if r["clip"] == clip:
-                ax.plot(r["per_frame_cm"], label=f"{r['n_dofs']} DOF, "
-                        f"{'with' if r['distance_cue'] else 'without'} p_d, "
-                        f"{r['layers_per_frame']} layer(s)/frame")  # fmt: skip
-        ax.set_title(clip)
+            if r["clip"] == clip and r["seed"] == 0:
+                ax.plot(r["per_frame_cm"], label=label(r))
+        ax.set_title(f"{clip} (key 0)")
         ax.set_xlabel("frame (25 Hz)")
         ax.set_ylabel("mean joint error (cm)")
         ax.legend(fontsize=7)
@@ -101,4 +117,4 @@ def main(n_frames: int = 40) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40)
+    main(*(int(a) for a in sys.argv[1:3]))

@@ -19,7 +19,8 @@ from jaxmocap.synth.scene import SceneConfig
 from jaxmocap.synth.sequence import render_sequence
 
 CACHE = Path("/tmp/azad_sequences")
-CLIPS = HELDOUT_CLIPS[:2]  # punch (Azad Fig. 5 tracks a punch), dance_b
+# punch (Azad Fig. 5 tracks a punch), dance_b (arm waves), walker/turn_left0 (a walking turn)
+CLIPS = HELDOUT_CLIPS[:3]
 KEYS = ("frames", "q", "keypoints", "patch_ids")
 
 
