@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import pickle
 import sys
 from pathlib import Path
@@ -35,7 +36,7 @@ from jaxmocap.trackers import shirt  # noqa: E402
 
 CACHE = Path("/tmp/wang_dev")
 CACHE.mkdir(exist_ok=True)
-DB_SIZE = 3000
+DB_SIZE = int(os.environ.get("WANG_DEV_DB", 3000))  # 80000: the full-scale database
 N_FRAMES = 20
 DIAG = False
 
@@ -64,6 +65,8 @@ def _base():
 def _cov(name, model):
     if name == "iso":
         return IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
+    if name == "committed":
+        return IKCovariances.load(wa.ROOT / "docs" / "results" / "shirt_ik_cov.npz")
     return IKCovariances.load(CACHE / f"cov_{name}.npz")
 
 
@@ -71,8 +74,11 @@ def _flags(args):
     out = {}
     for a in args:
         k, v = a.split("=")
-        out[k] = {"True": True, "False": False, "None": None}.get(v, None) if v in (
-            "True", "False", "None") else (float(v) if "." in v else int(v))
+        out[k] = (
+            {"True": True, "False": False, "None": None}.get(v, None)
+            if v in ("True", "False", "None")
+            else (float(v) if "." in v else int(v))
+        )
     return out
 
 
@@ -147,11 +153,19 @@ def _evaluate(cmd, cname, fargs, model, garment, db, color, kp, sidx):
             eb = np.linalg.norm(np.asarray(kp(out.q_blend)) - seq.groundtruth["keypoints"], axis=-1)
             bp = np.asarray(seq.groundtruth["body_pixels"])
             for t in range(26, n_rec):
-                print(t, int(out.valid[t]), f"agr {float(out.agreement[t]):.2f}",
-                      f"blend {100 * eb[t][sidx].mean():.1f}",
-                      "frac", np.asarray(out.fraction[t]).round(2).tolist(),
-                      "px", bp[t].tolist(), "vis", int(np.asarray(out.visible[t]).sum()),
-                      dict(zip(wa.SHIRT_JOINTS, (100 * e[t][sidx]).round(1).tolist())))
+                print(
+                    t,
+                    int(out.valid[t]),
+                    f"agr {float(out.agreement[t]):.2f}",
+                    f"blend {100 * eb[t][sidx].mean():.1f}",
+                    "frac",
+                    np.asarray(out.fraction[t]).round(2).tolist(),
+                    "px",
+                    bp[t].tolist(),
+                    "vis",
+                    int(np.asarray(out.visible[t]).sum()),
+                    dict(zip(wa.SHIRT_JOINTS, (100 * e[t][sidx]).round(1).tolist(), strict=True)),
+                )
         print(json.dumps(r | {"cov": cname, "flags": fargs, "wall": round(wall)}), flush=True)
 
 
