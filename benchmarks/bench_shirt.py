@@ -121,7 +121,8 @@ def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
 # The tracker's extensions beyond the paper's one-pass frame, switched off for the stage
 # breakdown (only those this version of make_params has).
 PAPER_FRAME = {"view_anchors": False, "ik_passes": 1, "robust": None, "temporal_start": False,
-               "reacquire_start": False, "reacquire_passes": 0, "reacquire_frames": 0}
+               "reacquire_start": False, "reacquire_passes": 0, "reacquire_frames": 0,
+               "held_start": False}
 
 
 def paper_frame(params):

@@ -162,6 +162,7 @@ class ShirtParams(eqx.Module):
     reacquire_start: bool = eqx.field(static=True, default=True)
     reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
     reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
+    held_start: bool = eqx.field(static=True, default=True)
 
     @property
     def n_cams(self) -> int:
@@ -219,6 +220,7 @@ def make_params(
     reacquire_start: bool = True,
     reacquire_passes: int = REACQUIRE_PASSES,
     reacquire_frames: int = REACQUIRE_FRAMES,
+    held_start: bool = True,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -242,7 +244,10 @@ def make_params(
     covariance is ``Sigma_p + Sigma_b``: its ``q_h`` comes from a cold start, whose error is of
     the blend's order, not the tracked steady state that ``Sigma_p`` was trained on. All three
     off (``reacquire_start=False, reacquire_passes=0, reacquire_frames=0``): the session-2
-    behaviour."""
+    behaviour. ``held_start`` adds a third start on those frames (reacquisition and the
+    ``reacquire_frames`` after it): the last valid pose measured without the pose prior (a
+    subject re-entering fast is far from it, and a prior rendered there misleads the
+    pose-assisted classification); on other frames it repeats the blend start."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if reacquire_frames < 0:
@@ -268,7 +273,7 @@ def make_params(
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
         bool(temporal_start), float(min_agreement), bool(reacquire_start),
-        int(reacquire_passes), int(reacquire_frames),
+        int(reacquire_passes), int(reacquire_frames), bool(held_start),
     )  # fmt: skip
 
 
@@ -516,8 +521,14 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     # without the pose prior, ``reacquire_start``)
     reacquire = ~state.valid
     if params.temporal_start:
-        starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
-        plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
+        q_list = [q_g, jnp.where(state.valid, state.q, q_g)]
+        p_list = [jnp.array(False), reacquire & params.reacquire_start]
+        if params.held_start:
+            # the last valid pose measured without the pose prior, right after a (re)acquisition
+            fresh = reacquire | (state.tracked < params.reacquire_frames)
+            q_list.append(jnp.where(fresh, state.q, q_g))
+            p_list.append(fresh)
+        starts, plain = jnp.stack(q_list), jnp.stack(p_list)
         q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts, plain)
         best = jnp.argmax(scores)
         q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(
