@@ -43,8 +43,9 @@ classification on ``min_agreement`` of its pixels; otherwise ``q*`` holds the pr
 and ``W`` is not updated. After an invalid frame the temporal prior is dropped
 (``q_h := q_b``), so the next valid frame starts afresh from the database; on such a
 *reacquisition* frame (and the first frame) the second start is the blend measured without
-the pose prior and extra rounds run, and for a few frames after it the temporal prior is
-widened by Sigma_b (``make_params``: ``reacquire_*``; not in the paper).
+the pose prior and extra rounds run; on it and a few frames after it the temporal prior is
+widened by Sigma_b and a third start, the last valid pose measured without the pose prior,
+joins the other two (``make_params``: ``reacquire_*``, ``held_start``; not in the paper).
 
 **Live vs scan.** ``step`` is pure and jit-compiled once per (camera count, image size,
 settings); ``run`` loops over frames in Python (live video, optionally with OpenCV's MOG2
