@@ -68,7 +68,9 @@ def _setup(seq, progress: bool):
     model = default_body()
     db = load_or_build(SamplingConfig(size=DEMO_DB_SIZE), model, default_garment(model),
                        progress=progress)
-    params, W0, _ = shirt.setup_for_sequence(seq, db, work_size=96)
+    # the bundled covariances, trained on other clips (the demo's clip is held out)
+    cov = shirt.trained_covariances(model.n_dof)
+    params, W0, _ = shirt.setup_for_sequence(seq, db, cov=cov, work_size=96)
     return model, params, W0, jnp.zeros(model.n_dof)
 
 

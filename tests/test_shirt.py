@@ -182,3 +182,17 @@ def test_invalid_inputs(setup):
         shirt.step(p, state, jnp.asarray(setup["frames"], jnp.float32))
     with pytest.raises((ValueError, TypeError)):
         shirt.init(p, jnp.eye(3), jnp.zeros(p.body.n_dof))
+
+
+def test_bundled_trained_covariances():
+    """The covariances saved with the model load, are positive definite, match the default
+    body's DOFs, and a body of another size is refused with a message naming the file."""
+    from jaxmocap.body import default_body
+
+    n = default_body().n_dof
+    cov = shirt.trained_covariances(n)
+    assert np.all(np.linalg.eigvalsh(np.asarray(cov.centroid)) > 0)
+    for term in (cov.blend, cov.prior):
+        assert np.asarray(term).shape[-1] == n and np.all(np.isfinite(np.asarray(term)))
+    with pytest.raises(ValueError, match="shirt_ik_cov.npz.*DOF"):
+        shirt.trained_covariances(n + 1)

@@ -141,7 +141,7 @@ def main(scale: str = "small", write: bool = True) -> dict:
     # 1. covariance training on TRAIN_CLIPS sequences pooled (two cameras, no lighting step)
     iso = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
     runs, e_tr = [], []
-    cov_file = ROOT / "docs" / "results" / "shirt_ik_cov.npz"
+    cov_file = shirt.TRAINED_COV_FILE
     for k, clip in enumerate(COV_TRAIN_CLIPS):
         train = render_sequence(_scene(clip, s["train_frames"], 2, False), jnp.float32)
         if k == 0:

@@ -66,7 +66,7 @@ def _cov(name, model):
     if name == "iso":
         return IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
     if name == "committed":
-        return IKCovariances.load(wa.ROOT / "docs" / "results" / "shirt_ik_cov.npz")
+        return shirt.trained_covariances()
     return IKCovariances.load(CACHE / f"cov_{name}.npz")
 
 

@@ -61,9 +61,6 @@ BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
          ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
 OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
 OVERLAY_CODEC = "mp4v"
-# IK covariances of the shirt tracker when no --ik-cov file is given (the values its tests
-# use): centroid std 2 px, blend std 0.3, temporal prior std 0.5 (units of q).
-IK_CENTROID_PX, IK_BLEND_STD, IK_PRIOR_STD = 2.0, 0.3, 0.5
 
 EPILOG = """examples:
   # the colour shirt, two recorded cameras
@@ -151,7 +148,7 @@ class ShirtFrameTracker:
     def __init__(self, cams: list[Camera], names: list[str], color, W0: np.ndarray | None,
                  db, cov=None, work_size: int | None = None):
         from jaxmocap.garment import default_garment
-        from jaxmocap.ik import IKCovariances, anchors_from_garment
+        from jaxmocap.ik import anchors_from_garment
         from jaxmocap.trackers import shirt
 
         self._shirt = shirt
@@ -160,8 +157,8 @@ class ShirtFrameTracker:
         if color.n_colors != garment.n_colours:
             raise InputError(f"--colors: the colour model has {color.n_colors} colours, the "
                              f"shirt has {garment.n_colours}; fit one colour per shirt colour")
-        cov = cov or IKCovariances.isotropic(IK_CENTROID_PX, IK_BLEND_STD, IK_PRIOR_STD,
-                                             self.body.n_dof)
+        if cov is None:
+            cov = shirt.trained_covariances(self.body.n_dof)
         kw = {} if work_size is None else {"work_size": work_size}
         self.params = shirt.make_params(color, self.body, garment, stack_cameras(cams),
                                         anchors_from_garment(self.body, garment), cov, db, **kw)
@@ -427,8 +424,8 @@ def add_parser(sub) -> None:
                    help="pose database (`jaxmocap build-db --out`); default: the cached "
                    "80,000-pose database, built on first use")
     g.add_argument("--ik-cov", metavar="COV_NPZ",
-                   help="IK covariances (.npz, jaxmocap.ik.IKCovariances.save); default: "
-                   f"isotropic {IK_CENTROID_PX:g} px / {IK_BLEND_STD:g} / {IK_PRIOR_STD:g}")
+                   help="IK covariances (.npz, jaxmocap.ik.IKCovariances.save); default: the "
+                   "bundled trained ones (jaxmocap.trackers.shirt.trained_covariances)")
     g.add_argument("--work-size", type=int, metavar="PX",
                    help="side of the resampled crop the shirt is classified in (default: "
                    "the tracker's, 128)")
