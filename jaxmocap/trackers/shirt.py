@@ -463,9 +463,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     if params.reacquire_frames:
         # q_h from a cold start: its error is of the blend's order (Sigma_b), not Sigma_p's
         fresh = state.tracked < params.reacquire_frames
-        cov = eqx.tree_at(
-            lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh)
-        )
+        cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
 
     def measure(hits_i, i, plain):
         dist = patch_distance_maps(hits_i.patch, P, dt)
@@ -523,19 +521,22 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     # without the pose prior, ``reacquire_start``)
     reacquire = ~state.valid
     if params.temporal_start:
-        q_list = [q_g, jnp.where(state.valid, state.q, q_g)]
-        p_list = [jnp.array(False), reacquire & params.reacquire_start]
+        starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
+        plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
+        results = jax.vmap(first_round)(starts, plain)
         if params.held_start:
-            # the last valid pose measured without the pose prior, right after a (re)acquisition
+            # the last valid pose measured without the pose prior, right after a (re)acquisition;
+            # computed only on those frames (lax.cond): elsewhere it stands in as a copy of the
+            # blend start, which the argmax's first-index tie rule never prefers
             fresh = reacquire | (state.tracked < params.reacquire_frames)
-            q_list.append(jnp.where(fresh, state.q, q_g))
-            p_list.append(fresh)
-        starts, plain = jnp.stack(q_list), jnp.stack(p_list)
-        q_all, c_all, v_all, h_all, scores = jax.vmap(first_round)(starts, plain)
-        best = jnp.argmax(scores)
-        q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(
-            lambda a: a[best], (q_all, c_all, v_all, h_all, scores)
-        )
+            held = jax.lax.cond(
+                fresh,
+                lambda: first_round(state.q, jnp.array(True)),
+                lambda: jax.tree.map(lambda a: a[0], results),
+            )
+            results = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), results, held)
+        best = jnp.argmax(results[-1])
+        q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(lambda a: a[best], results)
     else:
         q_sol, c_obs, v_obs, hits, agreement = first_round(q_g, jnp.array(False))
 
@@ -804,6 +805,14 @@ def setup_for_sequence(
     labels = np.stack([scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
     W0 = initial_white_balance(color, seq.frames[0], labels)
     cov = cov if cov is not None else IKCovariances.isotropic(2.0, 0.3, 0.5, body.n_dof)
-    params = make_params(color, body, garment, stack_cameras(list(seq.cameras)),
-                         anchors_from_garment(body, garment), cov, db, work_size=work_size)
+    params = make_params(
+        color,
+        body,
+        garment,
+        stack_cameras(list(seq.cameras)),
+        anchors_from_garment(body, garment),
+        cov,
+        db,
+        work_size=work_size,
+    )
     return params, W0, color
