@@ -150,8 +150,17 @@ def detect_blobs(mask: np.ndarray, params: BlobParams = BlobParams()) -> Blobs:
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"detect_blobs: mask: expected an (h, w) array, got shape {mask.shape}")
-    n, labels, stats, centroids = cv2.connectedComponentsWithStats(
-        (mask != 0).astype(np.uint8), connectivity=8, ltype=cv2.CV_32S
+    binary = (mask != 0).astype(np.uint8)
+    labels = np.zeros(binary.shape, np.int32)
+    rows, cols = np.flatnonzero(binary.any(1)), np.flatnonzero(binary.any(0))
+    if rows.size == 0:
+        return Blobs(np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 4), np.int64), labels)
+    # labelling runs on the bounding box of the skin pixels only: OpenCV's component
+    # statistics cost ~0.6 ms on a whole 320x240 image even when it is empty, ~0.1 ms on the
+    # box (same components, offsets added back)
+    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    n, sub, stats, centroids = cv2.connectedComponentsWithStats(
+        binary[y0:y1, x0:x1], connectivity=8, ltype=cv2.CV_32S
     )
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero(area >= params.min_area)
@@ -159,11 +168,12 @@ def detect_blobs(mask: np.ndarray, params: BlobParams = BlobParams()) -> Blobs:
     lut = np.full(n, -1, np.int32)
     lut[0] = 0
     lut[keep + 1] = np.arange(1, keep.size + 1, dtype=np.int32)
+    labels[y0:y1, x0:x1] = lut[sub]
     return Blobs(
-        centroid=centroids[keep + 1].astype(np.float64),
+        centroid=centroids[keep + 1].astype(np.float64) + [x0, y0],
         area=area[keep].astype(np.int64),
-        bbox=stats[keep + 1, :4].astype(np.int64),
-        labels=lut[labels],
+        bbox=stats[keep + 1, :4].astype(np.int64) + [x0, y0, 0, 0],
+        labels=labels,
     )
 
 

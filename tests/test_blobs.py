@@ -96,6 +96,30 @@ def test_detect_blobs_matches_connected_components(rng):
     assert b.area[0] == int(np.sum(b.labels == 1))
 
 
+def test_detect_blobs_on_the_skin_box_equals_whole_image_labelling(rng):
+    """detect_blobs labels only the bounding box of the skin pixels: the same components,
+    statistics and label image as OpenCV on the whole image (random masks, blobs touching the
+    border included); an empty mask gives no blob."""
+    for trial in range(4):
+        mask = (rng.random((H, W)) < 0.02).astype(np.uint8)
+        mask[:, : 20 * trial] = 0
+        for _ in range(5):
+            c = (int(rng.integers(0, W)), int(rng.integers(0, H)))
+            cv2.circle(mask, c, int(rng.integers(2, 12)), 1, -1)
+        b = B.detect_blobs(mask, B.BlobParams(min_area=5, max_blobs=50))
+        n, lab, st, ce = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        big = np.flatnonzero(st[1:, cv2.CC_STAT_AREA] >= 5) + 1
+        big = big[np.argsort(-st[big, cv2.CC_STAT_AREA], kind="stable")][:50]
+        np.testing.assert_array_equal(b.area, st[big, cv2.CC_STAT_AREA])
+        np.testing.assert_allclose(b.centroid, ce[big], atol=1e-9)
+        np.testing.assert_array_equal(b.bbox, st[big, :4])
+        for i, k in enumerate(big):
+            assert np.array_equal(b.labels == i + 1, lab == k)
+        assert np.array_equal(b.labels == 0, mask == 0)
+    e = B.detect_blobs(np.zeros((H, W), np.uint8))
+    assert e.area.shape == (0,) and e.centroid.shape == (0, 2) and not e.labels.any()
+
+
 def test_static_scene_recovered_and_one_view_false_positives_rejected(rng):
     cams = stereo_cams()
     pose = np.array([[0.0, 0.0, 1.6], [0.15, 0.3, 1.1], [0.1, -0.32, 1.2]])
