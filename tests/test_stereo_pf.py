@@ -165,6 +165,22 @@ def test_determinism_and_scan_equals_loop(scene):
     assert not np.array_equal(s3.particles.particles, s1.particles.particles)
 
 
+def test_live_stream_equals_init_and_steps(scene):
+    """stereo_pf.live (compiled step with the params closed over, host/device overlap, one
+    frame late) hands out the same estimates as init on the anchor frame + filter_step."""
+    _, _, frames, _, _, params, obs = scene
+    key = jax.random.key(5)
+    t0 = sp.anchor_frame(obs)
+    out = list(sp.live(params, key, iter(frames)))
+    assert [t for t, _ in out] == list(range(len(frames)))
+    assert all(e is None for _, e in out[:t0]) and out[t0][1] is not None
+    state, est = sp.init(params, key, jax.tree.map(lambda a: a[t0], obs))
+    np.testing.assert_allclose(out[t0][1].q, est.q, rtol=1e-9, atol=1e-12)
+    for t in range(t0 + 1, len(frames)):
+        state, est = sp.filter_step(params, state, jax.tree.map(lambda a, t=t: a[t], obs))
+        np.testing.assert_allclose(out[t][1].q, est.q, rtol=1e-9, atol=1e-12)
+
+
 def test_input_errors(scene):
     _, cams, frames, _, _, params, _ = scene
     with pytest.raises(InputError, match="frame_pair"):

@@ -236,6 +236,7 @@ class StereoPFFrameTracker:
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
         self.params = stereo_pf.make_params(cams, n_particles=n_particles, segment=segment)
+        self._step = stereo_pf.compile_step(self.params)
         self.body = self.params.model
         self.cams = cams
         self.key = jax.random.PRNGKey(seed)
@@ -253,7 +254,7 @@ class StereoPFFrameTracker:
             (est, obs), self._first = self._first, None
         else:
             obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
-            self.state, est = self._pf.filter_step(self.params, self.state, obs)
+            self.state, est = self._step(self.state, obs)
         est, parts, valid = jax.device_get((est, self.state.particles.particles,
                                             obs.valid))
         root = np.asarray(parts[:, :3], np.float64)
