@@ -335,3 +335,93 @@ def test_distance_linearize_vs_autodiff_and_finite_differences(setup):
             axis=-1,
         )  # fmt: skip
         np.testing.assert_allclose(np.asarray(jac[b]), fd, atol=1e-7)
+
+
+def test_edge_outside_replaces_samples_beyond_the_image():
+    """A cylinder half above the image (hand-computed): its 2 x 10 contour samples lie at
+    v = -8, -3, 2, ..., 37 on the edge columns; the 4 at v < -0.5 are outside. Zero padding
+    (Azad, edge_outside=None) reads 0 there, the switch reads the constant c."""
+    cam = _front_camera()
+    a, b = jnp.array([[0.0, -1.2, 2.0]]), jnp.array([[0.0, -0.2, 2.0]])  # v from -10.5 to 39.5
+    starts, ends = cues.project_limbs(cam, a, b, jnp.array([0.1]))
+    uv = cues.edge_samples(starts, ends, 10)
+    np.testing.assert_allclose(uv[0, 0, :3, 1], [-8.0, -3.0, 2.0], atol=1e-12)
+    g = np.zeros((100, 100))
+    g[:, 44] = g[:, 45] = g[:, 54] = g[:, 55] = 1.0  # both silhouette lines on edges
+    gm = cues.sample_bilinear(jnp.asarray(g), uv)
+    np.testing.assert_allclose(np.asarray(gm).mean(), 16 / 20, atol=1e-12)
+    inside = np.asarray(cues._inside(uv, g.shape))
+    assert inside.sum() == 16 and not inside[0, :, :2].any()
+    c = 0.5
+    gc = jnp.where(jnp.asarray(inside), gm, c)
+    np.testing.assert_allclose(
+        cues.edge_loglik(gc, SIGMA), -(1 - (16 + 4 * c) / 20) / (2 * SIGMA**2), rtol=1e-12
+    )
+
+
+def test_edge_outside_and_support_cue_in_the_likelihood_vs_reference(setup):
+    """The fused likelihood with the two switches, against NumPy / OpenCV: (i) edge_outside
+    changes exactly the outside samples' contribution (cameras framing the body tightly so
+    that limbs leave the image); (ii) the support cue is -1 / (2 sigma_s^2) times the number of
+    (hand, camera) pairs whose hand -- projected with cv2.projectPoints, nearest pixel -- lies
+    inside the image on a 0 of the support map, over the hands without a point (the right
+    hand here; both with support_all). jit(vmap) over particles."""
+    model, cams, obs, lik, s = setup
+    rng = np.random.default_rng(7)
+    support = (rng.random((2, 60, 80)) > 0.5).astype(np.float64)
+    z = cues.Observation(obs.edges, obs.points, obs.valid, obs.foreground, jnp.asarray(support))
+    base = eqx_replace(lik, use_region=False, use_distance=False)
+    f = jax.jit(jax.vmap(lambda L, x: L(x, z), in_axes=(None, 0)))
+    ll0 = np.asarray(f(base, s))
+    # (ii) support cue
+    q = jnp.zeros((s.shape[0], model.n_dof)).at[:, np.asarray(lik.dofs)].set(s)
+    trs = np.asarray(jax.vmap(lambda x: fk(model.chain, x))(q))
+    idx = keypoint_index(model, cues.SUPPORT_NAMES)
+    for support_all, hands in ((False, [1]), (True, [0, 1])):
+        want = []
+        for tr in trs:
+            n_miss = 0
+            for c, cam in enumerate(cams):
+                rvec, _ = cv2.Rodrigues(np.asarray(cam.R))
+                for j in hands:
+                    kpi = idx[j]
+                    link = int(model.keypoint_link[kpi])
+                    p = tr[link, :3, :3] @ np.asarray(model.keypoint_offset[kpi]) + tr[link, :3, 3]
+                    uv, _ = cv2.projectPoints(p[None], rvec, np.asarray(cam.t),
+                                              np.asarray(cam.K), np.asarray(cam.dist))  # fmt: skip
+                    x, y = np.round(uv[0, 0]).astype(int)
+                    if 0 <= x < 80 and 0 <= y < 60 and support[c, y, x] == 0:
+                        n_miss += 1
+            want.append(-n_miss / (2 * cues.SIGMA_S**2))
+        lik_s = eqx_replace(base, use_support=True, support_all=support_all)
+        got = np.asarray(f(lik_s, s)) - ll0
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    assert np.any(np.array(want) < 0)  # some hands do land on 0s
+    # (i) edge_outside: tight cameras (fx 200): parts of the limbs leave the 80 x 60 image
+    tight = camlib.stack_cameras(
+        [camlib.look_at(jnp.array([2.3, y, 1.6]), jnp.array([0.0, y, 1.15]), width=80,
+                        height=60, fx=200.0) for y in (-0.055, 0.055)]
+    )  # fmt: skip
+    b0 = eqx_replace(base, cams=tight)
+    b5 = eqx_replace(b0, edge_outside=0.5)
+    d = np.asarray(f(b5, s)) - np.asarray(f(b0, s))
+
+    def samples(x):  # contour samples of both cameras (projection tested against OpenCV above)
+        tr = fk(model.chain, x)
+        a, b = cues.limb_endpoints(lik.limbs, tr)
+
+        def one(cam):
+            st, en = cues.project_limbs(cam, a, b, cues.silhouette_radius(cam, lik.limbs, tr, a, b))
+            return cues.edge_samples(st, en, lik.points_per_line).reshape(-1, 2)
+
+        uv = jax.vmap(one)(tight)
+        return uv, jax.vmap(cues.sample_bilinear)(z.edges, uv)
+
+    uvs, gs = (np.asarray(v) for v in jax.jit(jax.vmap(samples))(q))
+    out = ~((uvs[..., 0] >= -0.5) & (uvs[..., 0] <= 79.5) & (uvs[..., 1] >= -0.5)
+            & (uvs[..., 1] <= 59.5))  # fmt: skip
+    # the fixture's SSD form -mean (1 - g)^2 / (2 sigma^2): outside, (1 - g)^2 -> (1 - 0.5)^2
+    ref = np.sum(np.where(out, (1 - gs) ** 2 - 0.25, 0.0), axis=(1, 2))
+    ref = ref / uvs.shape[2] / (2 * SIGMA**2)
+    np.testing.assert_allclose(d, ref, atol=1e-9)
+    assert np.sum(ref > 0.05) >= 2  # the tight framing does cut limbs of some particles

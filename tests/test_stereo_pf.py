@@ -258,3 +258,26 @@ def test_guided_proposal_lands_hands_keeps_elbow_swivel(scene):
     )
     np.testing.assert_array_equal(out_l[:, r_arm], x[:, r_arm])
     assert np.any(out_l[:, ~r_arm] != x[:, ~r_arm])
+
+
+def test_support_map_and_observation(scene):
+    """support_map = (skin | shirt) dilated by a (2 r + 1)^2 square (scipy's binary dilation
+    as the oracle); observe() adds it (both cameras) when the likelihood reads it, and the
+    drawn scene's true hands lie on it in both views."""
+    from scipy.ndimage import binary_dilation
+
+    model, cams, frames, _, kp, _, _ = scene
+    rng = np.random.default_rng(3)
+    skin, shirt = rng.random((2, 30, 40)) > 0.97
+    got = sp.support_map(skin, shirt, 2)
+    want = binary_dilation(skin | shirt, np.ones((5, 5), bool))
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+    np.testing.assert_array_equal(sp.support_map(skin, shirt, 0), (skin | shirt))
+    params = sp.make_params(cams, n_particles=200, dtype=jnp.float64, use_support=True)
+    obs, _ = sp.observe(params, frames[0], None, (np.zeros((3, 3)), np.zeros(3, bool)))
+    assert obs.support is not None and obs.support.shape == (2, H, W)
+    hands = keypoint_index(model, ("l_hand", "r_hand"))
+    for c, cam in enumerate(cams):
+        u, v = np.round(np.asarray(camlib.project(cam, kp[0, hands]))).astype(int).T
+        assert np.all(np.asarray(obs.support)[c, v, u] == 1.0)
+

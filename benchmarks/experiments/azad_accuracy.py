@@ -4,7 +4,8 @@
 triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
 keypoints, for Azad's filter with and without the distance cue and for the distance-cue-guided
 proposal (``make_params(guided=True)``, the default; with 1 or 3 annealing layers per frame,
-14 DOFs of the paper or 17 with the spine), over ``KEYS`` keys. Writes
+14 DOFs of the paper or 17 with the spine), with and without session 4's out-of-image edge
+value and hand-support cue (``ext``; the defaults), over ``KEYS`` keys. Writes
 ``docs/results/stereo_pf_accuracy.json`` and ``docs/images/stereo_pf_accuracy.png``.
 
     python benchmarks/experiments/azad_accuracy.py [n_frames] [keys]
@@ -22,7 +23,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from azad_render import CLIPS, config, load  # noqa: E402
 
+from jaxmocap import blobs as bloblib  # noqa: E402
 from jaxmocap.body import default_body, dof_index, keypoint_index, keypoints, stereo_dofs  # noqa: E402
+from jaxmocap.pf import cues  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
 from jaxmocap.trackers import stereo_pf as sp  # noqa: E402
@@ -32,15 +35,21 @@ JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 LAYER_BETAS = {1: (1.0,), 3: (0.25, 0.5, 1.0)}  # annealing layers per frame
 
 
-def observations(clip: str, n_frames: int) -> sp.Observation:
+def observations(clip: str, n_frames: int, ext: bool = True) -> sp.Observation:
+    """The image line + blob tracker once per clip (with the support map, read only by the
+    configurations that use the hand-support cue): the tracker's blob parameters
+    (``sp.BLOB_PARAMS``) with session 4's extensions, Azad's carry (``BlobParams()``) without."""
     cams = make_cameras(config(clip, n_frames), jnp.float32)
-    params = sp.make_params(cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
-    return sp.observe_sequence(params, load(clip, n_frames)["frames"])
+    params = sp.make_params(
+        cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)), use_support=True
+    )
+    blob = sp.BLOB_PARAMS if ext else bloblib.BlobParams()
+    return sp.observe_sequence(params, load(clip, n_frames)["frames"], blob)
 
 
 def evaluate(
     clip: str, n_frames: int, use_distance: bool, dofs, seed: int = 0, layers: int = 1,
-    guided: bool = True, obs=None,
+    guided: bool = True, obs=None, ext: bool = True,
 ) -> dict:  # fmt: skip
     d = load(clip, n_frames)
     model = default_body()
@@ -49,6 +58,7 @@ def evaluate(
         cams, dofs=dofs, use_distance=use_distance,
         segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)),
         step_betas=LAYER_BETAS[layers], guided=guided,
+        edge_outside=cues.EDGE_OUTSIDE if ext else None, use_support=ext,
     )  # fmt: skip
     obs = sp.observe_sequence(params, d["frames"]) if obs is None else obs
     t0 = time.perf_counter()
@@ -64,7 +74,7 @@ def evaluate(
     per_joint = dict(zip(JOINTS, (100 * err.mean(0)).round(2).tolist(), strict=True))
     return {
         "clip": clip, "frames": n_frames, "distance_cue": use_distance, "n_dofs": len(dofs),
-        "layers_per_frame": layers, "guided": guided, "seed": seed,
+        "layers_per_frame": layers, "guided": guided, "ext": ext, "seed": seed,
         "mean_cm": float(100 * err.mean()), "per_joint_cm": per_joint,
         "per_frame_cm": (100 * err.mean(1)).round(2).tolist(),
         "blobs_valid_fraction": float(np.asarray(obs.valid).mean()),
@@ -73,7 +83,8 @@ def evaluate(
 
 
 def label(r: dict) -> str:
-    return (f"{r['n_dofs']} DOF, {'guided' if r['guided'] else 'Azad'}, "
+    ext = ", +out/support" if r.get("ext") else ""
+    return (f"{r['n_dofs']} DOF, {'guided' if r['guided'] else 'Azad'}{ext}, "
             f"{'with' if r['distance_cue'] else 'without'} p_d, "
             f"{r['layers_per_frame']} layer(s)/frame")  # fmt: skip
 
@@ -83,14 +94,17 @@ def main(n_frames: int = 40, keys: int = 2) -> None:
     d14 = stereo_dofs(model)
     d17 = np.sort(np.concatenate([d14, dof_index(model, ["spine_x", "spine_y", "spine_z"])]))
     rows = []
-    # (dofs, distance cue, layers per frame, guided proposal)
-    configs = [(d14, True, 1, False), (d14, False, 1, False), (d14, True, 1, True),
-               (d14, False, 1, True), (d14, True, 3, True), (d17, True, 1, True)]  # fmt: skip
+    # (dofs, distance cue, layers per frame, guided proposal, session 4 extensions)
+    configs = [(d14, True, 1, False, False), (d14, False, 1, False, False),
+               (d14, True, 1, True, False), (d14, True, 1, True, True),
+               (d14, False, 1, True, True), (d14, True, 3, True, True),
+               (d17, True, 1, True, True)]  # fmt: skip
     for clip in CLIPS:
-        obs = observations(clip, n_frames)  # the same image line + blob tracker for all
-        for dofs, use_d, layers, guided in configs:
+        # the same image line + blob tracker for all rows (per blob-parameter set)
+        obs = {ext: observations(clip, n_frames, ext) for ext in (False, True)}
+        for dofs, use_d, layers, guided, ext in configs:
             for seed in range(keys):
-                r = evaluate(clip, n_frames, use_d, dofs, seed, layers, guided, obs)
+                r = evaluate(clip, n_frames, use_d, dofs, seed, layers, guided, obs[ext], ext)
                 print(json.dumps({k: v for k, v in r.items() if k != "per_frame_cm"}), flush=True)
                 rows.append(r)
     out = ROOT / "docs" / "results" / "stereo_pf_accuracy.json"

@@ -87,6 +87,7 @@ def oracle_observations(params: sp.StereoPFParams, d: dict, obs: sp.Observation,
             points=jnp.asarray(d["keypoints"][:, idx], dt),
             valid=jnp.ones(obs.valid.shape, bool),
             foreground=obs.foreground,
+            support=obs.support,
         )
     if "gt_silhouette" in rung or "gt_parts" in rung:
         ids = d["patch_ids"]
@@ -99,6 +100,7 @@ def oracle_observations(params: sp.StereoPFParams, d: dict, obs: sp.Observation,
             points=obs.points,
             valid=obs.valid,
             foreground=jnp.asarray(ids > 0, dt),
+            support=obs.support,
         )
     return obs
 

@@ -1,6 +1,7 @@
 """Ad-hoc variant runs of the stereo particle filter over several keys (the session's
 comparisons in ``docs/results/stereo_pf.md``): each variant is a set of ``make_params``
-keyword arguments (``"_blobs": {...}``: ``BlobParams`` overrides); prints the mean joint
+keyword arguments (``"_blobs": {...}``: overrides of the tracker's ``stereo_pf.BLOB_PARAMS``;
+``"_blobs": {"report_coast": 8}`` is Azad's carry); prints the mean joint
 error (cm, shoulders + elbows + hands) per clip and key
 and the mean over keys. Observations are computed once per clip.
 
@@ -9,6 +10,7 @@ e.g. python benchmarks/experiments/azad_variants.py punch,dance_b 2 'paper:{}' \
         'guided:{"guided": true}'
 """
 
+import dataclasses
 import json
 import sys
 import time
@@ -22,7 +24,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 from azad_accuracy import JOINTS  # noqa: E402
 from azad_render import config, load  # noqa: E402
 
-from jaxmocap import blobs as bloblib  # noqa: E402
 from jaxmocap.body import default_body, keypoint_index, keypoints  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
@@ -62,9 +63,11 @@ def main(argv):
             bkw = kw.pop("_blobs", {})  # BlobParams overrides
             tag = json.dumps(bkw, sort_keys=True)
             if tag not in cache:
+                # with the support map (read by the variants that use it)
                 cache[tag] = sp.observe_sequence(
-                    sp.make_params(cams, segment=SEG), d["frames"], bloblib.BlobParams(**bkw)
-                )
+                    sp.make_params(cams, segment=SEG, use_support=True), d["frames"],
+                    dataclasses.replace(sp.BLOB_PARAMS, **bkw),
+                )  # fmt: skip
             obs = cache[tag]
             t = time.perf_counter()
             errs = [run_variant(clip, d, obs, kw, s, model) for s in range(keys)]

@@ -34,6 +34,14 @@ is anything corrected in Azad's filter). On the held-out clips it lowers the mea
 from 16.3 / 17.1 / 7.8 cm to 12.2 / 10.8 / 3.6 cm (punch / dance_b / turn_left0,
 ``docs/results/stereo_pf.md``) for ~3 ms per frame.
 
+**Out-of-image contours and hidden hands** (session 4, also beyond the paper, on by default):
+contour samples outside the image read the constant ``edge_outside`` instead of Azad's zero
+padding, so a limb that truly leaves the image (a punch) is not pulled back in; and the
+*hand-support cue* (:func:`jaxmocap.pf.cues.support_loglik`) keeps a hand without a
+triangulated point off plain background -- it is hidden behind the shirt, inside a skin blob,
+or outside the image -- which holds a hand hidden behind the torso during a turn.
+``make_params(guided=False, edge_outside=None, use_support=False)`` is Azad's filter.
+
 Sequences with precomputed observations run as one ``lax.scan`` (:func:`run`); a live loop
 calls :func:`step` per frame (host image processing + one jitted filter step), or runs
 :func:`live` over a stream of frames: the jitted step with the parameters closed over
@@ -46,6 +54,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Iterable, Iterator, Sequence
 
+import cv2
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -66,6 +75,7 @@ from jaxmocap.segment import SegmentParams, segment_cv
 __all__ = [
     "N_PARTICLES",
     "SYNTH_SKIN_HSV",
+    "BLOB_PARAMS",
     "anchor_frame",
     "compile_step",
     "StereoEstimate",
@@ -79,6 +89,7 @@ __all__ = [
     "run",
     "step",
     "filter_step",
+    "support_map",
     "track",
 ]
 
@@ -107,6 +118,14 @@ STEP_BETAS = (1.0,)
 # toward the triangulated head / hands; the metric's unit per DOF is the noise maximum.
 GUIDED = True
 GUIDED_INIT = False  # the proposal also in the initialisation's annealing (see make_params)
+# Hand-support cue (ours, jaxmocap.pf.cues.support_loglik): a hand without a triangulated point
+# is hidden (behind the shirt or in a skin blob) or outside the image, not on plain background.
+USE_SUPPORT = True
+# The tracker's blob tracker hands the distance cue a hand carried by its motion model for one
+# frame only (then missing: the support cue holds it), instead of Azad's max_coast = 8 frames:
+# a hand hidden behind the torso in a turn coasted 11-52 cm off and pulled the arm with it.
+# bloblib.BlobParams() is Azad's carry (observe_sequence(..., blob_params=BlobParams())).
+BLOB_PARAMS = bloblib.BlobParams(report_coast=1)
 FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in frame 0
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
@@ -155,6 +174,10 @@ def make_params(
     use_distance: bool = True,
     use_region: bool = False,
     edge_form: str = "sad",
+    edge_outside: float | None = cues.EDGE_OUTSIDE,
+    use_support: bool = USE_SUPPORT,
+    support_all: bool = False,
+    sigma_s: float = cues.SIGMA_S,
     sigma_g: float = cues.SIGMA_G,
     sigma_d: float = cues.SIGMA_D,
     sigma_r: float = cues.SIGMA_R,
@@ -180,6 +203,13 @@ def make_params(
     ``guided_fraction`` of the particles take ``guided_steps`` minimum-norm Gauss-Newton steps
     (Levenberg damping ``guided_damping``, m^2) toward the triangulated head / hands after the
     prediction, in the filter step and in the initialisation. ``guided=False`` is Azad's filter.
+    ``edge_outside``: the edge value of contour samples outside the image (default
+    :data:`jaxmocap.pf.cues.EDGE_OUTSIDE`; None: Azad's zero padding, which pulls a limb that
+    leaves the image back in). ``use_support``: the hand-support cue (default on; not in the
+    paper; :func:`jaxmocap.pf.cues.support_loglik`, width ``sigma_s``, on the hands without a
+    triangulated point, or on every hand with ``support_all``; :func:`observe` then adds the
+    support map to the observation). Azad's filter: ``guided=False, edge_outside=None,
+    use_support=False``.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -208,7 +238,9 @@ def make_params(
         sigma_g=jnp.asarray(sigma_g, dtype), sigma_d=jnp.asarray(sigma_d, dtype),
         sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
         points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
-        use_region=use_region,
+        use_region=use_region, sigma_s=jnp.asarray(sigma_s, dtype), use_support=use_support,
+        support_all=support_all,
+        edge_outside=None if edge_outside is None else float(edge_outside),
     )  # fmt: skip
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
     upper = np.asarray(model.chain.upper, np.float64)[dofs]
@@ -366,6 +398,22 @@ def run(
 # ----------------------------------------------------------------------------- host edge
 
 
+def support_map(
+    skin: Bool[np.ndarray, "h w"],
+    foreground: Bool[np.ndarray, "h w"],
+    dilate_px: int = cues.SUPPORT_DILATE_PX,
+) -> Float[np.ndarray, "h w"]:
+    """The hand-support map S of one image (host, OpenCV): 1 where a hand may be without being
+    seen as a separate skin blob -- on skin (a blob, possibly merged with the head) or behind
+    the shirt -- dilated by ``dilate_px`` pixels (a square of side 2 dilate_px + 1: the hand
+    centre lies up to a hand's radius inside its blob's border), 0 on plain background."""
+    m = (np.asarray(skin) | np.asarray(foreground)).astype(np.uint8)
+    if dilate_px > 0:
+        k = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
+        m = cv2.dilate(m, k)
+    return m.astype(np.float32)
+
+
 def observe(
     params: StereoPFParams,
     frame_pair: UInt8[np.ndarray, "2 h w 3"],
@@ -387,11 +435,15 @@ def observe(
     else:
         points, valid = blob_obs
     dt = params.prior_lower.dtype
+    support = None
+    if params.likelihood.use_support:
+        support = jnp.asarray(np.stack([support_map(s.skin, s.foreground) for s in seg]), dt)
     obs = Observation(
         edges=jnp.asarray(np.stack([s.edges for s in seg]), dt),
         points=jnp.asarray(np.asarray(points), dt),
         valid=jnp.asarray(np.asarray(valid, bool)),
         foreground=jnp.asarray(np.stack([s.foreground for s in seg]), dt),
+        support=support,
     )
     return obs, blob_state
 
@@ -401,8 +453,9 @@ def observe_sequence(
     frames: UInt8[np.ndarray, "t 2 h w 3"],
     blob_params: bloblib.BlobParams | None = None,
 ) -> Observation:
-    """:func:`observe` over a sequence (one blob tracker through it), stacked on axis 0."""
-    blob_state = bloblib.init(blob_params or bloblib.BlobParams())
+    """:func:`observe` over a sequence (one blob tracker through it, ``blob_params`` default
+    :data:`BLOB_PARAMS`), stacked on axis 0."""
+    blob_state = bloblib.init(blob_params or BLOB_PARAMS)
     out = []
     for t in range(len(frames)):
         obs, blob_state = observe(params, frames[t], blob_state)
