@@ -201,7 +201,7 @@ def main():
     rows.append(Row(f"filter over {FRAMES} frames (lax.scan), per frame", "jaxmocap jit scan",
                     med_r / FRAMES, mn_r / FRAMES, 5))  # fmt: skip
     # 6. whole live frame: image pipeline + blob tracker + filter step
-    bstate = blobs.init()
+    bstate = blobs.init(sp.BLOB_PARAMS)
     pts_valid = {}
 
     def live():

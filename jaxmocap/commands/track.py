@@ -244,7 +244,7 @@ class StereoPFFrameTracker:
         self._first = None
 
     def start(self, frames: np.ndarray) -> None:
-        self.blob_state = self._blobs.init(self._blobs.BlobParams())
+        self.blob_state = self._blobs.init(self._pf.BLOB_PARAMS)
         obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
         self.state, est = self._pf.init(self.params, self.key, obs)
         self._first = (est, obs)

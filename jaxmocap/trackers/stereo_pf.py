@@ -504,7 +504,7 @@ def live(
     late (the last one at the end of the stream). The estimates equal those of :func:`init` +
     :func:`filter_step` on the same observations (tested)."""
     step_fn = compile_step(params)
-    blob_state = bloblib.init(blob_params or bloblib.BlobParams())
+    blob_state = bloblib.init(blob_params or BLOB_PARAMS)
     state: TrackerState | None = None
     pending: tuple[int, StereoEstimate | None] | None = None
     for t, pair in enumerate(frames):
