@@ -183,11 +183,11 @@ def main():
     rows.append(Row("filter step N=1000 (resample, predict, guided proposal, weigh)",
                     "jaxmocap jit", med, mn, 50, c3))  # fmt: skip
     # 4b. the same step without the guided proposal (Azad's filter), and the proposal alone
-    paper = sp.make_params(cams, segment=seg, guided=False)
+    paper = sp.make_params(cams, segment=seg, guided=False, edge_outside=None, use_support=False)
     c4 = time_compile(lambda: sp.filter_step(paper, state, first))
     med, mn = time_call(lambda: sp.filter_step(paper, state, first))
-    rows.append(Row("filter step N=1000, no guided proposal (Azad)", "jaxmocap jit", med, mn, 50,
-                    c4))  # fmt: skip
+    rows.append(Row("filter step N=1000, Azad (no guided proposal, zero-padded edges, no "
+                    "support cue)", "jaxmocap jit", med, mn, 50, c4))  # fmt: skip
     prop = params.filter.proposal
     f5 = eqx.filter_jit(prop)
     key = jax.random.key(1)
@@ -258,7 +258,7 @@ def main():
 def eqx_replace(lik):
     import dataclasses
 
-    return dataclasses.replace(lik, use_distance=False)
+    return dataclasses.replace(lik, use_distance=False, edge_outside=None, use_support=False)
 
 
 if __name__ == "__main__":
