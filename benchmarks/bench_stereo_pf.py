@@ -8,6 +8,7 @@ vectorised NumPy (batched over particles). Paper: 14 / 23 / 29 / 66 ms on a 3 GH
     python benchmarks/bench_stereo_pf.py
 """
 
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -183,18 +184,24 @@ def main():
     rows.append(Row("filter step N=1000 (resample, predict, guided proposal, weigh)",
                     "jaxmocap jit", med, mn, 50, c3))  # fmt: skip
     # 4b. the same step without the guided proposal (Azad's filter), and the proposal alone
-    paper = sp.make_params(cams, segment=seg, guided=False, edge_outside=None, use_support=False)
+    paper = sp.make_params(cams, segment=seg, **sp.AZAD_FILTER)
     c4 = time_compile(lambda: sp.filter_step(paper, state, first))
     med, mn = time_call(lambda: sp.filter_step(paper, state, first))
     rows.append(Row("filter step N=1000, Azad (no guided proposal, zero-padded edges, no "
                     "support cue)", "jaxmocap jit", med, mn, 50, c4))  # fmt: skip
-    prop = params.filter.proposal
+    swivel = params.filter.proposal  # SwivelProposal(inner=GuidedProposal)
+    prop = swivel.inner
     f5 = eqx.filter_jit(prop)
     key = jax.random.key(1)
     c5 = time_compile(lambda: f5(parts, first, key))
     med, mn = time_call(lambda: f5(parts, first, key))
     rows.append(Row(f"guided proposal: {prop.n_guided(len(parts))} particles x {prop.n_steps} "
                     "min-norm GN steps", "jaxmocap jit(vmap)", med, mn, 50, c5))  # fmt: skip
+    jumps = eqx.filter_jit(dataclasses.replace(swivel, inner=None))
+    c5b = time_compile(lambda: jumps(parts, first, key))
+    med, mn = time_call(lambda: jumps(parts, first, key))
+    rows.append(Row(f"elbow-swivel jumps: {round(swivel.fraction * len(parts))} particles "
+                    "(FK + 2 arm rotations)", "jaxmocap jit(vmap)", med, mn, 50, c5b))  # fmt: skip
     # 5. run over the sequence (lax.scan), per frame
     sp.run(params, state, obs)
     med_r, mn_r = time_call(lambda: sp.run(params, state, obs), n=sized(full=5, quick=1), warmup=1)

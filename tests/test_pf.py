@@ -327,5 +327,5 @@ def test_filter_step_with_proposal_pulls_the_set_to_the_measurement():
     assert 0.03 < xg[on, 1].std() < 0.08 and np.abs(xg[on, 1]).max() < 0.5
     assert float(e_guided.mean[0]) > 2.9  # weights select the guided half
     # the plain path is unchanged by the hook (the key is not split without a proposal)
-    ref_x, _, _ = pf_filter._predict(plain, state, key)
+    ref_x, _, _, _ = pf_filter._predict(plain, state, key)
     np.testing.assert_allclose(np.asarray(s_plain.particles), np.asarray(ref_x), atol=1e-12)

@@ -5,6 +5,8 @@ arm capsules of the body model are filled as polygons of their projected outline
 head and hands as skin discs, over a grey background; 320x240 pairs (Azad §V), 11 cm baseline.
 """
 
+import dataclasses
+
 import cv2
 import equinox as eqx
 import jax
@@ -213,7 +215,8 @@ def test_guided_proposal_lands_hands_keeps_elbow_swivel(scene):
     shoulder-hand line) -- keep most of their spread. A missing right hand leaves the right
     arm's DOFs exactly as predicted. jit(vmap) == a loop of single-particle eager calls."""
     model, cams, _, qs, kp, _, _ = scene
-    params = sp.make_params(cams, n_particles=200, guided=True, dtype=jnp.float64)
+    params = sp.make_params(cams, n_particles=200, guided=True, swivel_fraction=0.0,
+                            dtype=jnp.float64)
     prop = params.filter.proposal
     dofs = params.dofs
     rng = np.random.default_rng(5)
@@ -281,3 +284,63 @@ def test_support_map_and_observation(scene):
         u, v = np.round(np.asarray(camlib.project(cam, kp[0, hands]))).astype(int).T
         assert np.all(np.asarray(obs.support)[c, v, u] == 1.0)
 
+
+
+def test_fixed_lag_smoothing_keeps_the_filter(scene):
+    """``run(smooth_lag=L)``: the filter is unchanged (``q_filtered``, the other fields), ``q``
+    is the genealogy smoother's mean, equal to the filter's on the last frame."""
+    model, _, _, _, kp, params, obs = scene
+    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[0], obs))
+    _, ref = sp.run(params, state, obs)
+    _, est = sp.run(params, state, obs, 2)
+    assert ref.q_filtered is None
+    np.testing.assert_array_equal(est.q_filtered, ref.q)
+    np.testing.assert_array_equal(est.best_loglik, ref.best_loglik)
+    np.testing.assert_allclose(est.q[-1], ref.q[-1], rtol=1e-12)
+    assert not np.allclose(est.q[:-1], ref.q[:-1])
+    held = np.setdiff1d(np.arange(model.n_dof), params.dofs)
+    np.testing.assert_array_equal(np.asarray(est.q)[:, held], 0.0)
+    # a smoothed pose is a mix of the filter's particles: as close to the truth as the filter
+    assert _errors(model, est.q, kp).mean() < 1.5 * _errors(model, ref.q, kp).mean()
+    with pytest.raises(InputError, match="smooth_lag"):
+        sp.run(params, state, obs, -1)
+
+
+def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng):
+    """``SwivelProposal._swivel``: hands, shoulders and head do not move; each elbow turns by
+    exactly phi about its shoulder-hand line (measured on the keypoints); jit and vmap."""
+    model, cams = scene[0], scene[1]
+    params = sp.make_params(cams, swivel_fraction=0.1, dtype=jnp.float64)
+    prop = params.filter.proposal
+    assert isinstance(prop, sp.SwivelProposal) and len(prop.arms) == 2
+    names = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand", "head")
+    idx = keypoint_index(model, names)
+    s = jnp.asarray(rng.uniform(-0.7, 0.7, (6, 14)))
+    phi = jnp.asarray(rng.uniform(-np.pi, np.pi, (6, 2)))
+    moved = jax.jit(jax.vmap(prop._swivel))(s, phi)
+    for k in range(6):
+        a = np.asarray(keypoints(model, params.full_q(s[k])))[idx]
+        b = np.asarray(keypoints(model, params.full_q(moved[k])))[idx]
+        np.testing.assert_allclose(b[[0, 1, 4, 5, 6]], a[[0, 1, 4, 5, 6]], atol=1e-9)
+        for arm in range(2):
+            sh, el, ha = 0 + arm, 2 + arm, 4 + arm
+            u = (a[ha] - a[sh]) / np.linalg.norm(a[ha] - a[sh])
+            va = a[el] - a[sh] - np.dot(a[el] - a[sh], u) * u
+            vb = b[el] - a[sh] - np.dot(b[el] - a[sh], u) * u
+            ang = np.arctan2(np.dot(np.cross(va, vb), u), np.dot(va, vb))
+            np.testing.assert_allclose(np.linalg.norm(vb), np.linalg.norm(va), atol=1e-9)
+            np.testing.assert_allclose(np.angle(np.exp(1j * (ang - float(phi[k, arm])))), 0.0,
+                                       atol=1e-7)  # fmt: skip
+    # elbows and root untouched in the state; the x-y-z decomposition inverts the rotation
+    np.testing.assert_array_equal(moved[:, :6], s[:, :6])
+    np.testing.assert_array_equal(moved[:, [9, 13]], s[:, [9, 13]])
+    a3 = jnp.asarray(rng.uniform(-1.4, 1.4, (20, 3)))
+    np.testing.assert_allclose(jax.vmap(lambda v: sp._angles_xyz(sp._rot_xyz(v)))(a3), a3,
+                               atol=1e-9)  # fmt: skip
+    # the whole move on a particle set: only `fraction` of the particles change
+    x = jnp.tile(s[:1], (50, 1))
+    out = dataclasses.replace(prop, inner=None)(x, None, jax.random.key(0))  # the jumps alone
+    changed = np.any(np.asarray(out) != np.asarray(x), axis=1)
+    assert 1 <= changed.sum() <= 5
+    with pytest.raises(InputError, match="swivel_fraction"):
+        sp.make_params(cams, swivel_fraction=1.5)

@@ -1,7 +1,8 @@
 """Ad-hoc variant runs of the stereo particle filter over several keys (the session's
 comparisons in ``docs/results/stereo_pf.md``): each variant is a set of ``make_params``
-keyword arguments (``"_blobs": {...}``: overrides of the tracker's ``stereo_pf.BLOB_PARAMS``;
-``"_blobs": {"report_coast": 8}`` is Azad's carry); prints the mean joint
+keyword arguments (``"_smooth": L``: ``run(smooth_lag=L)``; ``"_blobs": {...}``: overrides
+of the tracker's ``stereo_pf.BLOB_PARAMS``; ``"_blobs": {"report_coast": 8}`` is Azad's
+carry); prints the mean joint
 error (cm, shoulders + elbows + hands) per clip and key
 and the mean over keys. Observations are computed once per clip.
 
@@ -41,11 +42,13 @@ def errors(model, q, kp_true) -> np.ndarray:
 
 
 def run_variant(clip, d, obs, kwargs, seed, model):
+    kwargs = dict(kwargs)
+    lag = kwargs.pop("_smooth", 0)  # run(smooth_lag=...)
     cams = make_cameras(config(clip, len(d["frames"])), jnp.float32)
     params = sp.make_params(cams, segment=SEG, **kwargs)
     t0 = sp.anchor_frame(obs)
     state, _ = sp.init(params, jax.random.key(seed), jax.tree.map(lambda a: a[t0], obs))
-    _, est = sp.run(params, state, obs)
+    _, est = sp.run(params, state, obs, lag)
     return errors(model, est.q, d["keypoints"])
 
 

@@ -13,10 +13,13 @@ from jaxmocap.pf.filter import (
     PFParams,
     PFState,
     anneal_step,
+    anneal_step_lineage,
     init,
     init_uniform,
     run,
+    run_lineage,
     step,
+    step_lineage,
 )
 from jaxmocap.pf.guided import GuidedProposal, min_norm_steps
 from jaxmocap.pf.resample import (
@@ -25,24 +28,30 @@ from jaxmocap.pf.resample import (
     normalize_log_weights,
     systematic,
 )
+from jaxmocap.pf.smooth import Lineage, fixed_lag_smooth
 
 __all__ = [
     "ANNEAL_ALPHA",
     "DAMPING",
     "ERROR_SCALE",
     "GuidedProposal",
+    "Lineage",
     "RESAMPLE_THRESHOLD",
     "PFEstimate",
     "PFParams",
     "PFState",
     "anneal_step",
+    "anneal_step_lineage",
     "effective_sample_size",
+    "fixed_lag_smooth",
     "init",
     "init_uniform",
     "min_norm_steps",
     "multinomial",
     "normalize_log_weights",
     "run",
+    "run_lineage",
     "step",
+    "step_lineage",
     "systematic",
 ]

@@ -42,9 +42,10 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree
 
 from jaxmocap.pf import resample as _resample
+from jaxmocap.pf.smooth import Lineage
 
 __all__ = [
     "ANNEAL_ALPHA",
@@ -55,10 +56,13 @@ __all__ = [
     "PFParams",
     "PFState",
     "anneal_step",
+    "anneal_step_lineage",
     "init",
     "init_uniform",
     "run",
+    "run_lineage",
     "step",
+    "step_lineage",
 ]
 
 # Defaults. Azad et al. name the ingredients (first-order motion, adaptive noise) but give no
@@ -196,7 +200,7 @@ def _draws(key: PRNGKeyArray, n: int, d: int, dtype) -> tuple[Array, Array]:
 
 def _resample_pairs(params, u, log_weights, x, xp):
     idx = _RESAMPLERS[params.resampling](log_weights, u)
-    return x[idx], xp[idx]
+    return x[idx], xp[idx], idx
 
 
 def _predict(params: PFParams, state: PFState, key: PRNGKeyArray):
@@ -206,12 +210,15 @@ def _predict(params: PFParams, state: PFState, key: PRNGKeyArray):
     u, eps = _draws(key, n, d, dtype)
     ess = 1.0 / jnp.sum(jnp.exp(2.0 * state.log_weights))  # log_weights are normalised
     do_res = ess < params.resample_threshold * n
-    xr, xpr = _resample_pairs(params, u, state.log_weights, state.particles, state.previous)
+    xr, xpr, idx = _resample_pairs(
+        params, u, state.log_weights, state.particles, state.previous
+    )
     x = jnp.where(do_res, xr, state.particles)
     xp = jnp.where(do_res, xpr, state.previous)
     prior_lw = jnp.where(do_res, jnp.full_like(state.log_weights, -jnp.log(n)), state.log_weights)
+    parent = jnp.where(do_res, idx, jnp.arange(n, dtype=idx.dtype))
     x_new = x + params.damping.astype(dtype) * (x - xp) + state.sigma[None, :] * eps
-    return _constrain(x_new, params), x, prior_lw
+    return _constrain(x_new, params), x, prior_lw, parent
 
 
 def _propose(params: PFParams, x, observation, key):
@@ -297,18 +304,68 @@ def init_uniform(
     )
 
 
+def _step(params, state, observation, key):
+    k_pred, k_prop = _split_proposal_key(params, key)
+    x_new, x_prev, prior_lw, parent = _predict(params, state, k_pred)
+    x_new = _propose(params, x_new, observation, k_prop)
+    ll = _weigh(params, x_new, observation)
+    lw, degenerate = _resample.normalize_log_weights(prior_lw + ll)
+    return (*_finish(params, x_new, x_prev, lw, ll, degenerate), parent)
+
+
 @eqx.filter_jit
 def step(
     params: PFParams, state: PFState, observation: PyTree, key: PRNGKeyArray
 ) -> tuple[PFState, PFEstimate]:
     """One Condensation frame: resample, predict (motion + adaptive noise), [propose,] weigh,
     estimate."""
-    k_pred, k_prop = _split_proposal_key(params, key)
-    x_new, x_prev, prior_lw = _predict(params, state, k_pred)
-    x_new = _propose(params, x_new, observation, k_prop)
-    ll = _weigh(params, x_new, observation)
-    lw, degenerate = _resample.normalize_log_weights(prior_lw + ll)
-    return _finish(params, x_new, x_prev, lw, ll, degenerate)
+    new_state, est, _ = _step(params, state, observation, key)
+    return new_state, est
+
+
+@eqx.filter_jit
+def step_lineage(
+    params: PFParams, state: PFState, observation: PyTree, key: PRNGKeyArray
+) -> tuple[PFState, PFEstimate, Int[Array, " n"]]:
+    """:func:`step` that also returns each new particle's parent: ``parent[i]`` is the index
+    in ``state.particles`` of the particle that particle i of the new set was predicted from
+    (the identity when the frame did not resample). Same numbers as :func:`step`."""
+    return _step(params, state, observation, key)
+
+
+def _anneal(params, state, observation, key, betas, alpha):
+    k_pred, k_layers = jax.random.split(key)
+    k_pred, k_prop = _split_proposal_key(params, k_pred)
+    x, x_prev, _, parent = _predict(params, state, k_pred)
+    x = _propose(params, x, observation, k_prop)
+    dtype = x.dtype
+    n, d = x.shape
+    betas = betas.astype(dtype)
+    alpha = jnp.asarray(alpha, dtype)
+
+    def layer(carry, inputs):
+        x, xp, parent, degen = carry
+        beta, k = inputs
+        u, eps = _draws(k, n, d, dtype)
+        ll = _weigh(params, x, observation)
+        lw, deg = _resample.normalize_log_weights(beta * ll)
+        w = jnp.exp(lw)
+        mean = w @ x
+        spread = jnp.sqrt(w @ jnp.square(x - mean[None, :]))
+        sigma = jnp.clip(
+            alpha * spread, params.sigma_min.astype(dtype), params.sigma_max.astype(dtype)
+        )
+        x, xp, idx = _resample_pairs(params, u, lw, x, xp)
+        x = _constrain(x + sigma[None, :] * eps, params)
+        return (x, xp, parent[idx], degen | deg), None
+
+    keys = jax.random.split(k_layers, betas.shape[0] - 1)
+    (x, x_prev, parent, degen), _ = jax.lax.scan(
+        layer, (x, x_prev, parent, jnp.array(False)), (betas[:-1], keys)
+    )
+    ll = _weigh(params, x, observation)
+    lw, deg = _resample.normalize_log_weights(betas[-1] * ll)
+    return (*_finish(params, x, x_prev, lw, ll, degen | deg), parent)
 
 
 @eqx.filter_jit
@@ -327,36 +384,22 @@ def anneal_step(
     re-apply the box; the last layer weighs with beta_M (normally 1) and gives the estimate.
     ``degenerate`` is True if any layer degenerated.
     """
-    k_pred, k_layers = jax.random.split(key)
-    k_pred, k_prop = _split_proposal_key(params, k_pred)
-    x, x_prev, _ = _predict(params, state, k_pred)
-    x = _propose(params, x, observation, k_prop)
-    dtype = x.dtype
-    n, d = x.shape
-    betas = betas.astype(dtype)
-    alpha = jnp.asarray(alpha, dtype)
+    new_state, est, _ = _anneal(params, state, observation, key, betas, alpha)
+    return new_state, est
 
-    def layer(carry, inputs):
-        x, xp, degen = carry
-        beta, k = inputs
-        u, eps = _draws(k, n, d, dtype)
-        ll = _weigh(params, x, observation)
-        lw, deg = _resample.normalize_log_weights(beta * ll)
-        w = jnp.exp(lw)
-        mean = w @ x
-        spread = jnp.sqrt(w @ jnp.square(x - mean[None, :]))
-        sigma = jnp.clip(
-            alpha * spread, params.sigma_min.astype(dtype), params.sigma_max.astype(dtype)
-        )
-        x, xp = _resample_pairs(params, u, lw, x, xp)
-        x = _constrain(x + sigma[None, :] * eps, params)
-        return (x, xp, degen | deg), None
 
-    keys = jax.random.split(k_layers, betas.shape[0] - 1)
-    (x, x_prev, degen), _ = jax.lax.scan(layer, (x, x_prev, jnp.array(False)), (betas[:-1], keys))
-    ll = _weigh(params, x, observation)
-    lw, deg = _resample.normalize_log_weights(betas[-1] * ll)
-    return _finish(params, x, x_prev, lw, ll, degen | deg)
+@eqx.filter_jit
+def anneal_step_lineage(
+    params: PFParams,
+    state: PFState,
+    observation: PyTree,
+    key: PRNGKeyArray,
+    betas: Float[Array, " m"],
+    alpha: Float[ArrayLike, ""] = ANNEAL_ALPHA,
+) -> tuple[PFState, PFEstimate, Int[Array, " n"]]:
+    """:func:`anneal_step` that also returns each final particle's parent in
+    ``state.particles`` (composed through the layers' resamplings; see :func:`step_lineage`)."""
+    return _anneal(params, state, observation, key, betas, alpha)
 
 
 @eqx.filter_jit
@@ -377,3 +420,21 @@ def run(
         return step(params, s, obs, k)
 
     return jax.lax.scan(body, state, (observations, keys))
+
+
+@eqx.filter_jit
+def run_lineage(
+    params: PFParams, state: PFState, observations: PyTree, key: PRNGKeyArray
+) -> tuple[PFState, PFEstimate, Lineage]:
+    """:func:`run` (same keys, same numbers) that also returns the per-frame particle sets and
+    their parents, for :func:`jaxmocap.pf.smooth.fixed_lag_smooth`."""
+    t = jax.tree_util.tree_leaves(observations)[0].shape[0]
+    keys = jax.random.split(key, t)
+
+    def body(s, inputs):
+        obs, k = inputs
+        new, est, parent = _step(params, s, obs, k)
+        return new, (est, Lineage(new.particles, new.log_weights, parent))
+
+    final, (est, lineage) = jax.lax.scan(body, state, (observations, keys))
+    return final, est, lineage

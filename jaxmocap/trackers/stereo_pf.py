@@ -41,7 +41,17 @@ padding, so a limb that truly leaves the image (a punch) is not pulled back in; 
 *hand-support cue* (:func:`jaxmocap.pf.cues.support_loglik`) keeps a hand without a
 triangulated point off plain background -- it is hidden behind the shirt, inside a skin blob,
 or outside the image -- which holds a hand hidden behind the torso during a turn.
-``make_params(guided=False, edge_outside=None, use_support=False)`` is Azad's filter.
+
+**Elbow-swivel jumps** (session 5, beyond the paper, on by default; :class:`SwivelProposal`):
+each frame 10% of the particles have their arms turned, each with probability 1/2, by an angle
+uniform in [-pi, pi) about the line from the shoulder to the hand. The hand does not move, so
+the distance cue is unchanged and the edge cue chooses the side of the elbow: a filter that
+initialised on the wrong side (a single-colour silhouette cannot tell the sides apart in some
+poses) crosses over within a few frames once the images tell them apart.
+``make_params(cams, **AZAD_FILTER)`` is Azad's filter.
+
+**Fixed-lag smoothing** (offline, :func:`run` / :func:`track` ``smooth_lag``): the estimate of
+frame t from the particles of frame t + L (:mod:`jaxmocap.pf.smooth`).
 
 Sequences with precomputed observations run as one ``lax.scan`` (:func:`run`); a live loop
 calls :func:`step` per frame (host image processing + one jitted filter step), or runs
@@ -74,7 +84,10 @@ from jaxmocap.pf.cues import Observation, StereoLikelihood
 from jaxmocap.segment import SegmentParams, segment_cv
 
 __all__ = [
+    "AZAD_FILTER",
     "N_PARTICLES",
+    "SWIVEL_FRACTION",
+    "SwivelProposal",
     "SYNTH_SKIN_HSV",
     "BLOB_PARAMS",
     "anchor_frame",
@@ -122,6 +135,12 @@ GUIDED_INIT = False  # the proposal also in the initialisation's annealing (see 
 # Hand-support cue (ours, jaxmocap.pf.cues.support_loglik): a hand without a triangulated point
 # is hidden (behind the shirt or in a skin blob) or outside the image, not on plain background.
 USE_SUPPORT = True
+# make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
+AZAD_FILTER = dict(guided=False, swivel_fraction=0.0, edge_outside=None, use_support=False)
+# Elbow-swivel jumps (SwivelProposal; not in the paper): the fraction of the particles whose
+# arms are turned about their shoulder-hand lines each frame. Session 5, 3 clips x 4 keys:
+# dance_b 10.6 -> 7.8 cm, punch 11.4 -> 10.8, turn 3.1 -> 3.1 (0.05 and 0.2 tried as well).
+SWIVEL_FRACTION = 0.1
 # The tracker's blob tracker hands the distance cue a hand carried by its motion model for one
 # frame only (then missing: the support cue holds it), instead of Azad's max_coast = 8 frames:
 # a hand hidden behind the torso in a turn coasted 11-52 cm off and pulled the arm with it.
@@ -131,6 +150,106 @@ FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in 
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
 SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
+
+
+SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint, hand keypoint)
+
+
+def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    """Rx(a0) Ry(a1) Rz(a2): the model's 3-DOF ball joints (x, y, z revolute links)."""
+    return so3_exp(jnp.array([1.0, 0.0, 0.0], a.dtype) * a[0]) @ (
+        so3_exp(jnp.array([0.0, 1.0, 0.0], a.dtype) * a[1])
+        @ so3_exp(jnp.array([0.0, 0.0, 1.0], a.dtype) * a[2])
+    )
+
+
+def _angles_xyz(m: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+    """The inverse of :func:`_rot_xyz` (the middle angle in [-pi/2, pi/2])."""
+    b = jnp.arcsin(jnp.clip(m[0, 2], -1.0, 1.0))
+    return jnp.stack([jnp.arctan2(-m[1, 2], m[2, 2]), b, jnp.arctan2(-m[0, 1], m[0, 0])])
+
+
+class SwivelProposal(eqx.Module):
+    """The guided proposal followed by **elbow-swivel jumps** (not in Azad's paper).
+
+    With the shoulder and the hand fixed, an arm keeps one free motion: the elbow circles the
+    shoulder-hand line (the swivel). A single-colour silhouette sees it weakly, and the filter
+    that picked the wrong side at initialisation cannot cross over by small random steps
+    while the hand stays pinned by the distance cue. For a random ``fraction`` of the
+    particles each arm (with probability 1/2) is rotated, as a rigid whole about the line
+    from its shoulder joint to its hand, by an angle uniform in [-pi, pi): the hand does not
+    move, so the distance cue is unchanged and the edge cue decides. The new shoulder angles
+    are the x-y-z decomposition of the rotated upper arm (the model's shoulders are x, y, z
+    revolute links with identity origin rotations; :func:`make_params` checks it)."""
+
+    inner: pf.GuidedProposal | None
+    model: BodyModel
+    default_q: Float[Array, " n_dof"]
+    dofs: tuple[int, ...] = eqx.field(static=True)
+    arms: tuple[tuple[tuple[int, int, int], int, int, int], ...] = eqx.field(static=True)
+    fraction: float = eqx.field(static=True)
+
+    def _swivel(self, s: Float[Array, " d"], phi: Float[Array, " a"]) -> Float[Array, " d"]:
+        q = self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
+        tr = cues.pose_transforms(self.model, q)
+        for a, (cols, parent, link, hand) in enumerate(self.arms):
+            kp = tr[self.model.keypoint_link[hand]]
+            h = kp[:3, :3] @ self.model.keypoint_offset[hand].astype(s.dtype) + kp[:3, 3]
+            u = h - tr[link, :3, 3]
+            u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
+            rp = tr[parent, :3, :3]
+            c = np.asarray(cols)
+            m = rp.T @ so3_exp(u * phi[a]) @ rp @ _rot_xyz(s[c])
+            s = s.at[c].set(_angles_xyz(m))
+        return s
+
+    def __call__(self, x: Float[Array, "n d"], observation, key: PRNGKeyArray):
+        k_inner, k_pick, k_phi, k_arm = jax.random.split(key, 4)
+        if self.inner is not None:
+            x = self.inner(x, observation, k_inner)
+        n, n_arms = x.shape[0], len(self.arms)
+        m = int(round(self.fraction * n))
+        if m == 0:
+            return x
+        idx = jax.random.permutation(k_pick, n)[:m]
+        phi = jax.random.uniform(k_phi, (m, n_arms), x.dtype, -jnp.pi, jnp.pi)
+        phi = jnp.where(jax.random.bernoulli(k_arm, 0.5, (m, n_arms)), phi, 0.0)
+        return x.at[idx].set(jax.vmap(self._swivel)(x[idx], phi))
+
+
+def _swivel_arms(model: BodyModel, dofs: np.ndarray):
+    """The arms whose 3 shoulder DOFs are filtered, as (positions of the x, y, z shoulder
+    DOFs in the filtered state, parent link of the shoulder, the shoulder's last link, hand
+    keypoint index); raises if the joints are not the x-y-z links :class:`SwivelProposal`
+    decomposes."""
+    chain, out = model.chain, []
+    topo = chain.topology
+    pos = {int(d): i for i, d in enumerate(dofs)}
+    for joint, hand in SWIVEL_ARMS:
+        names = [f"{joint}_{ax}" for ax in "xyz"]
+        if not all(n in chain.dof_names for n in names):
+            continue
+        idx = [chain.dof_names.index(n) for n in names]
+        if not all(i in pos for i in idx):
+            continue
+        links = [next(k for k, (_, _, d) in enumerate(topo) if d == i) for i in idx]
+        ok = (
+            topo[links[1]][0] == links[0]
+            and topo[links[2]][0] == links[1]
+            and np.allclose(np.asarray(chain.joint_axis)[links], np.eye(3))
+            and np.allclose(np.asarray(chain.joint_origin)[links, :3, :3], np.eye(3))
+            and np.allclose(np.asarray(chain.joint_origin)[links[1:], :3, 3], 0.0)
+        )
+        if not ok:
+            raise InputError(
+                f"stereo_pf.make_params: swivel_fraction: the joint {joint!r} is not three "
+                "x, y, z revolute links with identity origin rotations"
+            )
+        out.append(
+            (tuple(pos[i] for i in idx), topo[links[0]][0], links[2],
+             int(keypoint_index(model, hand)[0]))
+        )  # fmt: skip
+    return tuple(out)
 
 
 class StereoPFParams(eqx.Module):
@@ -194,6 +313,7 @@ def make_params(
     guided_steps: int = pf_guided.GUIDED_STEPS,
     guided_damping: float = pf_guided.GUIDED_DAMPING,
     guided_init: bool = GUIDED_INIT,
+    swivel_fraction: float = SWIVEL_FRACTION,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -209,8 +329,9 @@ def make_params(
     leaves the image back in). ``use_support``: the hand-support cue (default on; not in the
     paper; :func:`jaxmocap.pf.cues.support_loglik`, width ``sigma_s``, on the hands without a
     triangulated point, or on every hand with ``support_all``; :func:`observe` then adds the
-    support map to the observation). Azad's filter: ``guided=False, edge_outside=None,
-    use_support=False``.
+    support map to the observation). ``swivel_fraction``: the fraction of the particles
+    whose elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`;
+    default :data:`SWIVEL_FRACTION`; 0 disables). Azad's filter: ``**AZAD_FILTER``.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -265,6 +386,15 @@ def make_params(
             fraction=float(guided_fraction),
             n_steps=int(guided_steps),
         )
+    if not 0.0 <= swivel_fraction <= 1.0:
+        raise InputError(
+            f"stereo_pf.make_params: swivel_fraction: expected in [0, 1], got {swivel_fraction}"
+        )
+    if swivel_fraction > 0:
+        proposal = SwivelProposal(
+            inner=proposal, model=model, default_q=default_q, dofs=tuple(int(i) for i in dofs),
+            arms=_swivel_arms(model, dofs), fraction=float(swivel_fraction),
+        )  # fmt: skip
     filt = pf.PFParams(
         loglik=lik,
         lower=jnp.asarray(lower, dtype),
@@ -304,13 +434,18 @@ class TrackerState(eqx.Module):
 
 
 class StereoEstimate(eqx.Module):
-    """Per-frame output: full pose vectors (weighted mean and best particle), diagnostics."""
+    """Per-frame output: full pose vectors (weighted mean and best particle), diagnostics.
+
+    With :func:`run`'s ``smooth_lag`` L > 0, ``q`` is the fixed-lag smoothed mean
+    (:func:`jaxmocap.pf.smooth.fixed_lag_smooth`) and ``q_filtered`` the filter's own mean
+    (None otherwise)."""
 
     q: Float[Array, "*t n_dof"]
     q_best: Float[Array, "*t n_dof"]
     best_loglik: Float[Array, "*t"]
     ess: Float[Array, "*t"]
     degenerate: Bool[Array, "*t"]
+    q_filtered: Float[Array, "*t n_dof"] | None = None
 
 
 def _estimate(params: StereoPFParams, est: pf.PFEstimate) -> StereoEstimate:
@@ -388,12 +523,41 @@ def filter_step(
     return TrackerState(ps, k_next), _estimate(params, est)
 
 
+def _filter_step_lineage(params: StereoPFParams, state: TrackerState, obs: Observation):
+    k_step, k_next = jax.random.split(state.key)
+    if params.step_betas.shape[0] == 1:
+        ps, est, parent = pf.step_lineage(params.filter, state.particles, obs, k_step)
+    else:
+        ps, est, parent = pf.anneal_step_lineage(
+            params.filter, state.particles, obs, k_step, params.step_betas
+        )
+    lineage = pf.Lineage(ps.particles, ps.log_weights, parent)
+    return TrackerState(ps, k_next), (_estimate(params, est), lineage)
+
+
 @eqx.filter_jit
 def run(
-    params: StereoPFParams, state: TrackerState, observations: Observation
+    params: StereoPFParams,
+    state: TrackerState,
+    observations: Observation,
+    smooth_lag: int = 0,
 ) -> tuple[TrackerState, StereoEstimate]:
-    """:func:`filter_step` over a sequence of observations (leading time axis), ``lax.scan``."""
-    return jax.lax.scan(lambda s, o: filter_step(params, s, o), state, observations)
+    """:func:`filter_step` over a sequence of observations (leading time axis), ``lax.scan``.
+
+    ``smooth_lag`` L > 0 (static; offline use, not in Azad's paper): the estimate ``q`` of
+    frame t is the lag-L genealogy smoother's mean -- frame t's ancestors of the frame-(t + L)
+    particle set, weighted by that frame's weights (:mod:`jaxmocap.pf.smooth`) -- and
+    ``q_filtered`` the filter's mean; the filter itself (and every other field) is unchanged.
+    """
+    if smooth_lag == 0:
+        return jax.lax.scan(lambda s, o: filter_step(params, s, o), state, observations)
+    if smooth_lag < 0:
+        raise InputError(f"stereo_pf.run: smooth_lag: expected >= 0, got {smooth_lag}")
+    final, (est, lineage) = jax.lax.scan(
+        lambda s, o: _filter_step_lineage(params, s, o), state, observations
+    )
+    smoothed = params.full_q(pf.fixed_lag_smooth(lineage, smooth_lag))
+    return final, dataclasses.replace(est, q=smoothed, q_filtered=est.q)
 
 
 # ----------------------------------------------------------------------------- host edge
@@ -543,12 +707,13 @@ def track(
     key: PRNGKeyArray,
     frames: UInt8[np.ndarray, "t 2 h w 3"],
     blob_params: bloblib.BlobParams | None = None,
+    smooth_lag: int = 0,
 ) -> StereoEstimate:
     """Track a whole stereo sequence: observations on the host, automatic initialisation on
     the :func:`anchor_frame` (a few frames at most), then the filter over frames 0..T-1 in one
-    ``lax.scan``. Estimates (T, ...)."""
+    ``lax.scan`` (``smooth_lag``: see :func:`run`). Estimates (T, ...)."""
     obs = observe_sequence(params, frames, blob_params)
     t0 = anchor_frame(obs)
     state, _ = init(params, key, jax.tree.map(lambda a: a[t0], obs))
-    _, est = run(params, state, obs)
+    _, est = run(params, state, obs, smooth_lag)
     return est
