@@ -3,9 +3,10 @@
 320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on the first frame with a
 triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
 keypoints, for Azad's filter with and without the distance cue and for the distance-cue-guided
-proposal (``make_params(guided=True)``, the default; with 1 or 3 annealing layers per frame,
-14 DOFs of the paper or 17 with the spine), with and without session 4's out-of-image edge
-value and hand-support cue (``ext``; the defaults), over ``KEYS`` keys. Writes
+proposal (``make_params(guided=True)``, the default), with and without session 4's out-of-image
+edge value and hand-support cue (``ext``), session 5's elbow-swivel jumps (``swivel``; all
+three the defaults) and the fixed-lag smoother (``smooth_lag``), over ``keys`` keys (14 DOF,
+one layer per frame). Writes
 ``docs/results/stereo_pf_accuracy.json`` and ``docs/images/stereo_pf_accuracy.png``.
 
     python benchmarks/experiments/azad_accuracy.py [n_frames] [keys]
@@ -24,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from azad_render import CLIPS, config, load  # noqa: E402
 
 from jaxmocap import blobs as bloblib  # noqa: E402
-from jaxmocap.body import default_body, dof_index, keypoint_index, keypoints, stereo_dofs  # noqa: E402
+from jaxmocap.body import default_body, keypoint_index, keypoints, stereo_dofs  # noqa: E402
 from jaxmocap.pf import cues  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
@@ -49,7 +50,7 @@ def observations(clip: str, n_frames: int, ext: bool = True) -> sp.Observation:
 
 def evaluate(
     clip: str, n_frames: int, use_distance: bool, dofs, seed: int = 0, layers: int = 1,
-    guided: bool = True, obs=None, ext: bool = True,
+    guided: bool = True, obs=None, ext: bool = True, swivel: bool = True, smooth_lag: int = 0,
 ) -> dict:  # fmt: skip
     d = load(clip, n_frames)
     model = default_body()
@@ -59,13 +60,14 @@ def evaluate(
         segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)),
         step_betas=LAYER_BETAS[layers], guided=guided,
         edge_outside=cues.EDGE_OUTSIDE if ext else None, use_support=ext,
+        swivel_fraction=sp.SWIVEL_FRACTION if swivel else 0.0,
     )  # fmt: skip
     obs = sp.observe_sequence(params, d["frames"]) if obs is None else obs
     t0 = time.perf_counter()
     state, _ = sp.init(
         params, jax.random.key(seed), jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs)
     )
-    _, est = sp.run(params, state, obs)
+    _, est = sp.run(params, state, obs, smooth_lag)
     jax.block_until_ready(est)
     wall = time.perf_counter() - t0
     idx = keypoint_index(model, JOINTS)
@@ -74,7 +76,8 @@ def evaluate(
     per_joint = dict(zip(JOINTS, (100 * err.mean(0)).round(2).tolist(), strict=True))
     return {
         "clip": clip, "frames": n_frames, "distance_cue": use_distance, "n_dofs": len(dofs),
-        "layers_per_frame": layers, "guided": guided, "ext": ext, "seed": seed,
+        "layers_per_frame": layers, "guided": guided, "ext": ext, "swivel": swivel,
+        "smooth_lag": smooth_lag, "seed": seed,
         "mean_cm": float(100 * err.mean()), "per_joint_cm": per_joint,
         "per_frame_cm": (100 * err.mean(1)).round(2).tolist(),
         "blobs_valid_fraction": float(np.asarray(obs.valid).mean()),
@@ -84,27 +87,29 @@ def evaluate(
 
 def label(r: dict) -> str:
     ext = ", +out/support" if r.get("ext") else ""
+    ext += ", +swivel" if r.get("swivel") else ""
+    ext += f", smoothed L={r['smooth_lag']}" if r.get("smooth_lag") else ""
     return (f"{r['n_dofs']} DOF, {'guided' if r['guided'] else 'Azad'}{ext}, "
-            f"{'with' if r['distance_cue'] else 'without'} p_d, "
-            f"{r['layers_per_frame']} layer(s)/frame")  # fmt: skip
+            f"{'with' if r['distance_cue'] else 'without'} p_d")  # fmt: skip
 
 
-def main(n_frames: int = 40, keys: int = 2) -> None:
+def main(n_frames: int = 40, keys: int = 4) -> None:
     model = default_body()
     d14 = stereo_dofs(model)
-    d17 = np.sort(np.concatenate([d14, dof_index(model, ["spine_x", "spine_y", "spine_z"])]))
     rows = []
-    # (dofs, distance cue, layers per frame, guided proposal, session 4 extensions)
-    configs = [(d14, True, 1, False, False), (d14, False, 1, False, False),
-               (d14, True, 1, True, False), (d14, True, 1, True, True),
-               (d14, False, 1, True, True), (d14, True, 3, True, True),
-               (d17, True, 1, True, True)]  # fmt: skip
+    # (distance cue, guided proposal, session 4 extensions, session 5 swivel jumps, smoothing
+    # lag); 14 DOF, 1 layer per frame (3 layers and 17 DOF: session 4's table in the doc)
+    configs = [(True, False, False, False, 0), (False, False, False, False, 0),
+               (True, True, False, False, 0), (True, True, True, False, 0),
+               (True, True, True, True, 0), (False, True, True, True, 0),
+               (True, True, True, True, 5)]  # fmt: skip
     for clip in CLIPS:
         # the same image line + blob tracker for all rows (per blob-parameter set)
         obs = {ext: observations(clip, n_frames, ext) for ext in (False, True)}
-        for dofs, use_d, layers, guided, ext in configs:
+        for use_d, guided, ext, swivel, lag in configs:
             for seed in range(keys):
-                r = evaluate(clip, n_frames, use_d, dofs, seed, layers, guided, obs[ext], ext)
+                r = evaluate(clip, n_frames, use_d, d14, seed, 1, guided, obs[ext], ext, swivel,
+                             lag)  # fmt: skip
                 print(json.dumps({k: v for k, v in r.items() if k != "per_frame_cm"}), flush=True)
                 rows.append(r)
     out = ROOT / "docs" / "results" / "stereo_pf_accuracy.json"
