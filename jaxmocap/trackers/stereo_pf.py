@@ -32,8 +32,8 @@ elbow swivel, the torso's turn about the head-hands configuration) keep their ra
 are decided by the edge cue. The importance weights are not corrected for this proposal (nor
 is anything corrected in Azad's filter). On the held-out clips it lowers the mean joint error
 from 16.3 / 17.1 / 7.8 cm to 12.2 / 10.8 / 3.6 cm (punch / dance_b / turn_left0, session 3;
-12.0 / 8.5 / 3.5 cm with session 4's cues below, ``docs/results/stereo_pf.md``) for ~4 ms
-per frame.
+12.0 / 8.5 / 3.5 cm with session 4's cues below; 10.8 / 7.8 / 3.1 cm over 4 keys with
+session 5's swivel jumps, ``docs/results/stereo_pf.md``) for ~4 ms per frame.
 
 **Out-of-image contours and hidden hands** (session 4, also beyond the paper, on by default):
 contour samples outside the image read the constant ``edge_outside`` instead of Azad's zero
