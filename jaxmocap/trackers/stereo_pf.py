@@ -515,15 +515,12 @@ def filter_step(
 ) -> tuple[TrackerState, StereoEstimate]:
     """One particle-filter frame on a precomputed observation (one jitted call): the
     Condensation step, or ``len(step_betas)`` annealing layers when there are several."""
-    k_step, k_next = jax.random.split(state.key)
-    if params.step_betas.shape[0] == 1:
-        ps, est = pf.step(params.filter, state.particles, obs, k_step)
-    else:
-        ps, est = pf.anneal_step(params.filter, state.particles, obs, k_step, params.step_betas)
-    return TrackerState(ps, k_next), _estimate(params, est)
+    new_state, (est, _) = _filter_step_lineage(params, state, obs)  # the lineage is dropped
+    return new_state, est
 
 
 def _filter_step_lineage(params: StereoPFParams, state: TrackerState, obs: Observation):
+    """:func:`filter_step` plus the new particle set's lineage (for :func:`run`'s smoother)."""
     k_step, k_next = jax.random.split(state.key)
     if params.step_betas.shape[0] == 1:
         ps, est, parent = pf.step_lineage(params.filter, state.particles, obs, k_step)
