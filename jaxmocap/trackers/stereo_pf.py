@@ -186,16 +186,15 @@ class SwivelProposal(eqx.Module):
     model: BodyModel
     default_q: Float[Array, " n_dof"]
     dofs: tuple[int, ...] = eqx.field(static=True)
-    arms: tuple[tuple[tuple[int, int, int], int, int, int], ...] = eqx.field(static=True)
+    arms: tuple[tuple[tuple[int, int, int], int, int, str], ...] = eqx.field(static=True)
     fraction: float = eqx.field(static=True)
 
     def _swivel(self, s: Float[Array, " d"], phi: Float[Array, " a"]) -> Float[Array, " d"]:
         q = self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
         tr = cues.pose_transforms(self.model, q)
-        for a, (cols, parent, link, hand) in enumerate(self.arms):
-            kp = tr[self.model.keypoint_link[hand]]
-            h = kp[:3, :3] @ self.model.keypoint_offset[hand].astype(s.dtype) + kp[:3, 3]
-            u = h - tr[link, :3, 3]
+        hands = cues.distance_points(self.model, tr, tuple(arm[3] for arm in self.arms))
+        for a, (cols, parent, link, _) in enumerate(self.arms):
+            u = hands[a] - tr[link, :3, 3]
             u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
             rp = tr[parent, :3, :3]
             c = np.asarray(cols)
@@ -220,7 +219,7 @@ class SwivelProposal(eqx.Module):
 def _swivel_arms(model: BodyModel, dofs: np.ndarray):
     """The arms whose 3 shoulder DOFs are filtered, as (positions of the x, y, z shoulder
     DOFs in the filtered state, parent link of the shoulder, the shoulder's last link, hand
-    keypoint index); raises if the joints are not the x-y-z links :class:`SwivelProposal`
+    keypoint name); raises if the joints are not the x-y-z links :class:`SwivelProposal`
     decomposes."""
     chain, out = model.chain, []
     topo = chain.topology
@@ -245,10 +244,7 @@ def _swivel_arms(model: BodyModel, dofs: np.ndarray):
                 f"stereo_pf.make_params: swivel_fraction: the joint {joint!r} is not three "
                 "x, y, z revolute links with identity origin rotations"
             )
-        out.append(
-            (tuple(pos[i] for i in idx), topo[links[0]][0], links[2],
-             int(keypoint_index(model, hand)[0]))
-        )  # fmt: skip
+        out.append((tuple(pos[i] for i in idx), topo[links[0]][0], links[2], hand))
     return tuple(out)
 
 
@@ -390,10 +386,11 @@ def make_params(
         raise InputError(
             f"stereo_pf.make_params: swivel_fraction: expected in [0, 1], got {swivel_fraction}"
         )
-    if swivel_fraction > 0:
+    arms = _swivel_arms(model, dofs) if swivel_fraction > 0 else ()
+    if arms:  # no filtered x-y-z shoulder: nothing to turn
         proposal = SwivelProposal(
             inner=proposal, model=model, default_q=default_q, dofs=tuple(int(i) for i in dofs),
-            arms=_swivel_arms(model, dofs), fraction=float(swivel_fraction),
+            arms=arms, fraction=float(swivel_fraction),
         )  # fmt: skip
     filt = pf.PFParams(
         loglik=lik,
