@@ -35,7 +35,8 @@ Pairs in the roles file override both.
 centres of the neck (else head), upper-arm, forearm and hand links (the origin of the last
 moving joint frame of the link); ``chest`` 3/4 of the way from the chest link's joint centre
 to the midpoint of the two shoulder centres; ``head`` and the hands the centre of the largest
-geom of the head / hand link. The roles file may override any keypoint.
+geom of the head / hand link (offsets rounded to 1 um). The roles file may override any
+keypoint.
 """
 
 from __future__ import annotations
@@ -342,7 +343,7 @@ def _path_dofs(chain: KinematicChain, parent: int, child: int, where: str, what:
 
 
 def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
-                  explicit: Sequence[tuple[str, str]] = ()) -> tuple[tuple[str, str, float], ...]:
+                  explicit: Sequence[Sequence[str]] = ()) -> tuple[tuple[str, str, float], ...]:
     """(dof, partner, sign) for every joint DOF with a partner (module docstring)."""
     rest = rest_transforms(chain)
     names = chain.dof_names
@@ -434,7 +435,9 @@ def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, st
         kp[f"{s}_hand"] = (links[f"{s}_hand"], largest_geom(f"{s}_hand"))
     from .model import KEYPOINT_NAMES
 
-    return {k: kp[k] for k in KEYPOINT_NAMES}
+    # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
+    return {k: (kp[k][0], tuple(round(float(v), 6) + 0.0 for v in kp[k][1]))
+            for k in KEYPOINT_NAMES}
 
 
 def derive_roles(
@@ -446,8 +449,8 @@ def derive_roles(
     torso_geoms: Sequence[str] | None = None,
     limb_geoms: Mapping[str, Sequence[str]] | None = None,
     skin_geoms: Sequence[str] | None = None,
-    mirror: Sequence[tuple[str, str]] = (),
-    keypoints: Mapping[str, tuple[str, Sequence[float]]] | None = None,
+    mirror: Sequence[Sequence[str]] = (),
+    keypoints: Mapping[str, Sequence] | None = None,
 ) -> BodyRoles:
     """Complete :class:`BodyRoles` from the link roles (module docstring): joint DOFs, geoms,
     mirror pairs and keypoints, each taken from the arguments where given."""
