@@ -194,10 +194,55 @@ def load_database(path: str | Path, key: str | None = None) -> PoseDB:
     return make_posedb(maps, poses, int(meta["n_colours"]), key=str(meta["key"]))
 
 
+def garment_digest(garment: Garment) -> str:
+    """A short stable hash (16 hex digits) of a garment: patches, colours, skin flags."""
+    h = hashlib.sha256()
+    for a in (garment.patch_planes, garment.colours, garment.skin_rgb, garment.body_rgb):
+        h.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
+    for a in (garment.patch_geom, garment.patch_colour, garment.skin):
+        h.update(np.ascontiguousarray(np.asarray(a, np.int64)).tobytes())
+    h.update(json.dumps([garment.patch_names, garment.colour_names]).encode())
+    return h.hexdigest()[:16]
+
+
 def _meta(key: str, config: SamplingConfig, model: BodyModel, garment: Garment) -> dict:
+    from ..body import body_digest
+
     return {"key": key, "code_version": CODE_VERSION, "config": config._asdict(),
             "dof_names": list(model.chain.dof_names), "n_colours": garment.n_colours,
-            "colour_names": list(garment.colour_names)}
+            "colour_names": list(garment.colour_names), "body_digest": body_digest(model),
+            "garment_digest": garment_digest(garment)}
+
+
+def database_meta(path: str | Path) -> dict:
+    """The ``meta`` record of a database file (one :class:`DatabaseError` line if unreadable)."""
+    path = Path(path)
+    try:
+        with np.load(path) as f:
+            return json.loads(str(f["meta"]))
+    except FileNotFoundError:
+        raise
+    except (KeyError, ValueError, OSError, EOFError) as err:
+        raise DatabaseError(f"{path}: not a pose database .npz (expected arrays maps, poses, "
+                            f"meta): {err}") from None
+
+
+def check_database_for(path: str | Path, meta: dict, model: BodyModel, garment: Garment) -> None:
+    """Refuse, in one line, a database built for another body or shirt than ``model`` and
+    ``garment`` (the digests recorded in its ``meta`` at build time)."""
+    from ..body import body_digest
+
+    want = {"body_digest": body_digest(model), "garment_digest": garment_digest(garment)}
+    for field, what, option in (("body_digest", "body", "--body"),
+                                ("garment_digest", "shirt", "--garment")):  # fmt: skip
+        if field not in meta:
+            raise DatabaseError(f"{path}: meta has no {field!r} (built by an older jaxmocap); "
+                                "rebuild it with `jaxmocap build-db`")  # fmt: skip
+        if meta[field] != want[field]:
+            raise DatabaseError(
+                f"{path}: built for another {what} ({field} {meta[field]}, this {what} "
+                f"{want[field]}); rebuild it with `jaxmocap build-db --out FILE.npz` and the "
+                f"same --body/--garment as here, or give the {option} it was built for")
 
 
 def build_database(
@@ -257,24 +302,30 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default=None,
                    help="write the database .npz here (default: the user's cache folder)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from ..commands._body import add_body_args
+
+    add_body_args(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..cli import UsageError
+    from ..commands._body import body_from_args, garment_from_args
 
     try:
         config = SamplingConfig(size=args.size, seed=args.seed).validate()
     except SamplingError as err:
         raise UsageError(f"--size/--seed: {err}") from None
+    model = body_from_args(args)
+    garment = garment_from_args(args, model)
     if args.out is not None:
         out = Path(args.out)
         if out.suffix != ".npz":
             raise UsageError(f"--out {args.out}: expected a path ending in .npz")
-        db = build_database(config, out=out, progress=not args.quiet)
+        db = build_database(config, model, garment, out=out, progress=not args.quiet)
         where = out
     else:
-        db = load_or_build(config, progress=not args.quiet)
+        db = load_or_build(config, model, garment, progress=not args.quiet)
         where = cache_path(db.key)
     print(f"pose database: {db.size} poses, key {db.key}, {where}")
     return 0
