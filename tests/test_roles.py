@@ -417,3 +417,45 @@ def test_garment_json_on_the_foreign_body(foreign, tmp_path):
         with pytest.raises(InputError, match=field) as e:
             load_garment(path, model)
         assert str(path) in one_line(e)
+
+
+def test_mjcf_sites_are_kept_as_keypoints(foreign, tmp_path, rng):
+    """<site> markers become keypoints (a site named ``head`` places the head keypoint); their
+    world positions equal MuJoCo's ``site_xpos`` at random ball-joint poses."""
+    import mujoco
+
+    text = foreign["mjcf_path"].read_text()
+    text = text.replace('<body name="left_forearm" pos="0 0 -0.26">',
+                        '<body name="left_forearm" pos="0 0 -0.26">'
+                        '<site name="LELB" pos="0.03 0.01 -0.02"/>')
+    text = text.replace('<body name="head" pos="0 0 0.08">',
+                        '<body name="head" pos="0 0 0.08"><site name="head" pos="0 0 0.1"/>')
+    path = tmp_path / "markers.xml"
+    path.write_text(text)
+    model = body.load_body(path)
+    assert model.keypoint_names == body.KEYPOINT_NAMES + ("LELB",)
+    assert model.roles.keypoint_table()["head"] == ("head", (0.0, 0.0, 0.1))
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    idx = body.keypoint_index(model, ["LELB", "head"])
+    for _ in range(3):
+        q = np.zeros(model.n_dof)
+        q[:3] = rng.normal(size=3)
+        rot = Rotation.random(random_state=rng.integers(1 << 30))
+        q[3:6] = rot.as_rotvec()
+        d.qpos[:3], d.qpos[3:7] = q[:3], rot.as_quat()[[3, 0, 1, 2]]
+        for j in range(1, m.njnt):  # ball joints: R = Rx Ry Rz of our x, y, z DOFs
+            name, adr = m.joint(j).name, m.jnt_qposadr[j]
+            if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+                a = rng.uniform(-1, 1, 3)
+                for ax, v in zip("xyz", a, strict=True):
+                    q[model.chain.dof_names.index(f"{name}_{ax}")] = v
+                d.qpos[adr:adr + 4] = Rotation.from_euler("XYZ", a).as_quat()[[3, 0, 1, 2]]
+            else:
+                v = rng.uniform(*m.jnt_range[j]) if m.jnt_limited[j] else rng.uniform(-1, 1)
+                q[model.chain.dof_names.index(name)] = v
+                d.qpos[adr] = v
+        mujoco.mj_kinematics(m, d)
+        kp = np.asarray(body.keypoints(model, jnp.asarray(q)))[idx]
+        np.testing.assert_allclose(kp, d.site_xpos[[m.site("LELB").id, m.site("head").id]],
+                                   atol=1e-9)

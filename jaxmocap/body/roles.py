@@ -626,7 +626,9 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
     roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
     beside the model if it exists, else inferred from the names) and the 12 keypoints placed
-    from the roles (module docstring). Bad files and missing roles: one :class:`InputError`."""
+    from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
+    named like one of the 12 places that keypoint). Bad files and missing roles: one
+    :class:`InputError`."""
     from .mjcf import load_mjcf
     from .model import make_body_model
     from .urdf import load_urdf
@@ -644,11 +646,24 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     except (ValueError, RuntimeError, KeyError) as e:
         msg = " ".join(str(e).split())
         raise InputError(msg if str(path) in msg else f"{path}: {msg}") from None
+    from .model import KEYPOINT_NAMES
+
+    # MJCF <site> markers (load_mjcf's keypoints): a site named like one of the 12 keypoints
+    # places it (under the roles file's keypoints), the others are kept as extra keypoints
+    links = np.asarray(model.keypoint_link).tolist()
+    offsets = np.asarray(model.keypoint_offset, np.float64)
+    sites = {k: (model.chain.link_names[links[i]], tuple(float(v) for v in offsets[i]))
+             for i, k in enumerate(model.keypoint_names)}
     if not isinstance(roles, BodyRoles):
         file = Path(roles) if roles is not None else roles_path(path)
-        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else None
+        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else {}
+        named = {k: v for k, v in sites.items() if k in KEYPOINT_NAMES}
+        if named:
+            overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
         roles = infer_roles(model.chain, model.geometry, path, overrides)
-    return make_body_model(model.chain, model.geometry, roles.keypoint_table(), roles=roles)
+    table = roles.keypoint_table()
+    table.update({k: v for k, v in sites.items() if k not in table})
+    return make_body_model(model.chain, model.geometry, table, roles=roles)
 
 
 def body_digest(model) -> str:
