@@ -459,3 +459,20 @@ def test_mjcf_sites_are_kept_as_keypoints(foreign, tmp_path, rng):
         kp = np.asarray(body.keypoints(model, jnp.asarray(q)))[idx]
         np.testing.assert_allclose(kp, d.site_xpos[[m.site("LELB").id, m.site("head").id]],
                                    atol=1e-9)
+
+
+def test_pose_database_for_the_foreign_body(foreign):
+    """``posedb.build_database`` on a body with other names (issue 16: it failed in
+    retargeting): clip frames retargeted by roles, mirrored by the role pairs, rendered with
+    the body's own shirt; poses within the limits, every shirt colour seen."""
+    from jaxmocap import posedb
+    from jaxmocap.posedb._build import build_arrays
+
+    model = foreign["urdf"]
+    garment = garment_from_model(model)
+    cfg = posedb.SamplingConfig(size=64, seed=1, clips=("humanoid3d_walk",))
+    maps, poses = (np.asarray(a) for a in build_arrays(cfg, model, garment, False))
+    assert poses.shape == (64, model.n_dof) and np.all(np.isfinite(poses))
+    lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+    assert np.all((poses[:, 6:] >= lo[6:] - 1e-6) & (poses[:, 6:] <= hi[6:] + 1e-6))
+    assert set(np.unique(maps).tolist()) >= {1, 2, 3}
