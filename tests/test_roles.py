@@ -35,6 +35,7 @@ from jaxmocap.errors import InputError
 from jaxmocap.garment import (
     SHIRT_COLOURS,
     default_garment,
+    garment_digest,
     garment_from_model,
     load_garment,
     patch_at,
@@ -375,6 +376,7 @@ def test_garment_json_round_trip_and_colour_order(foreign, tmp_path):
         was = g.colour_names[int(g.patch_colour[i]) - 1]
         assert ordered.colour_names[int(ordered.patch_colour[i]) - 1] == was, p
     np.testing.assert_allclose(ordered.colours, g.colours[::-1], atol=1e-12)  # file rgb kept
+    assert garment_digest(back) == garment_digest(g) != garment_digest(ordered)
     with pytest.raises(InputError, match="not in the colour model") as e:
         load_garment(path, model, colors=names[:5])
     assert str(path) in one_line(e)
