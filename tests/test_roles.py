@@ -191,6 +191,39 @@ def test_name_conventions():
     assert rl.classify_link("LeftArm")[2] < rl.classify_link("LeftShoulder")[2]
 
 
+def test_mixamo_style_names(tmp_path):
+    """Mixamo's skeleton: ``Spine``/``Spine1``/``Spine2`` (the arms hang from Spine2, the
+    chest), ``LeftShoulder`` (clavicle) above ``LeftArm`` (upper arm)."""
+    tree = [("Spine", "Hips", "0 0 0.1"), ("Spine1", "Spine", "0 0 0.1"),
+            ("Spine2", "Spine1", "0 0 0.1"), ("Neck", "Spine2", "0 0 0.25"),
+            ("Head", "Neck", "0 0 0.08")]
+    for side, y in (("Left", 1), ("Right", -1)):
+        tree += [(f"{side}Shoulder", "Spine2", f"0 {0.05 * y} 0.2"),
+                 (f"{side}Arm", f"{side}Shoulder", f"0 {0.12 * y} 0"),
+                 (f"{side}ForeArm", f"{side}Arm", "0 0 -0.28"),
+                 (f"{side}Hand", f"{side}ForeArm", "0 0 -0.25")]
+    links = ['<link name="Hips"><visual><geometry><box size="0.2 0.3 0.1"/></geometry>'
+             '</visual></link>']
+    joints = []
+    for child, parent, xyz in tree:
+        links.append(f'<link name="mixamorig:{child}"><visual><origin xyz="0 0 -0.05"/>'
+                     '<geometry><sphere radius="0.04"/></geometry></visual></link>')
+        joints.append(f'<joint name="{child}_j" type="continuous"><parent link="'
+                      f'{"mixamorig:" + parent if parent != "Hips" else "Hips"}"/><child '
+                      f'link="mixamorig:{child}"/><origin xyz="{xyz}"/><axis xyz="1 0 0"/>'
+                      "</joint>")
+    path = tmp_path / "mixamo.urdf"
+    path.write_text('<robot name="m">' + "".join(links + joints) + "</robot>")
+    roles = body.load_body(path).roles
+    want = {"pelvis": "Hips", "chest": "Spine2", "neck": "Neck", "head": "Head",
+            "l_upper_arm": "LeftArm", "l_forearm": "LeftForeArm", "l_hand": "LeftHand",
+            "r_upper_arm": "RightArm", "r_forearm": "RightForeArm", "r_hand": "RightHand"}
+    assert dict(roles.links) == {r: ("mixamorig:" + n if n != "Hips" else n)
+                                 for r, n in want.items()}
+    assert roles.dofs("spine") == ("Spine_j", "Spine1_j", "Spine2_j")
+    assert roles.dofs("l_shoulder") == ("LeftShoulder_j", "LeftArm_j")
+
+
 def test_body_digest(foreign):
     a, b = body.default_body(), body.load_body(body.model.DEFAULT_URDF)
     assert body.body_digest(a) == body.body_digest(b) and len(body.body_digest(a)) == 16
