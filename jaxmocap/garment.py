@@ -580,3 +580,18 @@ def save_garment(path: str | os.PathLike, garment: Garment, model: BodyModel) ->
     from .io.atomic import write_text
 
     return write_text(path, json.dumps(garment_to_json(garment, model), indent=1) + "\n")
+
+
+def garment_digest(garment: Garment) -> str:
+    """A short stable hash (16 hex digits) of a garment: patches, half-spaces (as float32),
+    colours, skin and names (with :func:`jaxmocap.body.body_digest`, what a pose database is
+    built for)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (garment.patch_planes, garment.colours, garment.skin_rgb, garment.body_rgb):
+        h.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
+    for a in (garment.patch_geom, garment.patch_colour, garment.skin):
+        h.update(np.ascontiguousarray(np.asarray(a, np.int64)).tobytes())
+    h.update(json.dumps([garment.patch_names, garment.colour_names]).encode())
+    return h.hexdigest()[:16]

@@ -35,6 +35,7 @@ from jaxmocap.errors import InputError
 from jaxmocap.garment import (
     SHIRT_COLOURS,
     default_garment,
+    garment_digest,
     garment_from_model,
     load_garment,
     patch_at,
@@ -188,6 +189,39 @@ def test_name_conventions():
         assert rl.classify_link(name)[:2] == (side, part), name
     # mixamo: LeftArm (rank of "arm") wins over LeftShoulder (the clavicle)
     assert rl.classify_link("LeftArm")[2] < rl.classify_link("LeftShoulder")[2]
+
+
+def test_mixamo_style_names(tmp_path):
+    """Mixamo's skeleton: ``Spine``/``Spine1``/``Spine2`` (the arms hang from Spine2, the
+    chest), ``LeftShoulder`` (clavicle) above ``LeftArm`` (upper arm)."""
+    tree = [("Spine", "Hips", "0 0 0.1"), ("Spine1", "Spine", "0 0 0.1"),
+            ("Spine2", "Spine1", "0 0 0.1"), ("Neck", "Spine2", "0 0 0.25"),
+            ("Head", "Neck", "0 0 0.08")]
+    for side, y in (("Left", 1), ("Right", -1)):
+        tree += [(f"{side}Shoulder", "Spine2", f"0 {0.05 * y} 0.2"),
+                 (f"{side}Arm", f"{side}Shoulder", f"0 {0.12 * y} 0"),
+                 (f"{side}ForeArm", f"{side}Arm", "0 0 -0.28"),
+                 (f"{side}Hand", f"{side}ForeArm", "0 0 -0.25")]
+    links = ['<link name="Hips"><visual><geometry><box size="0.2 0.3 0.1"/></geometry>'
+             '</visual></link>']
+    joints = []
+    for child, parent, xyz in tree:
+        links.append(f'<link name="mixamorig:{child}"><visual><origin xyz="0 0 -0.05"/>'
+                     '<geometry><sphere radius="0.04"/></geometry></visual></link>')
+        joints.append(f'<joint name="{child}_j" type="continuous"><parent link="'
+                      f'{"mixamorig:" + parent if parent != "Hips" else "Hips"}"/><child '
+                      f'link="mixamorig:{child}"/><origin xyz="{xyz}"/><axis xyz="1 0 0"/>'
+                      "</joint>")
+    path = tmp_path / "mixamo.urdf"
+    path.write_text('<robot name="m">' + "".join(links + joints) + "</robot>")
+    roles = body.load_body(path).roles
+    want = {"pelvis": "Hips", "chest": "Spine2", "neck": "Neck", "head": "Head",
+            "l_upper_arm": "LeftArm", "l_forearm": "LeftForeArm", "l_hand": "LeftHand",
+            "r_upper_arm": "RightArm", "r_forearm": "RightForeArm", "r_hand": "RightHand"}
+    assert dict(roles.links) == {r: ("mixamorig:" + n if n != "Hips" else n)
+                                 for r, n in want.items()}
+    assert roles.dofs("spine") == ("Spine_j", "Spine1_j", "Spine2_j")
+    assert roles.dofs("l_shoulder") == ("LeftShoulder_j", "LeftArm_j")
 
 
 def test_body_digest(foreign):
@@ -375,6 +409,7 @@ def test_garment_json_round_trip_and_colour_order(foreign, tmp_path):
         was = g.colour_names[int(g.patch_colour[i]) - 1]
         assert ordered.colour_names[int(ordered.patch_colour[i]) - 1] == was, p
     np.testing.assert_allclose(ordered.colours, g.colours[::-1], atol=1e-12)  # file rgb kept
+    assert garment_digest(back) == garment_digest(g) != garment_digest(ordered)
     with pytest.raises(InputError, match="not in the colour model") as e:
         load_garment(path, model, colors=names[:5])
     assert str(path) in one_line(e)
@@ -417,3 +452,62 @@ def test_garment_json_on_the_foreign_body(foreign, tmp_path):
         with pytest.raises(InputError, match=field) as e:
             load_garment(path, model)
         assert str(path) in one_line(e)
+
+
+def test_mjcf_sites_are_kept_as_keypoints(foreign, tmp_path, rng):
+    """<site> markers become keypoints (a site named ``head`` places the head keypoint); their
+    world positions equal MuJoCo's ``site_xpos`` at random ball-joint poses."""
+    import mujoco
+
+    text = foreign["mjcf_path"].read_text()
+    text = text.replace('<body name="left_forearm" pos="0 0 -0.26">',
+                        '<body name="left_forearm" pos="0 0 -0.26">'
+                        '<site name="LELB" pos="0.03 0.01 -0.02"/>')
+    text = text.replace('<body name="head" pos="0 0 0.08">',
+                        '<body name="head" pos="0 0 0.08"><site name="head" pos="0 0 0.1"/>')
+    path = tmp_path / "markers.xml"
+    path.write_text(text)
+    model = body.load_body(path)
+    assert model.keypoint_names == body.KEYPOINT_NAMES + ("LELB",)
+    assert model.roles.keypoint_table()["head"] == ("head", (0.0, 0.0, 0.1))
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    idx = body.keypoint_index(model, ["LELB", "head"])
+    for _ in range(3):
+        q = np.zeros(model.n_dof)
+        q[:3] = rng.normal(size=3)
+        rot = Rotation.random(random_state=rng.integers(1 << 30))
+        q[3:6] = rot.as_rotvec()
+        d.qpos[:3], d.qpos[3:7] = q[:3], rot.as_quat()[[3, 0, 1, 2]]
+        for j in range(1, m.njnt):  # ball joints: R = Rx Ry Rz of our x, y, z DOFs
+            name, adr = m.joint(j).name, m.jnt_qposadr[j]
+            if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+                a = rng.uniform(-1, 1, 3)
+                for ax, v in zip("xyz", a, strict=True):
+                    q[model.chain.dof_names.index(f"{name}_{ax}")] = v
+                d.qpos[adr:adr + 4] = Rotation.from_euler("XYZ", a).as_quat()[[3, 0, 1, 2]]
+            else:
+                v = rng.uniform(*m.jnt_range[j]) if m.jnt_limited[j] else rng.uniform(-1, 1)
+                q[model.chain.dof_names.index(name)] = v
+                d.qpos[adr] = v
+        mujoco.mj_kinematics(m, d)
+        kp = np.asarray(body.keypoints(model, jnp.asarray(q)))[idx]
+        np.testing.assert_allclose(kp, d.site_xpos[[m.site("LELB").id, m.site("head").id]],
+                                   atol=1e-9)
+
+
+def test_pose_database_for_the_foreign_body(foreign):
+    """``posedb.build_database`` on a body with other names (issue 16: it failed in
+    retargeting): clip frames retargeted by roles, mirrored by the role pairs, rendered with
+    the body's own shirt; poses within the limits, every shirt colour seen."""
+    from jaxmocap import posedb
+    from jaxmocap.posedb._build import build_arrays
+
+    model = foreign["urdf"]
+    garment = garment_from_model(model)
+    cfg = posedb.SamplingConfig(size=64, seed=1, clips=("humanoid3d_walk",))
+    maps, poses = (np.asarray(a) for a in build_arrays(cfg, model, garment, False))
+    assert poses.shape == (64, model.n_dof) and np.all(np.isfinite(poses))
+    lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+    assert np.all((poses[:, 6:] >= lo[6:] - 1e-6) & (poses[:, 6:] <= hi[6:] + 1e-6))
+    assert set(np.unique(maps).tolist()) >= {1, 2, 3}

@@ -172,40 +172,34 @@ def classify_link(name: str) -> tuple[str | None, str | None, int]:
     return side, None, 0
 
 
-def infer_link_roles(chain: KinematicChain) -> dict[str, str]:
-    """``{role: link}`` from the link names and the tree (module docstring); possibly partial."""
+def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
+                     ) -> tuple[dict[str, str], dict[str, list[str]]]:
+    """(``{role: link}`` from the link names and the tree, ``{role: [tied links]}`` for the
+    roles several links claim equally); see the module docstring. Possibly partial."""
     best: dict[str, list[tuple[int, str]]] = {}
     for link in chain.link_names:
         side, part, rank = classify_link(link)
-        if part is None:
-            continue
-        if part in LIMB_PARTS:
-            if side is None:
-                continue
-            role = f"{side}_{part}"
-        else:
-            if side is not None:
-                continue
-            role = part
-        best.setdefault(role, []).append((rank, link))
-    out = {}
+        if part is None or (part in LIMB_PARTS) != (side is not None):
+            continue  # an arm part needs a side, a trunk part must not have one
+        best.setdefault(f"{side}_{part}" if side else part, []).append((rank, link))
+    out, ties = {}, {}
     for role, cands in best.items():
         top = min(r for r, _ in cands)
         links = [name for r, name in cands if r == top]
         if len(links) == 1:
             out[role] = links[0]
-        elif role == "chest":
-            out["chest"] = _deepest_ancestor_of_arms(chain, out, links) or ""
-        elif role == "pelvis" and chain.link_names[0] in links:
-            out["pelvis"] = chain.link_names[0]
-    out = {k: v for k, v in out.items() if v}
-    if "chest" not in out:
-        lca = _deepest_ancestor_of_arms(chain, out, chain.link_names)
-        if lca:
-            out["chest"] = lca
-    if "pelvis" not in out:
+        else:
+            ties[role] = links
+    arms = _deepest_ancestor_of_arms(chain, out, chain.link_names, geometry)
+    if arms:  # structure first: the arms hang from the chest (mixamo's "Spine" is the waist)
+        out["chest"] = arms
+        ties.pop("chest", None)
+    if "pelvis" in ties and chain.link_names[0] in ties["pelvis"]:
         out["pelvis"] = chain.link_names[0]
-    return out
+        del ties["pelvis"]
+    if "pelvis" not in out and "pelvis" not in ties:
+        out["pelvis"] = chain.link_names[0]
+    return out, ties
 
 
 def _ancestors(chain: KinematicChain, i: int) -> list[int]:
@@ -216,14 +210,18 @@ def _ancestors(chain: KinematicChain, i: int) -> list[int]:
     return out
 
 
-def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates) -> str | None:
-    """The deepest of ``candidates`` that is an ancestor of both upper arms (if known)."""
+def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
+                              geometry: Geometry | None = None) -> str | None:
+    """The deepest of ``candidates`` that is an ancestor of both upper arms (if known) and,
+    with ``geometry``, carries a geom."""
     if "l_upper_arm" not in found or "r_upper_arm" not in found:
         return None
     names = chain.link_names
     common = set(_ancestors(chain, names.index(found["l_upper_arm"])))
     common &= set(_ancestors(chain, names.index(found["r_upper_arm"])))
     common -= {names.index(found["l_upper_arm"]), names.index(found["r_upper_arm"])}
+    if geometry is not None:
+        common &= set(np.asarray(geometry.link).tolist())
     ok = [names.index(c) for c in candidates if names.index(c) in common]
     return names[max(ok)] if ok else None  # topological order: the largest index is deepest
 
@@ -526,14 +524,16 @@ def infer_roles(chain: KinematicChain, geometry: Geometry, model_file: str | os.
     roles file). Missing roles: one :class:`InputError` naming ``model_file``, the roles and
     the roles file to write."""
     overrides = dict(overrides or {})
-    links = infer_link_roles(chain)
+    links, ties = infer_link_roles(chain, geometry)
     links.update(overrides.get("links", {}))
     missing = [r for r in LINK_ROLES if r not in links and r not in OPTIONAL_LINK_ROLES]
     roles_file = roles_path(model_file) if model_file else "<model>.roles.json"
     if missing:
+        tied = {r: ties[r] for r in missing if r in ties}
         raise InputError(
             f"{model_file or 'body model'}: cannot tell which links play the roles {missing} "
-            f"from the link names; write {roles_file} (see docs/USER_GUIDE.md, 'Your body')"
+            f"from the link names" + (f" (ambiguous: {tied})" if tied else "")
+            + f"; write {roles_file} (see docs/USER_GUIDE.md, 'Your body')"
         )
     source = str(overrides.get("_source") or f"{model_file} (roles inferred)")
     return derive_roles(
@@ -626,7 +626,9 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
     roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
     beside the model if it exists, else inferred from the names) and the 12 keypoints placed
-    from the roles (module docstring). Bad files and missing roles: one :class:`InputError`."""
+    from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
+    named like one of the 12 places that keypoint). Bad files and missing roles: one
+    :class:`InputError`."""
     from .mjcf import load_mjcf
     from .model import make_body_model
     from .urdf import load_urdf
@@ -644,11 +646,24 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     except (ValueError, RuntimeError, KeyError) as e:
         msg = " ".join(str(e).split())
         raise InputError(msg if str(path) in msg else f"{path}: {msg}") from None
+    from .model import KEYPOINT_NAMES
+
+    # MJCF <site> markers (load_mjcf's keypoints): a site named like one of the 12 keypoints
+    # places it (under the roles file's keypoints), the others are kept as extra keypoints
+    links = np.asarray(model.keypoint_link).tolist()
+    offsets = np.asarray(model.keypoint_offset, np.float64)
+    sites = {k: (model.chain.link_names[links[i]], tuple(float(v) for v in offsets[i]))
+             for i, k in enumerate(model.keypoint_names)}
     if not isinstance(roles, BodyRoles):
         file = Path(roles) if roles is not None else roles_path(path)
-        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else None
+        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else {}
+        named = {k: v for k, v in sites.items() if k in KEYPOINT_NAMES}
+        if named:
+            overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
         roles = infer_roles(model.chain, model.geometry, path, overrides)
-    return make_body_model(model.chain, model.geometry, roles.keypoint_table(), roles=roles)
+    table = roles.keypoint_table()
+    table.update({k: v for k, v in sites.items() if k not in table})
+    return make_body_model(model.chain, model.geometry, table, roles=roles)
 
 
 def body_digest(model) -> str:

@@ -29,24 +29,24 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmocap.body import FIXED, BodyModel, default_body
+from jaxmocap.body import FIXED, BodyModel, default_body, require_roles
 from jaxmocap.synth._rotations import Y_UP_TO_Z_UP, euler_xyz
 from jaxmocap.synth.retarget import (
-    DEFAULT_BONE_ENDS,
     Retargeted,
     SourcePose,
     _rest_transforms,
     _segment_links,
     plan,
     retarget,
+    role_bone_ends,
 )
 
 ROTATIONS = ("Xrotation", "Yrotation", "Zrotation")
 POSITIONS = ("Xposition", "Yposition", "Zposition")
 _M = np.array(Y_UP_TO_Z_UP)
 
-# Our link -> BVH joint names tried in order (our own names first, then common skeletons:
-# CMU / Mixamo / Biovision).
+# Our link *role* -> BVH joint names tried in order (after the body's own link name for the
+# role: common skeletons CMU / Mixamo / Biovision).
 DEFAULT_BVH_NAMES: dict[str, tuple[str, ...]] = {
     "pelvis": ("pelvis", "Hips", "hips", "Hip", "hip", "Pelvis", "Root", "root"),
     "chest": ("chest", "Chest", "Spine1", "Spine2", "UpperChest", "Spine", "spine", "chest1"),
@@ -425,12 +425,16 @@ def bvh_fk(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
 
 
 def default_mapping(bvh: BVH, model: BodyModel) -> dict[str, str]:
-    """Our segment link -> BVH joint, from :data:`DEFAULT_BVH_NAMES` (first name present)."""
+    """Our segment link -> BVH joint: for every role of :data:`DEFAULT_BVH_NAMES`, the link
+    playing it (by the body's roles) gets the first BVH joint present among its own name and
+    the role's candidates."""
+    roles = require_roles(model, "bvh_to_body_q")
     out = {}
-    for ours, cands in DEFAULT_BVH_NAMES.items():
-        if ours not in model.chain.link_names:
+    for role, cands in DEFAULT_BVH_NAMES.items():
+        ours = roles.link(role)
+        if ours in out:
             continue
-        hit = next((c for c in cands if c in bvh.names and c not in out.values()), None)
+        hit = next((c for c in (ours, *cands) if c in bvh.names and c not in out.values()), None)
         if hit is not None:
             out[ours] = hit
     return out
@@ -438,9 +442,10 @@ def default_mapping(bvh: BVH, model: BodyModel) -> dict[str, str]:
 
 def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
                   mapping: Mapping[str, str] | None = None, scale: float = 1.0,
-                  bone_ends: Mapping[str, str] = DEFAULT_BONE_ENDS) -> Retargeted:
+                  bone_ends: Mapping[str, str] | None = None) -> Retargeted:
     """Drive ``model`` (default: the bundled body) with a BVH clip.
 
+    ``bone_ends``: link -> bone end (default: by the body's roles, ``role_bone_ends``).
     ``mapping`` maps our link names to BVH joint names (default :func:`default_mapping`; it
     must include our root link). ``scale`` converts the file's units to metres (e.g. 0.01 for
     centimetres). The BVH rest pose may differ from ours (a T-pose, say): each segment's rest
@@ -448,6 +453,7 @@ def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
     End Site — is aligned by the rotation transfer of :mod:`jaxmocap.synth.retarget`.
     """
     model = default_body() if model is None else model
+    bone_ends = role_bone_ends(model) if bone_ends is None else bone_ends
     mapping = dict(default_mapping(bvh, model) if mapping is None else mapping)
     root = model.chain.link_names[0]
     for ours, theirs in mapping.items():

@@ -41,6 +41,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxmocap.body import FIXED, BodyModel, require_roles, so3_exp
+from jaxmocap.errors import InputError
 from jaxmocap.synth._rotations import axis_angle_matrix, euler_xyz, matrix_to_rotvec, mm, mtm, mv
 
 # Where the bone of each driven segment of the bundled body ends: a descendant link (its rest
@@ -138,9 +139,10 @@ def plan(model: BodyModel, links: tuple[str, ...],
     names = chain.link_names
     for name in links:
         if name not in names:
-            raise ValueError(f"retarget: unknown body link {name!r}; links are {names}")
+            raise InputError(f"retarget: unknown body link {name!r}; links are {names}")
     if links[0] != names[0]:
-        raise ValueError(f"retarget: the first driven link must be the root {names[0]!r}, "
+        raise InputError(f"retarget: the first driven link (the pelvis role) must be the root "
+                         f"link {names[0]!r}, "
                          f"got {links[0]!r}")
     topo = chain.topology
     origin = np.asarray(chain.joint_origin, dtype=np.float64)
@@ -171,10 +173,10 @@ def plan(model: BodyModel, links: tuple[str, ...],
                 after = after @ r
             axes.append(after.T @ axis[i] / np.linalg.norm(axis[i]))
         if moving and any(topo[i][1] != 1 for i in moving):
-            raise ValueError(f"retarget: link {names[s]!r} is moved by a prismatic joint")
+            raise InputError(f"retarget: link {names[s]!r} is moved by a prismatic joint")
         if len(axes) > 1 and not np.allclose(np.array(axes) @ np.array(axes).T,
                                              np.eye(len(axes)), atol=1e-9):
-            raise ValueError(f"retarget: the joints moving {names[s]!r} have non-orthogonal axes")
+            raise InputError(f"retarget: the joints moving {names[s]!r} have non-orthogonal axes")
         end = bone_ends.get(names[s])
         if end is None:
             bone = np.array([0.0, 0.0, 1.0])
@@ -189,14 +191,14 @@ def plan(model: BodyModel, links: tuple[str, ...],
                 e = rest[kp_link[k]]
                 bone = rest[s, :3, :3].T @ (e[:3, :3] @ kp_off[k] + e[:3, 3] - rest[s, :3, 3])
             else:
-                raise ValueError(f"retarget: bone end keypoint {end!r} is not on link "
+                raise InputError(f"retarget: bone end keypoint {end!r} is not on link "
                                  f"{names[s]!r} or below it")
         else:
-            raise ValueError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
+            raise InputError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
                              "descendant link nor a keypoint")
         norm = np.linalg.norm(bone)
         if norm < 1e-9:
-            raise ValueError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
+            raise InputError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
         groups.append(_Group(
             link=s,
             parent=max((p for p in segs if p in _ancestors(topo, s)), default=-1),
