@@ -272,7 +272,7 @@ def format_bvh(bvh: BVH) -> str:
         lines.append(f"{pad}}}")
 
     emit(0, 0)
-    lines += ["MOTION", f"Frames: {bvh.n_frames}", f"Frame Time: {bvh.frame_time:.8f}"]
+    lines += ["MOTION", f"Frames: {bvh.n_frames}", f"Frame Time: {bvh.frame_time:.10f}"]
     lines += [_fmt(row) for row in bvh.motion]
     return "\n".join(lines) + "\n"
 
