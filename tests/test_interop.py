@@ -8,15 +8,17 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pybullet_data
 import pytest
 
-from jaxmocap.body import default_body, fk
+from jaxmocap.body import default_body, fk, load_urdf
 from jaxmocap.io.atomic import AtomicFiles
-from jaxmocap.io.bvh import body_bvh_layout
+from jaxmocap.io.bvh import body_bvh_layout, write_body_bvh
 from jaxmocap.io.export import fill_missing, pose_track, write_exports
 
 FPS = 30.0
@@ -92,6 +94,25 @@ def test_blender_imports_bvh_with_joint_positions(exported):
             ok = track.valid
             np.testing.assert_allclose(got[ok, lay.names.index(name)], track.keypoints[ok, k],
                                        atol=1e-5)
+
+
+@needs("bpy")
+def test_blender_imports_bvh_of_another_body(tmp_path):
+    """pybullet's humanoid: other link names, legs, a rotated (Y-up) root offset and fixed
+    wrists (0-channel joints), leaves without keypoints (End Sites of length 0)."""
+    model = load_urdf(Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf",
+                      scale=0.25, up="y")
+    rng = np.random.default_rng(4)
+    q = rng.uniform(np.maximum(np.asarray(model.chain.lower), -1.2),
+                    np.minimum(np.asarray(model.chain.upper), 1.2), size=(5, model.n_dof))
+    q[:, :6] = rng.normal(0, 0.7, (5, 6))
+    write_body_bvh(tmp_path / "h.bvh", model, q, fps=25.0)
+    out = run_tool(BLENDER, tmp_path / "h.bvh")
+    assert out["fps"] == pytest.approx(25.0) and len(out["heads"]) == 5
+    lay = body_bvh_layout(model)
+    origins = np.asarray(jax.vmap(fk, in_axes=(None, 0))(model.chain, jnp.asarray(q)))
+    got = np.array([[frame[name] for name in lay.names] for frame in out["heads"]])
+    np.testing.assert_allclose(got, origins[:, list(lay.links)][..., :3, 3], atol=1e-5)
 
 
 OPENSIM = """

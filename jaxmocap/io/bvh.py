@@ -347,9 +347,14 @@ def body_bvh_layout(model: BodyModel) -> BodyBVHLayout:
     kp_link = np.asarray(model.keypoint_link)
     kp_off = np.asarray(model.keypoint_offset, np.float64)
     kp_rest = np.einsum("kij,kj->ki", rest[kp_link, :3, :3], kp_off) + rest[kp_link, :3, 3]
+    slides = [j != 0 and any(topo[i][1] == PRISMATIC for i in g)
+              for j, g in zip(links, groups, strict=True)]
     names, used = [], set()
     for n, j in enumerate(links):
-        carriers = set(groups[n]) | ({links[parents[n]]} if parents[n] >= 0 else set())
+        # links a point on the pivot moves with: the joint's group, and its parent's link
+        # unless a prismatic joint slides the pivot against the parent
+        carriers = set(groups[n]) | ({links[parents[n]]} if parents[n] >= 0
+                                     and not slides[n] else set())
         on_pivot = [k for k in range(len(kp_link)) if int(kp_link[k]) in carriers
                     and np.linalg.norm(kp_rest[k] - rest[j, :3, 3]) < 1e-9]
         name = next((model.keypoint_names[k] for k in on_pivot
@@ -372,8 +377,7 @@ def body_bvh_layout(model: BodyModel) -> BodyBVHLayout:
         links=tuple(links), parents=tuple(parents), names=tuple(names),
         rotates=tuple(j == 0 or any(topo[i][1] != FIXED for i in g)
                       for j, g in zip(links, groups, strict=True)),
-        slides=tuple(j != 0 and any(topo[i][1] == PRISMATIC for i in g)
-                     for j, g in zip(links, groups, strict=True)),
+        slides=tuple(slides),
         end_keypoints=tuple(ends))
 
 
