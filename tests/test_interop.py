@@ -1,10 +1,14 @@
 """Optional interop: the exports opened by the tools people use — Blender's BVH importer (the
-`bpy` module) and OpenSim's TRC readers (`opensim`). Skipped when the module is not installed
-(`pip install -e ".[interop]"`); each tool runs in its own process (a subprocess of this
-Python) so that its libraries and warnings stay out of the test process."""
+`bpy` module), OpenSim's TRC readers (`opensim`) and a web browser (headless Chromium) for the
+overlay video. Skipped when the tool is not installed (`pip install -e ".[interop]"`;
+`apt-get install chromium`); each tool runs in its own process so that its libraries and
+warnings stay out of the test process."""
 
 import importlib.util
+import io
 import json
+import re
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -20,6 +24,7 @@ from jaxmocap.body import default_body, fk, load_urdf
 from jaxmocap.io.atomic import AtomicFiles
 from jaxmocap.io.bvh import body_bvh_layout, write_body_bvh
 from jaxmocap.io.export import fill_missing, pose_track, write_exports
+from jaxmocap.io.video import VideoWriter
 
 FPS = 30.0
 
@@ -141,3 +146,43 @@ def test_opensim_loads_trc_with_untracked_frame(exported):
     M = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # OpenSim Y up -> our Z up
     assert np.isnan(xyz[~track.valid]).all()
     np.testing.assert_allclose(xyz[track.valid] @ M.T, track.keypoints[track.valid], atol=1e-5)
+
+
+PAGE = """<!doctype html><html><body><div id="out">pending</div>
+<video id="v" src="%s" muted playsinline></video><script>
+const v = document.getElementById('v'), out = document.getElementById('out');
+v.addEventListener('loadeddata', () => { out.textContent = JSON.stringify(
+  {w: v.videoWidth, h: v.videoHeight, duration: v.duration, ready: v.readyState}); });
+v.addEventListener('error', () => { out.textContent = JSON.stringify({error: v.error.code}); });
+</script></body></html>"""
+
+
+def browser_load(folder, video: str) -> dict:
+    (folder / "page.html").write_text(PAGE % video)
+    done = subprocess.run([shutil.which("chromium"), "--headless", "--no-sandbox",
+                           "--disable-gpu", "--allow-file-access-from-files",
+                           "--virtual-time-budget=8000", "--dump-dom",
+                           (folder / "page.html").as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    found = re.search(r'<div id="out">([^<]*)</div>', done.stdout)
+    assert found, done.stderr[-2000:]
+    return json.loads(found.group(1))
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium not installed")
+def test_browser_plays_overlay_h264_at_its_rate(tmp_path, monkeypatch):
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 255, (15, 47, 63, 3), dtype=np.uint8)  # odd size on purpose
+    with VideoWriter(tmp_path / "h264.mp4", 30.0, 63, 47) as w:
+        assert w.codec == "h264"
+        for f in frames:
+            w.write(f)
+    got = browser_load(tmp_path, "h264.mp4")
+    # decoded by the browser: 64x48 after padding, 15 frames at 30 fps last 0.5 s
+    assert got["ready"] >= 2 and (got["w"], got["h"]) == (64, 48)
+    assert got["duration"] == pytest.approx(0.5, abs=1e-3)
+    monkeypatch.setitem(sys.modules, "av", None)  # the fallback: what browsers refuse
+    with VideoWriter(tmp_path / "mp4v.mp4", 30.0, 64, 48, note=io.StringIO()) as w:
+        for f in frames:
+            w.write(np.pad(f, ((0, 1), (0, 1), (0, 0))))
+    assert "error" in browser_load(tmp_path, "mp4v.mp4")
