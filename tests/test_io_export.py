@@ -93,6 +93,16 @@ def test_npz_and_csv_round_trip(track, tmp_path):
         assert list(z["dof_units"][:7]) == ["m", "m", "m", "rad", "rad", "rad", "rad"]
 
 
+def test_csv_without_units_still_loads(tmp_path):
+    """CSVs written before the columns carried units (``<kp>_x``, ``q_<dof>``) still load."""
+    (tmp_path / "old.csv").write_text("frame,time_s,valid,head_x,head_y,head_z,q_root_tx\n"
+                                      "0,0.0,1,0.1,0.2,1.7,0.5\n1,0.04,0,,,,\n")
+    back = load_track(tmp_path / "old.csv")
+    assert back.keypoint_names == ("head",) and back.dof_names == ("root_tx",)
+    np.testing.assert_allclose(back.keypoints[0, 0], [0.1, 0.2, 1.7])
+    assert back.valid.tolist() == [True, False] and back.fps == pytest.approx(25.0)
+
+
 def read_trc_strict(path):
     """A TRC reader with OpenSim's rules (TRCFileAdapter): the header keys and values, the
     marker names on line 4, then every non-empty data line holding exactly
