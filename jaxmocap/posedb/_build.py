@@ -6,6 +6,18 @@ cached as ``<cache>/posedb/posedb-<key>.npz`` (cache: :func:`jaxmocap._config.ca
 where the key hashes the body model, the garment, the sampling settings, the canonical camera,
 the tiny-map settings, :data:`CODE_VERSION` and the source of the renderer, garment and
 sampler, so that any change builds a new database.
+
+**Rendering cost.** A tiny map holds colour ids only, so a geom that carries no patch matters
+only where it hides the shirt. The maps are cast against (a) the geoms of the links that carry
+a patch or a skin geom (torso, arms, head, hands and whatever else hangs on those links, e.g. a
+shoulder capsule) and (b) every other geom whose bounding sphere at the rest pose reaches above
+the lowest point of the patched geoms' bounding spheres (e.g. a pelvis whose front bulges past
+the shirt's lower edge: leaving the bundled body's pelvis out changes ~13 pixels of a map).
+Geoms entirely below the shirt at rest (legs, feet) are left out: the database's poses hold
+them at rest (only the upper body's roles are sampled), where they cannot cover the shirt from
+the canonical camera. The ray caster's cost is rays x geoms, so the build costs what the shirt
+costs, not what the body's geom count does (:func:`tiny_map_subset`). The model is closed over
+by the jitted renderer, so each geom runs only its own primitive's test (``render._raycast``).
 """
 
 from __future__ import annotations
@@ -15,12 +27,14 @@ import hashlib
 import json
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import render
-from ..body import BodyModel, default_body
+from ..body import BodyModel, default_body, fk, geom_world_poses, rest_pose
+from ..body.geometry import BOX, CAPSULE, CYLINDER, SPHERE
 from ..garment import Garment, default_garment
 from ._sample import (
     DEFAULT_SIZE,
@@ -33,7 +47,7 @@ from ._sample import (
 )
 from ._search import DatabaseError, PoseDB, make_posedb
 
-CODE_VERSION = "posedb-1"  # bump when sampling or rendering code changes the database
+CODE_VERSION = "posedb-2"  # bump when sampling or rendering code changes the database
 RENDER_BATCH = 256  # poses per jitted render call (one compiled shape, last batch padded)
 
 
@@ -67,9 +81,56 @@ def _source_digest() -> str:
     return h.hexdigest()
 
 
-@jax.jit
-def _render_batch(model, garment, qs, cam):
-    return render.tiny_id_maps(model, garment, qs, cam)
+def _bounding_radius(kind: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Radius of a sphere about the geom frame's origin that holds the whole primitive."""
+    r, h = size[:, 0], size[:, 1]
+    return np.select(
+        [kind == SPHERE, kind == CAPSULE, kind == CYLINDER, kind == BOX],
+        [r, r + h, np.hypot(r, h), np.linalg.norm(size, axis=1)],
+        np.max(size, axis=1),  # ellipsoid
+    )
+
+
+def tiny_map_subset(model: BodyModel, garment: Garment) -> tuple[BodyModel, Garment]:
+    """The model and garment restricted to the geoms a tiny map needs (module docstring): the
+    geoms of links that carry a patch or a skin geom, and every geom whose rest-pose bounding
+    sphere reaches above the lowest point of the patched geoms'. Patch and skin indices are
+    renumbered; colours, patch ids and names are unchanged."""
+    geo = model.geometry
+    link = np.asarray(geo.link)
+    used = np.asarray(garment.skin, bool).copy()
+    patched = np.zeros(geo.n_geoms, bool)
+    patched[np.asarray(garment.patch_geom)] = True
+    used |= patched
+    if not patched.any():
+        return model, garment
+    T = np.asarray(geom_world_poses(model, fk(model.chain, rest_pose(model, jnp.float32))))
+    z = T[:, 2, 3]
+    radius = _bounding_radius(np.asarray(geo.kind), np.asarray(geo.size, float))
+    shirt_bottom = np.min((z - radius)[patched])
+    keep = np.flatnonzero(np.isin(link, link[used]) | (z + radius >= shirt_bottom))
+    if len(keep) == geo.n_geoms:
+        return model, garment
+    renumber = np.full(geo.n_geoms, -1, np.int32)
+    renumber[keep] = np.arange(len(keep), dtype=np.int32)
+    sub = type(geo)(link=geo.link[keep], kind=geo.kind[keep], pose=geo.pose[keep],
+                    size=geo.size[keep], rgba=geo.rgba[keep],
+                    names=tuple(geo.names[i] for i in keep))  # fmt: skip
+    model = eqx.tree_at(lambda m: m.geometry, model, sub)
+    garment = eqx.tree_at(
+        lambda g: (g.patch_geom, g.skin),
+        garment,
+        (jnp.asarray(renumber[np.asarray(garment.patch_geom)]), garment.skin[keep]),
+    )
+    return model, garment
+
+
+def _batch_renderer(model: BodyModel, garment: Garment):
+    """A jitted ``poses (RENDER_BATCH, n_dof) -> maps`` closed over the (subset) model, so that
+    the geom kinds are static (about 1.7x faster than the model as a traced argument)."""
+    model, garment = tiny_map_subset(model, garment)
+    cam = canonical_camera(jnp.float32)
+    return jax.jit(lambda qs: render.tiny_id_maps(model, garment, qs, cam))
 
 
 def render_maps(
@@ -79,7 +140,7 @@ def render_maps(
     ``RENDER_BATCH`` poses per jitted call (vmap inside), with a tqdm progress bar."""
     from tqdm.auto import tqdm
 
-    cam = canonical_camera(jnp.float32)
+    render_batch = _batch_renderer(model, garment)
     n = len(poses)
     out = np.zeros((n, render.TINY_SIZE, render.TINY_SIZE), np.uint8)
     with tqdm(total=n, desc="pose database", unit="map", disable=not progress) as bar:
@@ -88,7 +149,7 @@ def render_maps(
             m = len(qs)
             if m < RENDER_BATCH:
                 qs = np.concatenate([qs, np.repeat(qs[-1:], RENDER_BATCH - m, axis=0)])
-            out[s:s + m] = np.asarray(_render_batch(model, garment, jnp.asarray(qs), cam))[:m]
+            out[s:s + m] = np.asarray(render_batch(jnp.asarray(qs)))[:m]
             bar.update(m)
     return out
 
