@@ -1,5 +1,5 @@
-"""``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, CSV, NPZ),
-per-frame diagnostics and an optional overlay video.
+"""``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, C3D, CSV, NPZ),
+per-frame diagnostics and an optional overlay video (H.264 MP4 at the capture's frame rate).
 
 The command drives any tracker through a small **frame protocol** (:class:`FrameTracker`):
 
@@ -39,7 +39,7 @@ from jaxmocap.camera import Camera, load_cameras, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
-from jaxmocap.io.video import SyncReader, quiet_ffmpeg
+from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
 
 __all__ = [
     "BONES",
@@ -60,7 +60,6 @@ BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
          ("l_wrist", "l_hand"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"),
          ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
 OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
-OVERLAY_CODEC = "mp4v"
 
 EPILOG = """examples:
   # the colour shirt, two recorded cameras
@@ -72,9 +71,10 @@ EPILOG = """examples:
   jaxmocap track --method shirt --cameras cameras.json --colors colors.json 0 \\
       --max-frames 300 --show
 
-outputs in --out: poses.bvh poses.trc poses.csv poses.npz (see --formats), diagnostics.csv,
-overlay.mp4 (--overlay). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
-2 bad input (nothing written).
+outputs in --out: poses.bvh poses.trc poses.c3d poses.csv poses.npz (see --formats),
+diagnostics.csv, overlay.mp4 (--overlay: H.264 at the capture's frame rate).
+Exit codes: 0 done, 1 done but some frames were unreadable (reported), 2 bad input (nothing
+written).
 """
 
 
@@ -339,13 +339,8 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 if view is not None:
                     if writer is None:
                         size = (view.shape[1], view.shape[0])
-                        path = files.path(out / "overlay.mp4")
-                        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(
-                            *OVERLAY_CODEC), float(fps), size)
-                        if not writer.isOpened():
-                            raise OSError(f"{out / 'overlay.mp4'}: OpenCV cannot open a "
-                                          f"{OVERLAY_CODEC} video writer")
-                    writer.write(np.ascontiguousarray(view[..., ::-1]))
+                        writer = VideoWriter(files.path(out / "overlay.mp4"), fps, *size)
+                    writer.write(view)
             if show and view is not None:
                 cv2.imshow("jaxmocap track", view[..., ::-1])
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
@@ -354,7 +349,7 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
         print("interrupted: writing the frames tracked so far", file=sys.stderr)
     finally:
         if writer is not None:
-            writer.release()
+            writer.close()
     return np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows
 
 
@@ -414,7 +409,7 @@ def add_parser(sub) -> None:
         description="Track the upper body with the colour-shirt tracker (Wang et al. 2011, "
         "--method shirt) or the stereo particle filter (Azad et al. 2007, --method pf). Give "
         "one input per camera of cameras.json, in its order: a video file, a folder of "
-        "frames, or a camera index for live capture. Writes the poses (BVH, TRC, CSV, NPZ), "
+        "frames, or a camera index for live capture. Writes the poses (BVH, TRC, C3D, CSV, NPZ), "
         "per-frame diagnostics and optionally an overlay video into --out.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", metavar="INPUT",
