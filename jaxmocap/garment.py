@@ -14,10 +14,11 @@ them as skin.
 
 Constructors:
 
-* :func:`default_garment` — the paper's shirt on :func:`jaxmocap.body.default_body`;
-* :func:`garment_from_model` — every coloured geom of a model becomes a patch of its colour
-  (how a user describes their own shirt, or uses a third-party model such as pybullet's
-  humanoid);
+* :func:`default_garment` — the paper's shirt, placed by the body's roles
+  (:func:`jaxmocap.body.default_body` by default);
+* :func:`garment_from_model` — the coloured geoms of the shirt's role links (chest, upper arms,
+  forearms; not trousers or shoes unless asked) become patches of their colours (how a user
+  describes their own shirt, or uses a third-party model such as pybullet's humanoid);
 * :func:`single_colour_garment` — Azad et al.'s set-up: one shirt colour plus skin;
 * :func:`load_garment` / :func:`save_garment` — the user's shirt as ``garment.json``
   (docs/USER_GUIDE.md, "Your shirt").

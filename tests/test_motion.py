@@ -1,6 +1,7 @@
 """DeepMimic clip decoding (oracle: pybullet posing humanoid.urdf) and retargeting to our body."""
 
 import json
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -154,17 +155,20 @@ def bodies(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("bodies")
     return {"bundled": default_body(), "foreign_urdf": load_body(foreign_urdf(d / "f.urdf")),
-            "foreign_mjcf": load_body(foreign_mjcf(d / "f.xml"))}
+            "foreign_mjcf": load_body(foreign_mjcf(d / "f.xml")),
+            "deepmimic": load_body(pathlib.Path(pybullet_data.getDataPath()) / "humanoid"
+                                   / "humanoid.urdf", scale=0.25, up="y")}
 
 
 def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-@pytest.mark.parametrize("which", ["bundled", "foreign_urdf", "foreign_mjcf"])
+@pytest.mark.parametrize("which", ["bundled", "foreign_urdf", "foreign_mjcf", "deepmimic"])
 def test_retarget_bone_directions_and_root(humanoid, bodies, which):
     """Retargeted bones point where pybullet's posed source bones point; root copied exactly.
-    By roles: the same on a body with other names, proportions, primitives and a neck link.
+    By roles: the same on a body with other names, proportions, primitives and a neck link, and
+    on the source's own humanoid (pybullet's humanoid.urdf, whose wrists sit on the elbows).
 
     Bound: the angle between a bone of ours and the source's is at most the total amount
     (rad) by which the joints on its chain were clipped to their limits, + 1e-6 rad: exact
@@ -227,7 +231,9 @@ def test_retarget_bone_directions_and_root(humanoid, bodies, which):
 
     # root: our pelvis origin is the source root position, its rotation the source root's
     np.testing.assert_allclose(ours_pos[:, 0], src_pos[:, 0] @ M.T, atol=1e-9)
-    np.testing.assert_allclose(transforms[:, 0, :3, :3], M @ src_rot[:, 0] @ M.T, atol=1e-6)
+    rest0 = np.asarray(model.chain.joint_origin[0, :3, :3])  # the root link's rest orientation
+    np.testing.assert_allclose(transforms[:, 0, :3, :3] @ rest0.T, M @ src_rot[:, 0] @ M.T,
+                               atol=1e-6)
     # joint limits respected, wrists untouched
     assert np.all(q[:, 6:] >= np.asarray(model.chain.lower[6:]) - 1e-12)
     assert np.all(q[:, 6:] <= np.asarray(model.chain.upper[6:]) + 1e-12)

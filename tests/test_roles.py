@@ -511,3 +511,27 @@ def test_pose_database_for_the_foreign_body(foreign):
     lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
     assert np.all((poses[:, 6:] >= lo[6:] - 1e-6) & (poses[:, 6:] <= hi[6:] + 1e-6))
     assert set(np.unique(maps).tolist()) >= {1, 2, 3}
+
+
+def test_third_party_deepmimic_humanoid():
+    """pybullet's DeepMimic humanoid (links root/chest/neck/left_shoulder/left_elbow/
+    left_wrist, fixed wrists on the elbows, a base link fixed to the root) by inference alone."""
+    from pathlib import Path
+
+    import pybullet_data
+
+    model = body.load_body(Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf",
+                           scale=0.25, up="y")
+    roles = model.roles
+    assert dict(roles.links) == {
+        "pelvis": "base", "chest": "chest", "head": "neck", "l_upper_arm": "left_shoulder",
+        "l_forearm": "left_elbow", "l_hand": "left_wrist", "r_upper_arm": "right_shoulder",
+        "r_forearm": "right_elbow", "r_hand": "right_wrist"}  # fmt: skip
+    assert roles.dofs("l_wrist") == () and len(body.stereo_dofs(model)) == 14
+    limbs = cues.limb_model(model)  # the forearm ends at the hand (its wrist sits on the elbow)
+    assert np.all(np.linalg.norm(np.asarray(limbs.p1 - limbs.p0), axis=1) > 0.1)
+    mir = mirror_table(model)
+    names = model.chain.dof_names
+    assert names[mir.perm[names.index("left_knee")]] == "right_knee"
+    with pytest.raises(InputError, match="scale/up apply to URDF"):
+        body.load_body(Path(pybullet_data.getDataPath()) / "mjcf" / "humanoid.xml", scale=0.5)

@@ -199,6 +199,12 @@ def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
         del ties["pelvis"]
     if "pelvis" not in out and "pelvis" not in ties:
         out["pelvis"] = chain.link_names[0]
+    elif "pelvis" in out:  # fixed to the root link (DeepMimic's base -> root): the root moves it
+        path = _ancestors(chain, chain.link_names.index(out["pelvis"]))
+        if all(chain.topology[i][1] == FIXED for i in path):
+            out["pelvis"] = chain.link_names[0]
+    if "head" not in out and "head" not in ties and "neck" in out:
+        out["head"] = out.pop("neck")  # a "neck" link that carries the head (DeepMimic)
     return out, ties
 
 
@@ -304,27 +310,33 @@ def is_crosswise(geometry: Geometry, g: int) -> bool:
     return bool(abs(z[1]) > CROSSWISE_COS)
 
 
-_NEXT_ROLE = {"l_upper_arm": "l_forearm", "l_forearm": "l_hand", "r_upper_arm": "r_forearm",
-              "r_forearm": "r_hand", "torso": "neck"}
+# Where each contour limb's bone ends: keypoints, the first one not at the bone's start (a
+# DeepMimic wrist sits on the elbow: the forearm then ends at the hand's centre).
+_BONE_END_KEYPOINTS = {"l_upper_arm": ("l_elbow",), "l_forearm": ("l_wrist", "l_hand"),
+                       "r_upper_arm": ("r_elbow",), "r_forearm": ("r_wrist", "r_hand"),
+                       "torso": ("neck", "head")}
 
 
 def limb_axis(model, role: str) -> np.ndarray:
     """Unit bone direction (link frame, rest) of a contour limb role (:data:`CONTOUR_LIMBS` or
-    ``torso``): from the link's joint centre to the next role link's joint centre (the torso:
-    from the chest's joint to the neck's)."""
+    ``torso``): from the link's joint centre to the next keypoint of :data:`_BONE_END_KEYPOINTS`
+    (the elbow, the wrist -- the hand if the wrist sits on the elbow --, the neck)."""
     roles = require_roles(model, f"the {role} bone")
     chain = model.chain
     rest = rest_transforms(chain)
     own = chain.link_names.index(roles.link("chest" if role == "torso" else role))
-    nxt = chain.link_names.index(roles.link(_NEXT_ROLE[role]))
     a = joint_centre(chain, own, rest)
-    b = np.linalg.solve(rest[own], rest[nxt] @ np.append(joint_centre(chain, nxt, rest), 1.0))
-    u = b[:3] - a
-    n = np.linalg.norm(u)
-    if n < 1e-9:
-        raise InputError(f"{roles.source}: the {role} has no length (its joint centre and the "
-                         f"{_NEXT_ROLE[role]}'s coincide)")
-    return u / n
+    table = roles.keypoint_table()
+    for k in _BONE_END_KEYPOINTS[role]:
+        link, off = table[k]
+        li = chain.link_names.index(link)
+        b = np.linalg.solve(rest[own], rest[li] @ np.append(np.asarray(off, float), 1.0))[:3]
+        u = b - a
+        n = np.linalg.norm(u)
+        if n > 1e-3:
+            return u / n
+    raise InputError(f"{roles.source}: the {role} has no length (its joint centre and the "
+                     f"keypoints {_BONE_END_KEYPOINTS[role]} coincide)")
 
 
 # ----------------------------------------------------------------------------- derivation
@@ -622,12 +634,14 @@ def roles_to_json(roles: BodyRoles) -> dict:
 MODEL_SUFFIXES = {".urdf": "urdf", ".xml": "mjcf", ".mjcf": "mjcf"}
 
 
-def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | None = None):
+def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | None = None, *,
+              scale: float = 1.0, up: str = "z"):
     """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
     roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
     beside the model if it exists, else inferred from the names) and the 12 keypoints placed
     from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
-    named like one of the 12 places that keypoint). Bad files and missing roles: one
+    named like one of the 12 places that keypoint). ``scale``/``up``: a URDF's units and up
+    axis (:func:`~jaxmocap.body.load_urdf`). Bad files and missing roles: one
     :class:`InputError`."""
     from .mjcf import load_mjcf
     from .model import make_body_model
@@ -640,7 +654,9 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     if not path.is_file():
         raise InputError(f"{path}: body model file not found")
     try:
-        model = load_urdf(path) if kind == "urdf" else load_mjcf(path)
+        if kind == "mjcf" and (scale != 1.0 or up != "z"):
+            raise InputError(f"{path}: scale/up apply to URDF files (MJCF is metres, z up)")
+        model = load_urdf(path, scale=scale, up=up) if kind == "urdf" else load_mjcf(path)
     except InputError:
         raise
     except (ValueError, RuntimeError, KeyError) as e:

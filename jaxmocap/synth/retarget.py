@@ -72,12 +72,26 @@ ROLE_BONE_ENDS = {
 }
 
 
+# When a link end sits on the segment's own origin (DeepMimic's wrist link hangs at the elbow):
+# the keypoint that ends the bone instead.
+_COINCIDENT_END = {"l_hand": "l_hand", "r_hand": "r_hand", "neck": "head", "chest": "chest"}
+
+
 def role_bone_ends(model: BodyModel) -> dict[str, str]:
     """``{link: bone end}`` of the body's role links (:data:`ROLE_BONE_ENDS`, by its roles)."""
     roles = require_roles(model, "retarget")
+    names = model.chain.link_names
+    rest = _rest_transforms(np.asarray(model.chain.joint_origin, np.float64),
+                            model.chain.topology)
     out = {}
     for role, (kind, end) in ROLE_BONE_ENDS.items():
-        out[roles.link(role)] = roles.link(end) if kind == "link" else end
+        link = roles.link(role)
+        if kind == "link":
+            e = roles.link(end)
+            gap = np.linalg.norm(rest[names.index(e), :3, 3] - rest[names.index(link), :3, 3])
+            out[link] = _COINCIDENT_END.get(end, e) if gap < 1e-3 else e
+        else:
+            out[link] = end
     return out
 
 
@@ -197,6 +211,8 @@ def plan(model: BodyModel, links: tuple[str, ...],
             raise InputError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
                              "descendant link nor a keypoint")
         norm = np.linalg.norm(bone)
+        if norm < 1e-9 and names[s] not in links:  # not driven: its bone is never used
+            bone, norm = np.array([0.0, 0.0, 1.0]), 1.0
         if norm < 1e-9:
             raise InputError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
         groups.append(_Group(
