@@ -15,8 +15,7 @@ from _foreign_body import foreign_urdf
 from jaxmocap.body import body_digest, default_body, load_body
 from jaxmocap.body.roles import rest_transforms
 from jaxmocap.cli import main
-from jaxmocap.garment import garment_from_model, save_garment
-from jaxmocap.posedb import garment_digest
+from jaxmocap.garment import garment_digest, garment_from_model, save_garment
 from jaxmocap.trackers.shirt_covariances import (
     AXIS_COS,
     DEFAULT_BLEND_STD,

@@ -35,7 +35,7 @@ import numpy as np
 from .. import render
 from ..body import BodyModel, default_body, fk, geom_world_poses, rest_pose
 from ..body.geometry import BOX, CAPSULE, CYLINDER, SPHERE
-from ..garment import Garment, default_garment
+from ..garment import Garment, default_garment, garment_digest
 from ._sample import (
     DEFAULT_SIZE,
     SamplingConfig,
@@ -192,17 +192,6 @@ def load_database(path: str | Path, key: str | None = None) -> PoseDB:
     if key is not None and meta.get("key") != key:
         raise DatabaseError(f"{path}: meta.key is {meta.get('key')!r}, expected {key!r}")
     return make_posedb(maps, poses, int(meta["n_colours"]), key=str(meta["key"]))
-
-
-def garment_digest(garment: Garment) -> str:
-    """A short stable hash (16 hex digits) of a garment: patches, colours, skin flags."""
-    h = hashlib.sha256()
-    for a in (garment.patch_planes, garment.colours, garment.skin_rgb, garment.body_rgb):
-        h.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
-    for a in (garment.patch_geom, garment.patch_colour, garment.skin):
-        h.update(np.ascontiguousarray(np.asarray(a, np.int64)).tobytes())
-    h.update(json.dumps([garment.patch_names, garment.colour_names]).encode())
-    return h.hexdigest()[:16]
 
 
 def _meta(key: str, config: SamplingConfig, model: BodyModel, garment: Garment) -> dict:
