@@ -305,7 +305,7 @@ def build_scene(spec: WorldSpec, model: BodyModel, garment: Garment, cams: list[
                   pos=f"{ROOM['wall_x']} 0 1.6", material="wall", group=pg)
     for s in (-1, 1):
         ET.SubElement(world, "geom", name=f"wall_side{s:+d}", type="box",
-                      size=f"3.5 0.05 1.6", pos=f"0.9 {s * ROOM['side_y']} 1.6",
+                      size="3.5 0.05 1.6", pos=f"0.9 {s * ROOM['side_y']} 1.6",
                       material="wall", group=pg)
     # lamps: spot lamps high in front, alternating left/right, aimed at the subject's chest
     lamp_names, lamp_rgb = [], []
