@@ -24,6 +24,7 @@ SUBCOMMANDS = (
     "jaxmocap.commands.track",
     "jaxmocap.commands.evaluate",
     "jaxmocap.commands.body",
+    "jaxmocap.synth.world.cli",
 )
 
 

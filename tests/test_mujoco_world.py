@@ -161,3 +161,52 @@ def test_test_world_uses_held_out_motion_only():
     base = world_motion(dataclasses.replace(spec, yaw=0.0, spin=0.0), sb)
     np.testing.assert_allclose(q[:, 6:], base[:, 6:])  # joints untouched by the turn
     np.testing.assert_allclose(q[:, 2], base[:, 2])  # pelvis height too
+
+
+def test_split_file_is_the_generator_output_and_covers_the_nuisances():
+    from jaxmocap.body import default_body
+    from jaxmocap.body.scale import measure
+    from jaxmocap.synth.motion import HELDOUT_CLIPS
+    from jaxmocap.synth.world.split import load_split, world_sequences
+
+    seqs = load_split()
+    assert seqs == world_sequences()
+    ref = measure(default_body())
+    for tracker in ("shirt", "pf"):
+        for split in ("dev", "test"):
+            ws = [WorldSpec.from_dict(s["world"]) for s in seqs
+                  if s["tracker"] == tracker and s["split"] == split]
+            assert len(ws) == (4 if split == "dev" else 8)
+            assert any(w.lamp_off is not None for w in ws) and any(w.occluder for w in ws)
+            assert any(abs(w.yaw) == 90 for w in ws) and all(w.n_clutter >= 3 for w in ws)
+            assert {w.naming for w in ws} == {"jaxmocap", "left_right", "mixamo"}
+            for w in ws:
+                assert w.clip in HELDOUT_CLIPS and 60 <= w.n_frames <= 120
+                for k in ("height", "shoulder_width", "upper_arm", "forearm"):
+                    assert 0.85 <= getattr(w, k) / ref[k] <= 1.15
+                r = w.rig_settings()
+                if tracker == "pf":
+                    assert (r["width"], r["height"], w.garment) == (320, 240, "single")
+                    assert 0.09 <= r["baseline"] <= 0.13
+                else:
+                    assert (r["width"], r["height"]) == (640, 480)
+                    assert w.garment in ("wang", "bands")
+
+
+def test_cli_synth_mujoco_and_errors(tmp_path, capsys):
+    from jaxmocap.cli import main
+
+    out = tmp_path / "seq"
+    assert main(["synth", str(out), "--renderer", "mujoco", "--frames", "2", "--width", "64",
+                 "--height", "48", "--layout", "single", "--shirt-rgb", "0.1", "0.6", "0.2",
+                 "--naming", "left_right", "--lamps", "cool", "--jpeg", "70", "--quiet"]) == 0
+    seq = load_dataset(out)
+    assert seq.frames.shape == (2, 2, 48, 64, 3)
+    assert "left_shoulder_x" in list(seq.groundtruth["dof_names"])
+    capsys.readouterr()
+    assert main(["synth", str(tmp_path / "x"), "--renderer", "mujoco", "--k1", "0.1"]) == 2
+    assert "not supported by --renderer mujoco" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "x"), "--yaw", "90"]) == 2
+    assert main(["synth", str(tmp_path / "x"), "--renderer", "mujoco", "--lamps", "pink"]) == 2
+    assert "lamps" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

@@ -77,7 +77,8 @@ class WorldSequence(NamedTuple):
     groundtruth: dict[str, np.ndarray]
     spec: WorldSpec
     body: object  # BodyModel as the world names it
-    seconds: float
+    seconds: float  # total, set-up (retargeting, tessellation, MuJoCo compile) included
+    render_seconds: float  # the frame loop only (MuJoCo renders, noise, JPEG)
 
 
 def _subframe_offsets(spec: WorldSpec) -> np.ndarray:
@@ -166,6 +167,7 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
     body_px = np.zeros((n, len(cams)), np.int64)
     shown_px = np.zeros((n, len(cams)), np.int64)
     mid = spec.motion_blur // 2
+    t_loop = _time.perf_counter()
     it = range(n)
     if progress:
         from tqdm import tqdm
@@ -206,6 +208,7 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
             frames[t, c] = v
     rgb_r.close()
     seg_r.close()
+    t_loop = _time.perf_counter() - t_loop
     dt = jnp.result_type(float)
     kp = jax.jit(jax.vmap(lambda q: keypoints(sb.model, q)))(jnp.asarray(q_frames, dt))
     lamp_rgb = scene.lamp_rgb
@@ -228,7 +231,8 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
         "times": np.arange(n) / spec.fps,
         "lamp_levels": levels,
     }
-    return WorldSequence(frames, cams, names, gt, spec, shown, _time.perf_counter() - t0)
+    return WorldSequence(frames, cams, names, gt, spec, shown, _time.perf_counter() - t0,
+                         t_loop)
 
 
 def scene_config(spec: WorldSpec, n_frames: int):
@@ -272,6 +276,7 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
         doc["render"]["renderer"] = "mujoco"
         doc["render"]["mujoco_gl"] = os.environ.get("MUJOCO_GL")
         doc["render"]["seconds"] = round(seq.seconds, 2)
+        doc["render"]["render_seconds"] = round(seq.render_seconds, 2)
         doc["world"] = seq.spec.to_dict()
         (inner / "scene.json").write_text(json.dumps(doc, indent=2) + "\n")
         write_urdf(seq.body, inner / "body.urdf")
