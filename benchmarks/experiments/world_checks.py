@@ -32,6 +32,12 @@ from jaxmocap.synth.world.scene import build_scene  # noqa: E402
 from jaxmocap.synth.world.spec import world_body, world_cameras, world_garment  # noqa: E402
 
 
+def hidden(i: int, uv: np.ndarray, z: np.ndarray, rad: np.ndarray) -> bool:
+    """Whether marker i's disc may be overlapped by a nearer marker's (predicted)."""
+    d = np.linalg.norm(uv - uv[i], axis=1)
+    return bool(np.any((z < z[i]) & (d < rad + rad[i] + 2)))
+
+
 def projection_errors(rig: str, seed: int = 0) -> list[float]:
     spec = WorldSpec(rig=rig, n_clutter=0, n_frames=1)
     sb, shown = world_body(spec)
@@ -60,11 +66,12 @@ def projection_errors(rig: str, seed: int = 0) -> list[float]:
         ids = r.render()[..., 0]
         want = np.asarray(project(cams[c], jnp.asarray(pts)))
         z = np.asarray(to_camera(cams[c], jnp.asarray(pts)))[:, 2]
-        area = np.pi * (float(cams[c].K[0, 0]) * 0.02 / z) ** 2
+        rad = float(cams[c].K[0, 0]) * 0.02 / z
         for i in range(len(pts)):
             mask = ids == mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"marker{i}")
-            if mask.sum() < 0.85 * area[i] or not ((want[i] > 6).all() and want[i][0] < w - 7
-                                                    and want[i][1] < h - 7):
+            if hidden(i, want, z, rad) or not ((want[i] > rad[i] + 2).all()
+                                               and want[i][0] < w - rad[i] - 3
+                                               and want[i][1] < h - rad[i] - 3):
                 continue
             got = np.array([xx[mask].mean(), yy[mask].mean()])
             errs.append(float(np.linalg.norm(got - want[i])))
