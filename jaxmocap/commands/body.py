@@ -25,10 +25,11 @@ def add_parser(sub) -> None:
     p = sub.add_parser("body", help="write the bundled body scaled to measurements (URDF/MJCF)",
                        description=__doc__.splitlines()[0], epilog=EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--height", type=float, metavar="M")
-    p.add_argument("--shoulder-width", type=float, metavar="M")
-    p.add_argument("--upper-arm", type=float, metavar="M")
-    p.add_argument("--forearm", type=float, metavar="M")
+    p.add_argument("--height", type=float, metavar="M", help="floor to top of head")
+    p.add_argument("--shoulder-width", type=float, metavar="M",
+                   help="between the shoulder joint centres")
+    p.add_argument("--upper-arm", type=float, metavar="M", help="shoulder to elbow joint")
+    p.add_argument("--forearm", type=float, metavar="M", help="elbow to wrist joint")
     p.add_argument("--naming", default="jaxmocap", metavar="STYLE",
                    help="link/joint names: jaxmocap (l_upper_arm), left_right (left_upper_arm) "
                    "or mixamo (LeftArm) (default: %(default)s)")

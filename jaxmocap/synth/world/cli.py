@@ -39,11 +39,11 @@ def add_world_options(p: argparse.ArgumentParser) -> None:
     a("--world", metavar="JSON", help="world settings: a world dict, a test_world.json "
       "entry or a dataset's scene.json (its 'world'); other options override them")
     a("--body-height", type=float, metavar="M", help="subject height (scales the body)")
-    a("--shoulder-width", type=float, metavar="M")
-    a("--upper-arm", type=float, metavar="M")
-    a("--forearm", type=float, metavar="M")
+    a("--shoulder-width", type=float, metavar="M", help="between the shoulder joints")
+    a("--upper-arm", type=float, metavar="M", help="shoulder to elbow joint")
+    a("--forearm", type=float, metavar="M", help="elbow to wrist joint")
     a("--naming", help="link/joint names: jaxmocap, left_right or mixamo")
-    a("--limbs", choices=("capsule", "cylinder", "box"))
+    a("--limbs", choices=("capsule", "cylinder", "box"), help="limb primitive of the body")
     a("--layout", choices=GARMENT_LAYOUTS, help="shirt: wang, bands (another 20-patch "
       "layout) or single (one colour, --shirt-rgb)")
     a("--lamps", help=f"comma-separated spot lamp colours of {sorted(LAMP_COLOURS)}")
@@ -52,7 +52,7 @@ def add_world_options(p: argparse.ArgumentParser) -> None:
     a("--yaw", type=float, metavar="DEG", help="turn the motion about the vertical")
     a("--spin", type=float, metavar="DEG_PER_S", help="an extra turn growing with time")
     a("--jpeg", type=int, metavar="Q", help="JPEG-compress every frame at quality Q")
-    a("--camera-height", type=float, metavar="M")
+    a("--camera-height", type=float, metavar="M", help="height of the cameras")
     a("--fov", type=float, metavar="DEG", help="horizontal field of view")
     a("--fill", type=float, help="shadowless fill light level in [0, 1]")
 
@@ -116,20 +116,32 @@ def run_mujoco(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- synth-world
 
 
+EPILOG = """examples:
+  jaxmocap synth-world world --split dev
+  jaxmocap synth-world world --split test --tracker shirt
+  jaxmocap synth-world quick --split dev --only shirt_00 pf_00 --frames 10
+
+Sequences already in OUT are kept (delete a folder to render it again).
+"""
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "synth-world", help="render the independent test world (dev or test split, MuJoCo)",
         description="Render the test world's sequences of one split (jaxmocap/synth/world/"
         "test_world.json; docs/results/test_world.md) into OUT/<name>/, each a jaxmocap "
-        "synth dataset folder. Tune on dev only.")
+        "synth dataset folder. Tune on dev only.", epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", help="folder to write the sequences into (created)")
-    p.add_argument("--split", choices=("dev", "test", "all"), required=True)
-    p.add_argument("--tracker", choices=("shirt", "pf", "both"), default="both")
+    p.add_argument("--split", choices=("dev", "test", "all"), required=True,
+                   help="which sequences: dev (tune on these), test (report on these) or all")
+    p.add_argument("--tracker", choices=("shirt", "pf", "both"), default="both",
+                   help="shirt (2 x 640x480), pf (320x240 stereo) or both (default)")
     p.add_argument("--only", nargs="+", metavar="NAME", help="only these sequences")
     p.add_argument("--frames", type=int, metavar="N", help="at most N frames per sequence "
                    "(quick checks; the split's numbers are for the full length)")
     p.add_argument("--png", action="store_true", help="also write lossless PNG frames")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
