@@ -28,6 +28,17 @@ identical when it is zero).
          "t": [tx, ty, tz]}              # world -> camera translation, metres
      ]}
 
+Files written by other tools load when their fields are OpenCV's: ``"version"`` may be left
+out (if present it must be 1); the cameras may be the top-level list, the ``"cameras"`` list
+or an object keyed by camera name; each camera may spell its fields as OpenCV's and common
+calibration tools do (:data:`FIELD_ALIASES`: ``camera_matrix``/``matrix``/``mtx`` for ``K``,
+``dist_coeffs``/``distortions``/``D`` for ``dist``, ``rvec``/``rotation`` (a 3-vector
+Rodrigues or a 3x3 matrix), ``tvec``/``translation``/``T`` for ``t``, ``size``/``image_size``
+``[width, height]``), with 4, 5, 8, 12 or 14 OpenCV distortion values (the terms past ``k3``
+must be zero: the model here is OpenCV's 5-term one). A ``.toml`` file is read as the
+calibration file of Pose2Sim / anipose (``[cam_1] name, size, matrix, distortions, rotation,
+translation``).
+
 Malformed files raise :class:`CameraFileError` naming the file, the camera, the field and
 what was expected. ``save_cameras`` writes atomically (temporary file + ``os.replace``).
 """
@@ -543,10 +554,6 @@ def _shape_text(shape) -> str:
 
 
 def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
-    if not isinstance(entry, dict):
-        raise CameraFileError(
-            f"{path}: cameras[{i}]: expected an object, got {type(entry).__name__}"
-        )
     name = entry.get("name")
     if not isinstance(name, str) or not name:
         raise CameraFileError(f"{path}: cameras[{i}]: field 'name': expected a non-empty string")
@@ -601,33 +608,125 @@ def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
     return name, cam
 
 
-def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], list[str]]:
-    """Read ``cameras.json`` (schema in the module docstring) -> (cameras, names).
+# Other tools' spellings of the fields of one camera (OpenCV's FileStorage names, Pose2Sim /
+# anipose calibration.toml, common JSON dumps) -> ours. "rotation" may be a 3x3 or a rvec.
+FIELD_ALIASES = {
+    "K": ("camera_matrix", "cameraMatrix", "matrix", "mtx", "intrinsics", "intrinsic"),
+    "dist": ("dist_coeffs", "distCoeffs", "distortion", "distortions", "D", "dist_coef"),
+    "R": ("rotation_matrix", "R_mat"),
+    "rvec": ("rotation_vector", "rvecs"),
+    "t": ("tvec", "translation", "T", "tvecs"),
+}
+SIZE_ALIASES = ("size", "image_size", "imageSize", "resolution")  # [width, height]
 
-    Arrays get ``dtype`` (default: JAX's default float, float32 unless x64 is on).
-    Raises :class:`CameraFileError` naming the file, camera and field on any problem.
+
+def _canonical_entry(path, i: int, entry, key_name: str | None):
+    """One camera entry with the field names of our schema (other tools' names mapped)."""
+    if not isinstance(entry, dict):
+        raise CameraFileError(
+            f"{path}: cameras[{i}]: expected an object, got {type(entry).__name__}"
+        )
+    e = dict(entry)
+    if "name" not in e and key_name is not None:
+        e["name"] = key_name
+    for ours, theirs in FIELD_ALIASES.items():
+        for alias in theirs:
+            if alias in e and ours not in e:
+                e[ours] = e.pop(alias)
+    if "rotation" in e and "R" not in e and "rvec" not in e:
+        rot = e.pop("rotation")
+        e["R" if np.shape(rot) == (3, 3) else "rvec"] = rot
+    if "rvec" in e and np.shape(e["rvec"]) in ((3, 1), (1, 3)):
+        e["rvec"] = np.asarray(e["rvec"], float).ravel().tolist()
+    if "t" in e and np.shape(e["t"]) in ((3, 1), (1, 3)):
+        e["t"] = np.asarray(e["t"], float).ravel().tolist()
+    for alias in SIZE_ALIASES:
+        if alias in e and ("width" not in e or "height" not in e):
+            size = e.pop(alias)
+            if not (isinstance(size, list | tuple) and len(size) == 2):
+                raise CameraFileError(
+                    f"{path}: camera {e.get('name')!r}: field {alias!r}: expected [width, height]"
+                )
+            w, h = size
+            e["width"] = int(w) if isinstance(w, float) and w.is_integer() else w
+            e["height"] = int(h) if isinstance(h, float) and h.is_integer() else h
+    if isinstance(e.get("dist"), list):
+        flat = np.asarray(e["dist"], dtype=object).ravel().tolist()
+        if len(flat) in (8, 12, 14):
+            try:
+                extra = np.asarray(flat[5:], float)
+            except (TypeError, ValueError):
+                extra = np.ones(1)
+            if np.any(extra != 0):
+                raise CameraFileError(
+                    f"{path}: camera {e.get('name')!r}: field 'dist': {len(flat)} OpenCV terms "
+                    "with non-zero rational/thin-prism/tilt terms; jaxmocap's model is the "
+                    "5-term one (k1 k2 p1 p2 k3): recalibrate with those terms fixed at 0"
+                )
+            flat = flat[:5]
+        e["dist"] = flat
+    return e
+
+
+def _camera_entries(path: Path, data) -> list[dict]:
+    """The list of camera entries of a parsed file, whichever layout it uses."""
+    if isinstance(data, list):
+        entries, keys = data, [None] * len(data)
+    elif isinstance(data, dict):
+        if "version" in data and data["version"] != CAMERAS_JSON_VERSION:
+            raise CameraFileError(
+                f"{path}: field 'version': expected {CAMERAS_JSON_VERSION} (or no version), "
+                f"got {data['version']!r}"
+            )
+        if "cameras" in data:
+            entries = data["cameras"]
+            if isinstance(entries, dict):
+                entries, keys = list(entries.values()), list(entries)
+            else:
+                keys = [None] * len(entries) if isinstance(entries, list) else []
+        else:  # {name: camera, ...} (Pose2Sim / anipose / OpenCV dumps); "metadata" skipped
+            items = [(k, v) for k, v in data.items()
+                     if isinstance(v, dict) and k not in ("metadata", "meta")]  # fmt: skip
+            entries, keys = [v for _, v in items], [str(v.get("name", k)) for k, v in items]
+    else:
+        raise CameraFileError(f"{path}: expected a JSON object with 'cameras' (or a list)")
+    if not isinstance(entries, list) or not entries:
+        raise CameraFileError(f"{path}: field 'cameras': expected a non-empty list")
+    return [_canonical_entry(path, i, e, k) for i, (e, k) in enumerate(zip(entries, keys,
+                                                                         strict=True))]
+
+
+def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], list[str]]:
+    """Read ``cameras.json`` (schema and accepted variants in the module docstring).
+
+    Returns (cameras, names). Arrays get ``dtype`` (default: JAX's default float, float32
+    unless x64 is on). Raises :class:`CameraFileError` naming the file, camera and field on
+    any problem.
     """
     path = Path(path)
     dtype = jnp.result_type(float) if dtype is None else dtype
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as e:
         raise CameraFileError(f"{path}: cannot read: {e.strerror}") from None
     try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise CameraFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
-    if not isinstance(data, dict):
-        raise CameraFileError(f"{path}: expected a JSON object with 'version' and 'cameras'")
-    if data.get("version") != CAMERAS_JSON_VERSION:
-        raise CameraFileError(
-            f"{path}: field 'version': expected {CAMERAS_JSON_VERSION}, got {data.get('version')!r}"
-        )
-    entries = data.get("cameras")
-    if not isinstance(entries, list) or not entries:
-        raise CameraFileError(f"{path}: field 'cameras': expected a non-empty list")
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise CameraFileError(f"{path}: not a text file; expected cameras.json (JSON)") from None
+    if path.suffix.lower() == ".toml":
+        import tomllib
+
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise CameraFileError(f"{path}: not valid TOML: {e}") from None
+    else:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise CameraFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
     cams, names = [], []
-    for i, entry in enumerate(entries):
+    for i, entry in enumerate(_camera_entries(path, data)):
         name, cam = _parse_camera(path, i, entry, dtype)
         if name in names:
             raise CameraFileError(f"{path}: camera {name!r}: field 'name': duplicate name")

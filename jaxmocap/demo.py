@@ -11,8 +11,9 @@
 3b. Renders the same clip for Azad et al.'s set-up (a stereo pair 11 cm apart, 320x240, a
    single-colour shirt) and tracks it with the stereo particle filter (N = 1000, 14 DOF,
    automatic initialisation, edge + 3D distance cues), with its error and frame rate.
-4. Writes to ``--out``: ``shirt.*`` and ``pf.*`` (BVH / CSV / TRC / NPZ) of the motion, an overlay
-   video (``overlay.mp4``: estimated skeleton and classified crop windows over camera 0),
+4. Writes to ``--out``: ``shirt.*`` and ``pf.*`` (BVH / TRC / C3D / CSV / NPZ) of the motion, an
+   overlay video (``overlay.mp4``, H.264 at the capture's frame rate: estimated skeleton and
+   classified crop windows over camera 0),
    a plot of estimated vs true joint traces (``traces.png``) and ``summary.json``.
 
 The demo database is small (``DEMO_DB_SIZE`` poses instead of the paper's 80,000) so that
@@ -121,21 +122,19 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     return seq, np.asarray(est.q, np.float64), cold, warm_ms, float(jnp.mean(obs.valid))
 
 
-def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names) -> None:
+def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names, fps: float) -> None:
     import cv2
 
     from jaxmocap.camera import project
     from jaxmocap.io.atomic import AtomicFiles
+    from jaxmocap.io.video import VideoWriter
 
     idx = {n: i for i, n in enumerate(names)}
     est = np.asarray(project(cam, np.nan_to_num(kp_est)))
     true = np.asarray(project(cam, kp_true))
     h, w = frames.shape[1:3]
     scale = 2
-    with AtomicFiles() as out:
-        tmp = out.path(path)
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), 10.0,
-                                 (w * scale, h * scale))
+    with AtomicFiles() as out, VideoWriter(out.path(path), fps, w * scale, h * scale) as writer:
         for t in range(frames.shape[0]):
             img = cv2.resize(cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR), (w * scale, h * scale),
                              interpolation=cv2.INTER_NEAREST)
@@ -149,8 +148,7 @@ def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names) -> None:
                                  colour, 2, cv2.LINE_AA)
             cv2.putText(img, f"frame {t}  green: truth  red: jaxmocap", (6, 16),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
-            writer.write(img)
-        writer.release()
+            writer.write(img[..., ::-1])
 
 
 def _plot(path: Path, times, kp_est, kp_true, names) -> None:
@@ -258,8 +256,8 @@ def run(args: argparse.Namespace) -> int:
         write_exports(files, out, model, pf_track, stem="pf")
         files.path(out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     _overlay(out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
-             kp_true, res.window[:, 0], names)
+             kp_true, res.window[:, 0], names, fps)
     _plot(out / "traces.png", track.times, track.keypoints, kp_true, names)
-    print(f"  wrote {out}/: shirt.* and pf.* (bvh csv trc npz), overlay.mp4, traces.png, "
+    print(f"  wrote {out}/: shirt.* and pf.* (bvh trc c3d csv npz), overlay.mp4, traces.png, "
           "summary.json")
     return 0

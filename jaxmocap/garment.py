@@ -18,12 +18,17 @@ Constructors:
 * :func:`garment_from_model` — every coloured geom of a model becomes a patch of its colour
   (how a user describes their own shirt, or uses a third-party model such as pybullet's
   humanoid);
-* :func:`single_colour_garment` — Azad et al.'s set-up: one shirt colour plus skin.
+* :func:`single_colour_garment` — Azad et al.'s set-up: one shirt colour plus skin;
+* :func:`load_garment` / :func:`save_garment` — the user's shirt as ``garment.json``
+  (docs/USER_GUIDE.md, "Your shirt").
 """
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Sequence
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -31,7 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .body import BodyModel
+from .body import CAPSULE, CYLINDER, BodyModel, require_roles
+from .body.roles import CONTOUR_LIMBS
+from .errors import InputError
 
 RGB = ArrayLike | Sequence[float | int]  # an RGB triple in [0, 1]
 
@@ -39,7 +46,6 @@ MAX_HALF_SPACES = 3  # half-spaces per patch (Garment contract, docs/ARCHITECTUR
 NO_PLANE = (0.0, 0.0, 0.0, -1.0)  # 0 . p - 1 <= 0 holds everywhere: an unused half-space
 SKIN_RGB = (0.87, 0.67, 0.55)  # a light skin albedo (linear RGB in [0, 1])
 BODY_RGB = (0.35, 0.35, 0.38)  # neutral albedo of body parts the shirt does not cover
-SKIN_LINK_WORDS = ("head", "neck", "hand")  # link names whose geoms count as skin by default
 
 # The 10 shirt colours (Wang et al. §4: "10 distinct colors"): saturated hues spread around the
 # hue circle (no white, grey or black: those are the background's and the trousers' colours,
@@ -161,63 +167,127 @@ def make_garment(
 
 
 def default_skin_geoms(model: BodyModel) -> tuple[str, ...]:
-    """Geoms attached to links whose name contains ``head``, ``neck`` or ``hand``."""
-    links = model.chain.link_names
-    link_of = np.asarray(model.geometry.link)
-    return tuple(
-        g
-        for g, li in zip(model.geometry.names, link_of, strict=False)
-        if any(w in links[li].lower() for w in SKIN_LINK_WORDS)
-    )
+    """The body's skin geoms by its roles (head and neck, the hands and below them)."""
+    return require_roles(model, "skin geoms").skin_geoms
 
 
-# The paper's shirt on the bundled body (geom frames: thorax/abdomen x forward, y left, z up;
-# shoulders capsule z = link -y; arm capsules z along the arm, +z towards the shoulder).
-# Thorax: front/back x left/right, plus the two flanks |y| > FLANK_Y; abdomen: front/back x
-# left/right; shoulders: left/right; upper arms and forearms: proximal/distal halves. Each
-# colour sits on one torso patch and one limb patch on the *other* side of the body, chosen to
-# maximise the smallest distance between same-coloured patches (>= 0.32 m between centroids at
-# rest), so the two patches of a colour never touch and every neighbour differs.
-FLANK_Y = 0.11  # m, thorax half-width beyond which the flank patches start (thorax b = 0.17)
+# The paper's shirt, placed by roles (on the bundled body: thorax, abdomen, the shoulder capsule
+# and the four arm capsules). Slots: the upper and the lower of two stacked torso geoms, the
+# bar across the shoulders (a capsule/cylinder of the chest link lying along the body's y), and
+# one capsule/cylinder per arm segment. Half-spaces are given in the *link* frame (x forward,
+# y left, z up; a . p + b <= 0) and turned into the geom frame; arm segments split into their
+# proximal (towards the shoulder) and distal halves. Upper torso: front/back x left/right, plus
+# the two flanks |y| > FLANK_FRACTION x its half-width; lower torso: front/back x left/right;
+# shoulders: left/right. Each colour sits on one torso patch and one limb patch on the *other*
+# side of the body, chosen to maximise the smallest distance between same-coloured patches
+# (>= 0.32 m between centroids at rest on the bundled body), so the two patches of a colour
+# never touch and every neighbour differs.
+FLANK_FRACTION = 0.11 / 0.17  # bundled: the flanks start at |y| = 0.11 m of the 0.17 m thorax
 _FRONT, _BACK = (-1.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # x >= 0, x <= 0
 _LEFT, _RIGHT = (0.0, -1.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)  # y >= 0, y <= 0
-_UP, _DOWN = (0.0, 0.0, -1.0, 0.0), (0.0, 0.0, 1.0, 0.0)  # z >= 0, z <= 0
-_MID_L, _MID_R = (0.0, 1.0, 0.0, -FLANK_Y), (0.0, -1.0, 0.0, -FLANK_Y)  # |y| <= FLANK_Y
-_FLANK_L, _FLANK_R = (0.0, -1.0, 0.0, FLANK_Y), (0.0, 1.0, 0.0, FLANK_Y)  # |y| >= FLANK_Y
-# (patch name, geom, half-spaces, colour name)
+_MID_L, _MID_R = "mid_l", "mid_r"  # |y| <= flank (upper torso)
+_FLANK_L, _FLANK_R = "flank_l", "flank_r"  # |y| >= flank
+_PROX, _DIST = "proximal", "distal"
+# (patch name, slot, half-spaces, colour name)
 DEFAULT_SHIRT = (
-    ("chest_front_left", "thorax", (_FRONT, _LEFT, _MID_L), "red"),
-    ("chest_front_right", "thorax", (_FRONT, _RIGHT, _MID_R), "orange"),
-    ("chest_back_left", "thorax", (_BACK, _LEFT, _MID_L), "yellow"),
-    ("chest_back_right", "thorax", (_BACK, _RIGHT, _MID_R), "lime"),
-    ("flank_left", "thorax", (_FLANK_L,), "magenta"),
-    ("flank_right", "thorax", (_FLANK_R,), "pink"),
-    ("belly_front_left", "abdomen", (_FRONT, _LEFT), "green"),
-    ("belly_front_right", "abdomen", (_FRONT, _RIGHT), "cyan"),
-    ("belly_back_left", "abdomen", (_BACK, _LEFT), "blue"),
-    ("belly_back_right", "abdomen", (_BACK, _RIGHT), "purple"),
-    ("shoulder_left", "shoulders", (_DOWN,), "cyan"),  # geom z = link -y: z <= 0 is left
-    ("shoulder_right", "shoulders", (_UP,), "green"),
-    ("l_upper_arm_top", "l_upper_arm", (_UP,), "purple"),
-    ("l_upper_arm_bottom", "l_upper_arm", (_DOWN,), "pink"),
-    ("r_upper_arm_top", "r_upper_arm", (_UP,), "blue"),
-    ("r_upper_arm_bottom", "r_upper_arm", (_DOWN,), "magenta"),
-    ("l_forearm_top", "l_forearm", (_UP,), "lime"),
-    ("l_forearm_bottom", "l_forearm", (_DOWN,), "orange"),
-    ("r_forearm_top", "r_forearm", (_UP,), "yellow"),
-    ("r_forearm_bottom", "r_forearm", (_DOWN,), "red"),
+    ("chest_front_left", "upper_torso", (_FRONT, _LEFT, _MID_L), "red"),
+    ("chest_front_right", "upper_torso", (_FRONT, _RIGHT, _MID_R), "orange"),
+    ("chest_back_left", "upper_torso", (_BACK, _LEFT, _MID_L), "yellow"),
+    ("chest_back_right", "upper_torso", (_BACK, _RIGHT, _MID_R), "lime"),
+    ("flank_left", "upper_torso", (_FLANK_L,), "magenta"),
+    ("flank_right", "upper_torso", (_FLANK_R,), "pink"),
+    ("belly_front_left", "lower_torso", (_FRONT, _LEFT), "green"),
+    ("belly_front_right", "lower_torso", (_FRONT, _RIGHT), "cyan"),
+    ("belly_back_left", "lower_torso", (_BACK, _LEFT), "blue"),
+    ("belly_back_right", "lower_torso", (_BACK, _RIGHT), "purple"),
+    ("shoulder_left", "shoulders", (_LEFT,), "cyan"),
+    ("shoulder_right", "shoulders", (_RIGHT,), "green"),
+    ("l_upper_arm_top", "l_upper_arm", (_PROX,), "purple"),
+    ("l_upper_arm_bottom", "l_upper_arm", (_DIST,), "pink"),
+    ("r_upper_arm_top", "r_upper_arm", (_PROX,), "blue"),
+    ("r_upper_arm_bottom", "r_upper_arm", (_DIST,), "magenta"),
+    ("l_forearm_top", "l_forearm", (_PROX,), "lime"),
+    ("l_forearm_bottom", "l_forearm", (_DIST,), "orange"),
+    ("r_forearm_top", "r_forearm", (_PROX,), "yellow"),
+    ("r_forearm_bottom", "r_forearm", (_DIST,), "red"),
 )
 
 
+def _shirt_slots(model: BodyModel) -> dict[str, int]:
+    """Geom index of every slot of :data:`DEFAULT_SHIRT` (one-line InputError if the body's
+    geometry does not have the paper's layout)."""
+    from .body.roles import is_crosswise, limb_axis
+
+    roles = require_roles(model, "default_garment")
+    geo = model.geometry
+    names = geo.names
+    kind = np.asarray(geo.kind)
+    pose = np.asarray(geo.pose, np.float64)
+    chest = model.chain.link_names.index(roles.link("chest"))
+    torso = [names.index(g) for g in roles.torso_geoms]
+    bars = [g for g, li in enumerate(np.asarray(geo.link).tolist())
+            if li == chest and is_crosswise(geo, g) and names[g] not in roles.skin_geoms]
+    problems = []
+    if len(torso) != 2:
+        problems.append(f"{len(torso)} torso geoms {roles.torso_geoms} (needs 2 stacked)")
+    if len(bars) != 1:
+        problems.append(f"{len(bars)} bars across the shoulders on the chest link (needs 1)")
+    limbs = {}
+    for role in CONTOUR_LIMBS:
+        gs = roles.limb(role)
+        g = names.index(gs[0]) if len(gs) == 1 else -1
+        if g < 0 or kind[g] not in (CAPSULE, CYLINDER) or abs(
+                pose[g, :3, 2] @ limb_axis(model, role)) < 0.9:
+            problems.append(f"{role} geoms {gs} (needs one capsule/cylinder along the arm)")
+        limbs[role] = g
+    if problems:
+        raise InputError(
+            f"default_garment: the paper's 20-patch shirt does not fit {roles.source}: "
+            + "; ".join(problems) + "; describe the shirt in a garment.json (docs/USER_GUIDE.md, "
+            "'Your shirt')"
+        )
+    up = limb_axis(model, "torso")
+    low, high = sorted(torso, key=lambda g: pose[g, :3, 3] @ up)
+    return {"upper_torso": high, "lower_torso": low, "shoulders": bars[0], **limbs}
+
+
+def _geom_plane(model: BodyModel, g: int, plane, role: str) -> tuple[float, ...]:
+    """A link-frame half-space (or a named one of :data:`DEFAULT_SHIRT`) in geom ``g``'s frame,
+    through the geom centre; normals snapped to 1e-12, offsets to 1 um."""
+    from .body.roles import geom_support, limb_axis
+
+    pose = np.asarray(model.geometry.pose, np.float64)[g]
+    rot = pose[:3, :3]
+    offset = 0.0
+    if plane in (_PROX, _DIST):
+        u = limb_axis(model, role)  # distal direction (link frame)
+        n = u if plane == _PROX else -u  # proximal half: u . p <= 0
+    elif isinstance(plane, str):  # flank planes of the upper torso
+        size = np.asarray(model.geometry.size, np.float64)[g]
+        flank = FLANK_FRACTION * geom_support(int(model.geometry.kind[g]), size, rot,
+                                              np.array([0.0, 1.0, 0.0]))
+        side = 1.0 if plane.endswith("_l") else -1.0
+        n = np.array([0.0, side, 0.0]) * (1.0 if plane.startswith("mid") else -1.0)
+        offset = -flank if plane.startswith("mid") else flank
+    else:
+        n, offset = np.asarray(plane[:3], float), float(plane[3])
+    n_geom = rot.T @ n
+    return tuple(float(v) for v in np.round(n_geom, 12) + 0.0) + (round(offset, 6) + 0.0,)
+
+
 def default_garment(model: BodyModel | None = None) -> Garment:
-    """Wang et al.'s shirt (§4): 20 patches, 10 colours each used twice, on the bundled body
-    (:func:`jaxmocap.body.default_body` unless another model with the same geom names is
-    given). Head, neck and hands are skin; the pelvis is unpatched (trousers)."""
+    """Wang et al.'s shirt (§4): 20 patches, 10 colours each used twice, placed by the body's
+    roles (:data:`DEFAULT_SHIRT`; default: :func:`jaxmocap.body.default_body`). A body without
+    the paper's torso/arm layout is refused in one line (describe its shirt in a
+    garment.json). Skin: the roles' skin geoms; the pelvis is unpatched (trousers)."""
     from .body import default_body
 
     model = default_body() if model is None else model
+    slots = _shirt_slots(model)
+    names = model.geometry.names
     colour_ids = {name: i + 1 for i, (name, _) in enumerate(SHIRT_COLOURS)}
-    patches = [(n, g, hs, colour_ids[c]) for n, g, hs, c in DEFAULT_SHIRT]
+    patches = [(n, names[slots[slot]], [_geom_plane(model, slots[slot], p, slot) for p in hs],
+                colour_ids[c]) for n, slot, hs, c in DEFAULT_SHIRT]
     return make_garment(model, patches, SHIRT_COLOURS, default_skin_geoms(model))
 
 
@@ -261,30 +331,82 @@ def _rgb_key(rgb: np.ndarray) -> tuple[int, int, int]:
     return tuple(int(v) for v in np.round(np.clip(rgb, 0, 1) * 255))
 
 
+SHIRT_ROLES = ("chest", "l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm")
+
+
+def shirt_geoms(model: BodyModel) -> tuple[str, ...]:
+    """The geoms a shirt covers, by the body's roles: those of the chest, upper-arm and
+    forearm links (not the pelvis, legs or feet: trousers and shoes), skin excluded."""
+    roles = require_roles(model, "shirt_geoms")
+    links = {model.chain.link_names.index(roles.link(r)) for r in SHIRT_ROLES}
+    geo = model.geometry
+    return tuple(n for n, li in zip(geo.names, np.asarray(geo.link).tolist(), strict=True)
+                 if li in links and n not in roles.skin_geoms)
+
+
 def garment_from_model(
     model: BodyModel,
     skin_geoms: Sequence[str] | None = None,
     skin_rgb: RGB = SKIN_RGB,
     body_rgb: RGB = BODY_RGB,
+    *,
+    parts: str | Sequence[str] = "shirt",
+    colours: Sequence[tuple[str, RGB]] | None = None,
 ) -> Garment:
-    """Each non-skin geom becomes one patch of its own ``rgba`` colour; distinct RGB values
-    (compared at 8 bits) become colour ids 1..n in order of first appearance.
+    """The shirt is "these colours of the model": each chosen geom becomes one patch of its
+    own ``rgba`` colour.
 
-    This is how a user describes their own shirt (colour the geoms of a URDF/MJCF) and how a
-    third-party model (e.g. pybullet's humanoid) is rendered. Skin geoms default to
-    :func:`default_skin_geoms`; geoms with alpha 0 are left unpatched."""
+    ``parts``: ``"shirt"`` (default: :func:`shirt_geoms`, by roles -- trousers and shoes are
+    not patches), ``"all"`` (every non-skin geom, e.g. a scene of props) or geom/link names.
+    ``colours``: the user's named colours ``[(name, rgb)]`` in the order of their colour model
+    (``colors.json``): colour id k is ``colours[k - 1]`` and a chosen geom is a patch only if
+    its RGB matches one of them at 8 bits; None: the distinct RGB values of the chosen geoms in
+    order of first appearance. Skin geoms default to the roles' (:func:`default_skin_geoms`);
+    geoms with alpha 0 are left unpatched."""
     skin_geoms = default_skin_geoms(model) if skin_geoms is None else tuple(skin_geoms)
+    names = model.geometry.names
+    if isinstance(parts, str) and parts == "shirt":
+        chosen = set(shirt_geoms(model))
+    elif isinstance(parts, str) and parts == "all":
+        chosen = set(names)
+    else:
+        chosen = set(_geoms_named(model, [parts] if isinstance(parts, str) else parts,
+                                  "garment_from_model parts"))
     rgba = np.asarray(model.geometry.rgba)
     keys: dict[tuple[int, int, int], int] = {}
+    if colours is not None:
+        for k, (_, rgb) in enumerate(colours):
+            keys.setdefault(_rgb_key(np.asarray(rgb, float)), k + 1)
     patches = []
-    for g, name in enumerate(model.geometry.names):
-        if name in skin_geoms or rgba[g, 3] <= 0:
+    for g, name in enumerate(names):
+        if name not in chosen or name in skin_geoms or rgba[g, 3] <= 0:
             continue
         key = _rgb_key(rgba[g, :3])
-        keys.setdefault(key, len(keys) + 1)
+        if colours is None:
+            keys.setdefault(key, len(keys) + 1)
+        elif key not in keys:
+            continue
         patches.append((name, name, [], keys[key]))
-    colours = [(f"rgb{k}", np.array(k) / 255.0) for k in keys]
+    if colours is None:
+        colours = [(f"rgb{k}", np.array(k) / 255.0) for k in keys]
     return make_garment(model, patches, colours, skin_geoms, skin_rgb, body_rgb)
+
+
+def _geoms_named(model: BodyModel, names: Sequence[str], where: str) -> list[str]:
+    """Geom names for geom-or-link names (a link stands for all its geoms)."""
+    geo, links = model.geometry, model.chain.link_names
+    glink = np.asarray(geo.link).tolist()
+    out = []
+    for n in names:
+        if n in geo.names:
+            out.append(n)
+        elif n in links:
+            li = links.index(n)
+            out.extend(g for g, gl in zip(geo.names, glink, strict=True) if gl == li)
+        else:
+            raise InputError(f"{where}: {n!r} is neither a geom nor a link of the body; geoms: "
+                             f"{geo.names}")
+    return out
 
 
 def single_colour_garment(
@@ -298,3 +420,178 @@ def single_colour_garment(
     skin_geoms = default_skin_geoms(model) if skin_geoms is None else tuple(skin_geoms)
     patches = [(n, n, [], 1) for n in model.geometry.names if n not in skin_geoms]
     return make_garment(model, patches, [("shirt", shirt_rgb)], skin_geoms, skin_rgb)
+
+
+# ----------------------------------------------------------------------------- garment.json
+GARMENT_FORMAT = "jaxmocap.garment"
+GARMENT_VERSION = 1
+_GARMENT_KEYS = ("format", "version", "colours", "patches", "skin")
+_PATCH_KEYS = ("name", "geom", "link", "half_spaces", "colour")
+
+
+def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garment:
+    """A garment from a ``garment.json`` (format in docs/USER_GUIDE.md, "Your shirt").
+
+    ``colors``: the user's colour model (a :class:`jaxmocap.color.ColorModel` with names, or a
+    list of colour names): colour ids then follow its order (id k = its k-th colour), every
+    colour of the file must be one of its names, and a colour without ``rgb`` in the file takes
+    the model's mean. Without it, ids follow the file's ``colours`` order; a colour without
+    ``rgb`` must be one of :data:`SHIRT_COLOURS`. Every error is one :class:`InputError` line
+    naming the file and the field."""
+    path = Path(path)
+
+    def fail(msg: str) -> InputError:
+        return InputError(f"{path}: {msg}")
+
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise fail("garment file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise fail(f"not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise fail("expected a JSON object with 'colours' and 'patches'")
+    unknown = [k for k in data if k not in _GARMENT_KEYS]
+    if unknown:
+        raise fail(f"unknown fields {unknown}; expected {list(_GARMENT_KEYS)}")
+    if data.get("format", GARMENT_FORMAT) != GARMENT_FORMAT:
+        raise fail(f"'format' is {data['format']!r}, expected {GARMENT_FORMAT!r}")
+    if data.get("version", GARMENT_VERSION) != GARMENT_VERSION:
+        raise fail(f"'version' is {data['version']!r}, this jaxmocap reads {GARMENT_VERSION}")
+    file_cols = data.get("colours")
+    if not isinstance(file_cols, list) or not file_cols:
+        raise fail("'colours' must be a non-empty list of names or {name, rgb} objects")
+    rgb_of: dict[str, np.ndarray | None] = {}
+    for k, c in enumerate(file_cols):
+        name, rgb = (c, None) if isinstance(c, str) else (
+            (c.get("name"), c.get("rgb")) if isinstance(c, dict) else (None, None))
+        if not isinstance(name, str) or (isinstance(c, dict) and set(c) - {"name", "rgb"}):
+            raise fail(f"colours[{k}]: expected a name or {{\"name\": ..., \"rgb\": [r, g, b]}}")
+        if name in rgb_of:
+            raise fail(f"colours[{k}]: colour {name!r} is listed twice")
+        if rgb is not None:
+            rgb = np.asarray(rgb, dtype=float) if _numbers(rgb, 3) else None
+            if rgb is None or rgb.min() < 0 or rgb.max() > 1:
+                raise fail(f"colours[{k}] ({name!r}): 'rgb' must be 3 numbers in [0, 1]")
+        rgb_of[name] = rgb
+    order, model_rgb = list(rgb_of), {}
+    if colors is not None:
+        cm_names = list(colors) if isinstance(colors, (list, tuple)) else list(colors.names)
+        if not cm_names:
+            raise fail("the colour model has no colour names to match the garment's colours")
+        missing = [n for n in rgb_of if n not in cm_names]
+        if missing:
+            raise fail(f"colours {missing} are not in the colour model's colours {cm_names}")
+        if not isinstance(colors, (list, tuple)):
+            mean = np.clip(np.asarray(colors.mean, float) / 255.0, 0.0, 1.0)
+            model_rgb = dict(zip(cm_names, mean, strict=True))
+        order = cm_names
+    table = dict(SHIRT_COLOURS)
+    colours = []
+    for n in order:
+        rgb = rgb_of.get(n)
+        if rgb is None:
+            rgb = model_rgb.get(n, table.get(n))
+        if rgb is None:
+            raise fail(f"colour {n!r} has no 'rgb' (and is not one of the named colours "
+                       f"{[c for c, _ in SHIRT_COLOURS]})")
+        colours.append((n, tuple(float(v) for v in rgb)))
+    ids = {n: k + 1 for k, n in enumerate(order)}
+    patches_in = data.get("patches")
+    if not isinstance(patches_in, list) or not patches_in:
+        raise fail("'patches' must be a non-empty list of patch objects")
+    patches, seen = [], set()
+    for k, p in enumerate(patches_in):
+        where = f"patches[{k}]"
+        if not isinstance(p, dict) or set(p) - set(_PATCH_KEYS):
+            raise fail(f"{where}: expected an object with fields {list(_PATCH_KEYS)}")
+        name = p.get("name")
+        if not isinstance(name, str) or not name:
+            raise fail(f"{where}: 'name' must be a non-empty string")
+        if name in seen:
+            raise fail(f"{where}: patch name {name!r} is used twice")
+        seen.add(name)
+        if ("geom" in p) == ("link" in p):
+            raise fail(f"{where} ({name!r}): give exactly one of 'geom' or 'link'")
+        target = p.get("geom", p.get("link"))
+        if "geom" in p and target not in model.geometry.names:
+            raise fail(f"{where} ({name!r}): unknown geom {target!r}; geoms: "
+                       f"{model.geometry.names}")
+        if "link" in p and target not in model.chain.link_names:
+            raise fail(f"{where} ({name!r}): unknown link {target!r}")
+        geoms = [target] if "geom" in p else _geoms_named(model, [target], where)
+        if not geoms:
+            raise fail(f"{where} ({name!r}): link {target!r} has no geoms")
+        hs = p.get("half_spaces", [])
+        if not (isinstance(hs, list) and len(hs) <= MAX_HALF_SPACES
+                and all(_numbers(h, 4) for h in hs)):
+            raise fail(f"{where} ({name!r}): 'half_spaces' must be at most {MAX_HALF_SPACES} "
+                       "lists [a, b, c, d] of numbers (a x + b y + c z + d <= 0, geom frame)")
+        colour = p.get("colour")
+        if colour not in rgb_of:
+            raise fail(f"{where} ({name!r}): colour {colour!r} is not in 'colours' "
+                       f"{list(rgb_of)}")
+        for g in geoms:
+            patches.append((name if len(geoms) == 1 else f"{name}:{g}", g, hs, ids[colour]))
+    skin = data.get("skin")
+    if skin is None:
+        skin_geoms = default_skin_geoms(model)
+    elif isinstance(skin, list) and all(isinstance(s, str) for s in skin):
+        try:
+            skin_geoms = tuple(_geoms_named(model, skin, "'skin'"))
+        except InputError as e:
+            raise fail(str(e)) from None
+    else:
+        raise fail("'skin' must be a list of geom or link names")
+    return make_garment(model, patches, colours, skin_geoms)
+
+
+def _numbers(v, n: int) -> bool:
+    return (isinstance(v, list) and len(v) == n
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+                    for x in v))
+
+
+def garment_to_json(garment: Garment, model: BodyModel) -> dict:
+    """The ``garment.json`` contents of a garment on ``model`` (round trip with
+    :func:`load_garment`)."""
+    names = model.geometry.names
+    planes = np.asarray(garment.patch_planes, np.float64)
+    unused = np.asarray(NO_PLANE)
+    patches = []
+    for i, pname in enumerate(garment.patch_names):
+        hs = [[float(v) for v in row] for row in planes[i] if not np.allclose(row, unused)]
+        patches.append({"name": pname, "geom": names[int(garment.patch_geom[i])],
+                        "half_spaces": hs,
+                        "colour": garment.colour_names[int(garment.patch_colour[i]) - 1]})
+    return {
+        "format": GARMENT_FORMAT,
+        "version": GARMENT_VERSION,
+        "colours": [{"name": n, "rgb": [float(v) for v in rgb]}
+                    for n, rgb in zip(garment.colour_names, np.asarray(garment.colours),
+                                      strict=True)],
+        "patches": patches,
+        "skin": [n for n, s in zip(names, np.asarray(garment.skin).tolist(), strict=True) if s],
+    }
+
+
+def save_garment(path: str | os.PathLike, garment: Garment, model: BodyModel) -> Path:
+    """Write ``garment`` as a ``garment.json`` (atomically)."""
+    from .io.atomic import write_text
+
+    return write_text(path, json.dumps(garment_to_json(garment, model), indent=1) + "\n")
+
+
+def garment_digest(garment: Garment) -> str:
+    """A short stable hash (16 hex digits) of a garment: patches, half-spaces (as float32),
+    colours, skin and names (with :func:`jaxmocap.body.body_digest`, what a pose database is
+    built for)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (garment.patch_planes, garment.colours, garment.skin_rgb, garment.body_rgb):
+        h.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
+    for a in (garment.patch_geom, garment.patch_colour, garment.skin):
+        h.update(np.ascontiguousarray(np.asarray(a, np.int64)).tobytes())
+    h.update(json.dumps([garment.patch_names, garment.colour_names]).encode())
+    return h.hexdigest()[:16]

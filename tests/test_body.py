@@ -315,7 +315,9 @@ def test_dofs_and_expand(models):
     model = models["bundled"]
     idx = body.stereo_dofs(model)
     assert len(idx) == 14
-    assert {model.chain.dof_names[i] for i in idx[6:]} == set(body.STEREO_JOINTS)
+    assert body.STEREO_JOINTS == ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow")  # roles
+    assert {model.chain.dof_names[i] for i in idx[6:]} == {
+        f"{s}_shoulder_{a}" for s in "lr" for a in "xyz"} | {"l_elbow", "r_elbow"}
     default = jnp.arange(24.0)
     q = body.expand_q(model, jnp.ones(14), idx, default)
     assert np.all(q[idx] == 1) and np.all(np.delete(np.asarray(q), idx) == np.delete(default, idx))

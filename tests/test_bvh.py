@@ -1,19 +1,27 @@
-"""BVH I/O: round trip of our poses, the independent `bvh` package as a parser oracle, clear
-errors, and driving our body from a foreign (T-pose, centimetre, ZXY) skeleton."""
+"""BVH I/O: our poses written for any body and read back by independent readers (the PyPI `bvh`
+parser, bvhio's forward kinematics: joint positions equal ours), clear errors, and driving our
+body from a foreign (T-pose, centimetre, ZXY) skeleton. Blender's importer: test_interop.py."""
 
+from pathlib import Path
+
+import bvhio
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pybullet_data
 import pytest
 from bvh import Bvh
 from scipy.spatial.transform import Rotation
 
-from jaxmocap.body import default_body, fk
+from jaxmocap.body import default_body, fk, keypoints, load_urdf
 from jaxmocap.io.bvh import (
     BVHError,
+    body_bvh_layout,
     body_to_bvh,
+    bvh_fk,
     bvh_to_body_q,
     default_mapping,
+    euler_zxy,
     parse_bvh,
     read_bvh,
     write_body_bvh,
@@ -21,6 +29,8 @@ from jaxmocap.io.bvh import (
 
 M = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # BVH (Y up) -> our world (Z up)
 N_FRAMES = 6
+HUMANOID_URDF = Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf"
+fk_batch = jax.jit(jax.vmap(fk, in_axes=(None, 0)))
 
 
 def random_q(model, rng, n=N_FRAMES):
@@ -32,6 +42,20 @@ def random_q(model, rng, n=N_FRAMES):
     q = rng.uniform(lo[6:], hi[6:], size=(n, model.n_dof - 6))
     root = np.concatenate([rng.normal(0, 1, (n, 3)), rng.normal(0, 1.0, (n, 3))], axis=1)
     return np.concatenate([root, q], axis=1)
+
+
+def bvhio_positions(path, n_frames):
+    """World positions of every joint per frame, by the independent reader bvhio (Y up)."""
+    root = bvhio.readAsHierarchy(str(path))
+    out = []
+    for t in range(n_frames):
+        root.loadPose(t)
+        out.append({j.Name: np.array(j.PositionWorld) for j, _, _ in root.layout()})
+    return out
+
+
+def link_origins(model, q):
+    return np.asarray(fk_batch(model.chain, jnp.asarray(q)))[..., :3, 3]
 
 
 def test_round_trip_and_bvh_package(tmp_path, rng):
@@ -51,17 +75,118 @@ def test_round_trip_and_bvh_package(tmp_path, rng):
         for k in (0, N_FRAMES - 1):
             got = ref.frame_joint_channels(k, j.name, list(j.channels))
             np.testing.assert_allclose(ours.motion[k, sl], got, atol=1e-9)
-    # the hierarchy follows the body: elbows are 1-DOF Z channels, shoulders 3-DOF
-    assert ref.joint_channels("l_forearm") == ["Zrotation"]
-    assert ref.joint_parent("l_forearm").name == "l_upper_arm"
-    # written values are our angles in chain order (degrees), X Z Y: our y axis is BVH -z
-    col = ours.channel_slices()[ours.names.index("l_upper_arm")]
-    np.testing.assert_allclose(ours.motion[:, col], np.degrees(q[:, [12, 13, 14]])
-                               * [1, -1, 1], atol=1e-5)
+    # what Blender's importer needs: 3 rotation channels (Z X Y) per animated joint, the
+    # root's position first; joints named after the keypoint roles on their pivots
+    assert ref.joint_channels("pelvis") == ["Xposition", "Yposition", "Zposition",
+                                            "Zrotation", "Xrotation", "Yrotation"]
+    for name in ours.names[1:]:
+        assert ref.joint_channels(name) == ["Zrotation", "Xrotation", "Yrotation"]
+    assert ref.joint_parent("l_elbow").name == "l_shoulder"
+    assert ref.joint_parent("l_wrist").name == "l_elbow"
+
+    # joint positions read by bvhio equal our forward kinematics (metres, to the 6 decimals
+    # of the file), and the keypoints sitting on the joints
+    lay = body_bvh_layout(model)
+    origins = link_origins(model, q)
+    kps = np.asarray(jax.vmap(keypoints, in_axes=(None, 0))(model, jnp.asarray(q)))
+    for t, pos in enumerate(bvhio_positions(path, N_FRAMES)):
+        for name, link in zip(lay.names, lay.links, strict=True):
+            np.testing.assert_allclose(M @ pos[name], origins[t, link], atol=2e-6)
+            if name in model.keypoint_names:
+                np.testing.assert_allclose(M @ pos[name],
+                                           kps[t, model.keypoint_names.index(name)], atol=2e-6)
+    # the channels are intrinsic ZXY Euler angles (scipy) of the parent-relative rotation
+    T = np.asarray(fk_batch(model.chain, jnp.asarray(q)))
+    rest = np.asarray(fk(model.chain, jnp.zeros(model.n_dof)))
+    col = ours.channel_slices()[ours.names.index("l_elbow")]
+    e, s = lay.links[ours.names.index("l_elbow")], lay.links[ours.names.index("l_shoulder")]
+    d_e = T[:, e, :3, :3] @ rest[e, :3, :3].T
+    d_s = T[:, s, :3, :3] @ rest[s, :3, :3].T
+    want = M.T @ np.swapaxes(d_s, 1, 2) @ d_e @ M
+    got = Rotation.from_euler("ZXY", ours.motion[:, col], degrees=True).as_matrix()
+    np.testing.assert_allclose(got, want, atol=1e-7)
 
     back = bvh_to_body_q(ours, model)
     np.testing.assert_allclose(back.q, q, atol=1e-4)  # joint angles to 1e-4 rad
     np.testing.assert_allclose(back.q_raw, back.q, atol=1e-12)  # nothing was clipped
+
+
+TOY_URDF = """<?xml version="1.0"?>
+<robot name="toy">
+  <link name="base"><visual><geometry><box size="0.1 0.1 0.1"/></geometry></visual></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="a"/>
+    <origin xyz="0.1 0.2 0.3" rpy="0.3 -0.4 0.5"/><axis xyz="0.6 0 0.8"/>
+    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <link name="a"/>
+  <joint name="j2" type="revolute"><parent link="a"/><child link="b"/>
+    <origin xyz="0 0.05 0" rpy="0 0.2 0"/><axis xyz="0 1 0"/>
+    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <link name="b"><visual><geometry><cylinder radius="0.03" length="0.2"/></geometry></visual></link>
+  <joint name="slide" type="prismatic"><parent link="b"/><child link="c"/>
+    <origin xyz="0 0 0.2" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-0.1" upper="0.1" effort="1" velocity="1"/></joint>
+  <link name="c"/>
+  <joint name="j3" type="revolute"><parent link="c"/><child link="d"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <link name="d"><visual><geometry><sphere radius="0.03"/></geometry></visual></link>
+  <joint name="fix" type="fixed"><parent link="d"/><child link="e"/>
+    <origin xyz="0 0.1 0" rpy="0.5 0 0"/></joint>
+  <link name="e"><visual><geometry><sphere radius="0.02"/></geometry></visual></link>
+</robot>
+"""
+
+
+def other_bodies(tmp_path):
+    """pybullet's humanoid (other names, Y-up file rotated by a fixed root joint, fixed
+    wrists, hips and knees) and a toy chain with tilted joint frames, an oblique axis, an
+    offset between the two joints of one group, a prismatic joint and a fixed tip."""
+    (tmp_path / "toy.urdf").write_text(TOY_URDF)
+    return {
+        "humanoid": load_urdf(HUMANOID_URDF, scale=0.25, up="y"),
+        "toy": load_urdf(tmp_path / "toy.urdf",
+                         keypoints={"tip": ("e", (0.0, 0.0, 0.05)), "knot": ("b", (0, 0, 0))}),
+    }
+
+
+def test_any_body_joint_positions_by_bvhio(tmp_path, rng):
+    for kind, model in other_bodies(tmp_path).items():
+        n = 4
+        lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+        q = rng.uniform(np.maximum(lo, -1.5), np.minimum(hi, 1.5), size=(n, model.n_dof))
+        q[:, :6] = rng.normal(0, 0.8, (n, 6))
+        path = tmp_path / f"{kind}.bvh"
+        write_body_bvh(path, model, q, fps=24.0)
+        lay = body_bvh_layout(model)
+        origins = link_origins(model, q)
+        for t, pos in enumerate(bvhio_positions(path, n)):
+            got = np.stack([M @ pos[name] for name in lay.names])
+            np.testing.assert_allclose(got, origins[t, list(lay.links)], atol=2e-6,
+                                       err_msg=kind)
+        bvh = read_bvh(path)
+        assert bvh.frame_time == pytest.approx(1 / 24.0)
+        for j in bvh.joints[1:]:
+            assert len(j.channels) in (0, 3, 6), (kind, j)
+        if kind == "toy":
+            assert lay.names == ("base", "a", "knot", "d", "e")  # knot: the keypoint on b
+            assert [len(j.channels) for j in bvh.joints] == [6, 3, 3, 6, 0]
+            tip = np.asarray(jax.vmap(keypoints, in_axes=(None, 0))(model, jnp.asarray(q)))[:, 0]
+            rots, pos = bvh_fk(bvh)
+            end = pos[:, -1] + np.einsum("nij,j->ni", rots[:, -1], bvh.joints[-1].end_site)
+            np.testing.assert_allclose(end @ M.T, tip, atol=2e-6)  # End Site = the keypoint
+        else:  # fixed joints (the Y-up root offset, the wrists) carry no channels
+            assert [j.name for j in bvh.joints if not j.channels] == ["root", "right_wrist",
+                                                                      "left_wrist"]
+
+
+def test_euler_zxy_against_scipy(rng):
+    r = Rotation.random(200, random_state=1).as_matrix()
+    r[0] = Rotation.from_euler("ZXY", [30, 90, 0], degrees=True).as_matrix()  # gimbal lock
+    r[1] = Rotation.from_euler("ZXY", [-10, -90, 0], degrees=True).as_matrix()
+    ang = euler_zxy(r)
+    np.testing.assert_allclose(Rotation.from_euler("ZXY", ang).as_matrix(), r, atol=1e-9)
+    ref = Rotation.from_matrix(r[2:]).as_euler("ZXY")
+    np.testing.assert_allclose(ang[2:], ref, atol=1e-9)
 
 
 BAD = {

@@ -474,7 +474,8 @@ def test_cameras_json_bad_file(tmp_path):
         ("{", "not valid JSON"),
         ('{"version": 2, "cameras": []}', "version"),
         ('{"version": 1, "cameras": []}', "non-empty list"),
-        ("[1]", "JSON object"),
+        ("[1]", r"cameras\[0\]: expected an object"),
+        ('"cams"', "JSON object"),
     ):
         path.write_text(text)
         with pytest.raises(CameraFileError, match=pattern):
@@ -489,3 +490,66 @@ def test_cameras_json_bad_file(tmp_path):
         save_cameras(
             path, [Camera(np.eye(3), np.eye(3), np.zeros(3), np.zeros(5), 4, 4)] * 2, ["a", "a"]
         )
+
+
+def test_cameras_from_other_tools(tmp_path, rng):
+    """Files of other tools load when their fields are OpenCV's: no version, OpenCV / Pose2Sim
+    field names, cameras keyed by name, 8-term distortion with zero rational terms, TOML."""
+    cam = random_camera(rng)
+    K, dist = np.asarray(cam.K, float), np.asarray(cam.dist, float)
+    rvec = cv2.Rodrigues(np.asarray(cam.R, float))[0]
+    t = np.asarray(cam.t, float)
+    X = rng.normal(size=(6, 3)) * 0.3 + np.array([0.0, 0.0, 0.0])
+    want = cv2.projectPoints(X, rvec, t, K, dist)[0][:, 0]  # the independent oracle
+    opencv_dump = {
+        "left": {
+            "camera_matrix": K.tolist(),
+            "dist_coeffs": [dist.tolist() + [0.0, 0.0, 0.0]],  # 1x8 as cv2 returns it
+            "rvec": rvec.tolist(),  # 3x1
+            "tvec": t.reshape(3, 1).tolist(),
+            "image_size": [int(cam.width), int(cam.height)],
+        },
+        "metadata": {"tool": "someone else's calibrator"},
+    }
+    toml = (
+        "[cam_01]\nname = \"left\"\n"
+        f"size = [ {float(cam.width)}, {float(cam.height)} ]\n"
+        f"matrix = {K.tolist()}\n"
+        f"distortions = {dist[:4].tolist()}\n"
+        f"rotation = {rvec.ravel().tolist()}\n"
+        f"translation = {t.tolist()}\n"
+        "fisheye = false\n\n[metadata]\nadjusted = false\n"
+    )
+    cases = {"dump.json": json.dumps(opencv_dump), "calibration.toml": toml,
+             "plain.json": json.dumps({"cameras": [{"name": "left", "width": cam.width,
+                                        "height": cam.height, "K": K.tolist(),
+                                        "dist": dist.tolist(), "R": np.asarray(cam.R).tolist(),
+                                        "t": t.tolist()}]})}  # fmt: skip
+    for fname, text in cases.items():
+        path = tmp_path / fname
+        path.write_text(text)
+        cams, names = load_cameras(path, dtype=jnp.float64)
+        assert names == ["left"], fname
+        assert (cams[0].width, cams[0].height) == (cam.width, cam.height)
+        k3 = dist[4] if fname != "calibration.toml" else 0.0
+        want_f = want if k3 == dist[4] else cv2.projectPoints(
+            X, rvec, t, K, np.r_[dist[:4], 0.0])[0][:, 0]
+        np.testing.assert_allclose(project(cams[0], jnp.asarray(X)), want_f, atol=1e-6)
+
+
+def test_cameras_from_other_tools_refused(tmp_path):
+    path = tmp_path / "cams.json"
+    e = _good_entry()
+    e["dist"] = [0, 0, 0, 0, 0, 0.1, 0, 0]  # a rational term we do not model
+    path.write_text(json.dumps([e]))
+    with pytest.raises(CameraFileError, match="5-term"):
+        load_cameras(path)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe")
+    with pytest.raises(CameraFileError, match="not a text file"):
+        load_cameras(path)
+    e = _good_entry()
+    e.pop("width")
+    e["size"] = [640]
+    path.write_text(json.dumps({"c": e}))
+    with pytest.raises(CameraFileError, match=r"field 'size': expected \[width, height\]"):
+        load_cameras(path)

@@ -134,3 +134,33 @@ def test_load_white_balance_errors(tmp_path):
         load_white_balance(p, ["cam0"])
     with pytest.raises(WhiteBalanceFileError, match="no entry for camera 'cam1'"):
         load_white_balance(p, ["cam1"])
+
+
+def test_model_named_by_garment(tmp_path, capsys):
+    """With --garment, label k is the garment's k-th colour and the model carries its names,
+    so the garment loads against the model with the same colour ids."""
+    from jaxmocap.body import default_body
+    from jaxmocap.color import load_color_model
+    from jaxmocap.garment import load_garment
+
+    names = ["yellow", "red", "blue", "green"]  # the file's order, not alphabetical
+    garment = {"format": "jaxmocap.garment", "version": 1,
+               "colours": [{"name": n} for n in names],
+               "patches": [{"name": f"p{k}", "geom": g, "colour": names[k]} for k, g in
+                           enumerate(("thorax", "abdomen", "l_upper_arm", "r_upper_arm"))]}
+    (tmp_path / "garment.json").write_text(json.dumps(garment))
+    rng = np.random.default_rng(1)
+    i1, m1 = save(tmp_path / "a", *shirt(rng))
+    out = tmp_path / "colors.json"
+    rc, stdout, err = run_cli(capsys, "colors", "--images", i1, "--masks", m1, "--garment",
+                              tmp_path / "garment.json", "--out", out)
+    assert rc == 0 and err == [], err
+    model = load_color_model(out)
+    assert model.names == tuple(names)
+    np.testing.assert_allclose(np.asarray(model.mean)[1], COLOURS[1], atol=3)  # label 2 = red
+    g = load_garment(tmp_path / "garment.json", default_body(), model)
+    assert g.colour_names == tuple(names)
+    assert list(np.asarray(g.patch_colour)) == [1, 2, 3, 4]
+    assert_refused(capsys, "leave out --names", "colors", "--images", i1, "--masks", m1,
+                   "--garment", tmp_path / "garment.json", "--names", "a", "b", "c", "d",
+                   "--out", tmp_path / "c2.json")

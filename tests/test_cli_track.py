@@ -1,11 +1,15 @@
 """`jaxmocap track`: the I/O machinery driven through the frame protocol (outputs vs FK, BVH
-read by the PyPI `bvh` parser, overlay video, diagnostics), damaged inputs tracked as far as
-readable, every bad input refused with one line and nothing written; and one end-to-end run
-of the real stereo particle filter on rendered frames."""
+read by the PyPI `bvh` parser, C3D by the `c3d` package, the H.264 overlay video's codec and
+frame rate by PyAV, diagnostics), damaged inputs tracked as far as readable, every bad input
+refused with one line and nothing written; and one end-to-end run of the real stereo particle
+filter on rendered frames."""
 
 import json
 import os
+import warnings
 
+import av
+import c3d
 import cv2
 import jax.numpy as jnp
 import numpy as np
@@ -70,7 +74,7 @@ def test_outputs(rig, capsys):
     assert rc == 0 and err == [], err
     assert tracker.started == 1 and tracker.steps == T
     assert sorted(os.listdir(out)) == ["diagnostics.csv", "overlay.mp4", "poses.bvh",
-                                       "poses.csv", "poses.npz", "poses.trc"]
+                                       "poses.c3d", "poses.csv", "poses.npz", "poses.trc"]
     model = tracker.body
     with np.load(out / "poses.npz") as z:
         np.testing.assert_array_equal(z["valid"], [True, False, True])
@@ -88,11 +92,18 @@ def test_outputs(rig, capsys):
     red = cv2.imread(str(inputs[0] / "000.png"))[..., 2].mean()
     red1 = cv2.imread(str(inputs[1] / "000.png"))[..., 2].mean()
     assert float(rows[1].split(",")[4]) == pytest.approx((red + red1) / 2, rel=1e-5)
-    cap = cv2.VideoCapture(str(out / "overlay.mp4"))
-    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == T
-    assert (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) \
-        == (2 * W, H)
-    cap.release()
+    with av.open(str(out / "overlay.mp4")) as c:  # browser-playable H.264 at the --fps rate
+        v = c.streams.video[0]
+        assert v.codec_context.name == "h264" and v.codec_context.pix_fmt == "yuv420p"
+        assert v.average_rate == 10 and v.frames == T and (v.width, v.height) == (2 * W, H)
+    with open(out / "poses.c3d", "rb") as f, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data found", UserWarning)
+        reader = c3d.Reader(f)
+        assert reader.point_rate == 10.0
+        pts = np.stack([p for _, p, _ in reader.read_frames()])
+    assert (pts[1, :, 3] == -1).all() and (pts[[0, 2], :, 3] == 0).all()
+    np.testing.assert_allclose(pts[2, :, :3], 1000 * np.asarray(keypoints(model, jnp.asarray(q2))),
+                               atol=1e-3)
     assert "tracked 2 of 3 frames (3 readable)" in stdout
 
 
@@ -194,12 +205,14 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
     out = tmp_path / "out"
     rc, stdout, err = run_cli(capsys, "track", "--method", "pf", "--particles", "20",
                               "--cameras", tmp_path / "cameras.json", tmp_path / "cam0",
-                              tmp_path / "cam1", "--out", out, "--quiet", "--formats", "npz,bvh")
+                              tmp_path / "cam1", "--out", out, "--quiet", "--formats",
+                              "npz,bvh,c3d")
     assert rc == 0 and err == [], err
     with np.load(out / "poses.npz") as z:
         assert z["keypoints"].shape == (2, 12, 3) and z["valid"].all()
         assert np.isfinite(z["q"]).all()
     assert Bvh((out / "poses.bvh").read_text()).nframes == 2
+    assert (out / "poses.c3d").stat().st_size > 0
     rows = (out / "diagnostics.csv").read_text().splitlines()
     assert rows[0] == "frame,read,valid,ess,best_loglik,degenerate,spread_root_m,blobs"
     ess = [float(r.split(",")[3]) for r in rows[1:]]

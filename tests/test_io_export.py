@@ -1,8 +1,13 @@
-"""Exports: NPZ/CSV round trip, TRC parsed by hand against the keypoints (Y-up mapping checked
-on known vectors), BVH loaded by the independent PyPI `bvh` parser, keypoints vs FK."""
+"""Exports: NPZ/CSV round trip (columns named with units), TRC read by a strict reader that
+follows OpenSim's column rule (NaN for untracked markers, Y-up mapping checked on known
+vectors), C3D read by the independent `c3d` package (written with ezc3d), BVH loaded by the
+independent PyPI `bvh` parser and bvhio, keypoints vs FK. Blender / OpenSim: test_interop.py."""
 
 import csv
+import warnings
 
+import bvhio
+import c3d
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -12,10 +17,12 @@ from jaxmocap.body import default_body, fk, keypoints
 from jaxmocap.io.atomic import AtomicFiles
 from jaxmocap.io.export import (
     PoseFileError,
+    csv_header,
     fill_missing,
     load_track,
     pose_track,
     write_bvh,
+    write_c3d,
     write_csv,
     write_exports,
     write_npz,
@@ -66,16 +73,66 @@ def test_npz_and_csv_round_trip(track, tmp_path):
         np.testing.assert_allclose(back.q, tr.q, atol=1e-6, equal_nan=True)
         assert back.keypoint_names == tr.keypoint_names and back.dof_names == tr.dof_names
         assert back.fps == pytest.approx(FPS)
+        assert back.dof_units == tr.dof_units
     with open(tmp_path / "p.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert rows[1]["valid"] == "0" and rows[1]["head_z"] == ""
-    assert float(rows[2]["head_z"]) == pytest.approx(tr.keypoints[2, 3, 2], abs=1e-6)
-    assert float(rows[3]["q_l_elbow"]) == pytest.approx(tr.q[3, 15], abs=1e-6)
+    assert rows[1]["valid"] == "0" and rows[1]["head_z_m"] == ""
+    assert float(rows[2]["head_z_m"]) == pytest.approx(tr.keypoints[2, 3, 2], abs=1e-6)
+    assert float(rows[3]["q_l_elbow_rad"]) == pytest.approx(tr.q[3, 15], abs=1e-6)
+    # every column says its unit: metres for positions, radians for angles, the root's
+    # rotation named as the rotation vector it is
+    header = list(rows[0])
+    assert header[:6] == ["frame", "time_s", "valid", "pelvis_x_m", "pelvis_y_m", "pelvis_z_m"]
+    q_cols = [c for c in header if c.startswith("q_")]
+    assert q_cols[:6] == ["q_root_tx_m", "q_root_ty_m", "q_root_tz_m", "q_root_rotvec_x_rad",
+                          "q_root_rotvec_y_rad", "q_root_rotvec_z_rad"]
+    assert all(c.endswith("_rad") for c in q_cols[6:]) and len(q_cols) == len(tr.dof_names)
+    assert header == csv_header(tr)
+    assert float(rows[2]["q_root_rotvec_y_rad"]) == pytest.approx(tr.q[2, 4], abs=1e-6)
+    with np.load(tmp_path / "p.npz") as z:
+        assert list(z["dof_units"][:7]) == ["m", "m", "m", "rad", "rad", "rad", "rad"]
+
+
+def test_csv_without_units_still_loads(tmp_path):
+    """CSVs written before the columns carried units (``<kp>_x``, ``q_<dof>``) still load."""
+    (tmp_path / "old.csv").write_text("frame,time_s,valid,head_x,head_y,head_z,q_root_tx\n"
+                                      "0,0.0,1,0.1,0.2,1.7,0.5\n1,0.04,0,,,,\n")
+    back = load_track(tmp_path / "old.csv")
+    assert back.keypoint_names == ("head",) and back.dof_names == ("root_tx",)
+    np.testing.assert_allclose(back.keypoints[0, 0], [0.1, 0.2, 1.7])
+    assert back.valid.tolist() == [True, False] and back.fps == pytest.approx(25.0)
+
+
+def read_trc_strict(path):
+    """A TRC reader with OpenSim's rules (TRCFileAdapter): the header keys and values, the
+    marker names on line 4, then every non-empty data line holding exactly
+    ``2 + 3 * NumMarkers`` tab-separated fields, each a number (``NaN`` = missing marker)."""
+    lines = path.read_text().split("\n")
+    meta = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
+    n_markers, n_frames = int(meta["NumMarkers"]), int(meta["NumFrames"])
+    names = [c for c in lines[3].split("\t")[2:] if c]
+    assert len(names) == n_markers
+    rows = []
+    for ln in lines[6:]:
+        if not ln:
+            continue
+        fields = ln.split("\t")
+        assert len(fields) == 2 + 3 * n_markers, f"{len(fields)} fields: {ln!r}"
+        rows.append([float(v) for v in fields])
+    assert len(rows) == n_frames
+    data = np.array(rows)
+    return meta, names, data[:, 0], data[:, 1], data[:, 2:].reshape(n_frames, n_markers, 3)
 
 
 def test_trc_layout_and_y_up(track, tmp_path):
     _, _, tr = track
     write_trc(tmp_path / "p.trc", tr)
+    meta, names, frame, time, xyz = read_trc_strict(tmp_path / "p.trc")
+    assert names == list(tr.keypoint_names) and frame.tolist() == [1, 2, 3, 4]
+    np.testing.assert_allclose(time, np.arange(4) / FPS, atol=1e-6)
+    assert np.isnan(xyz[1]).all() and np.isfinite(xyz[[0, 2, 3]]).all()  # untracked: NaN
+    w = tr.keypoints  # OpenSim Y up: X forward = our x, Y up = our z, Z = our -y
+    np.testing.assert_allclose(xyz, np.stack([w[..., 0], w[..., 2], -w[..., 1]], -1), atol=1e-6)
     lines = (tmp_path / "p.trc").read_text().split("\n")
     assert lines[0].split("\t") == ["PathFileType", "4", "(X/Y/Z)", "p.trc"]
     meta = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
@@ -85,27 +142,51 @@ def test_trc_layout_and_y_up(track, tmp_path):
     assert names == list(tr.keypoint_names)
     assert lines[4].split("\t")[2:5] == ["X1", "Y1", "Z1"] and lines[5] == ""
     data = [ln.split("\t") for ln in lines[6:] if ln]
-    assert [r[0] for r in data] == ["1", "2", "3", "4"]
-    assert data[1][2:] == [""] * 36  # missing frame = empty fields
-    xyz = np.array([float(v) for v in data[0][2:]]).reshape(12, 3)
-    w = tr.keypoints[0]
-    # OpenSim Y up: X forward = our x, Y up = our z, Z = our -y
-    np.testing.assert_allclose(xyz, np.stack([w[:, 0], w[:, 2], -w[:, 1]], -1), atol=1e-6)
+    assert data[1][2:] == ["NaN"] * 36  # missing frame: NaN in every field, none left empty
+    for key in ("DataRate", "CameraRate", "OrigDataRate"):
+        assert float(meta[key]) == FPS
+    assert meta["OrigDataStartFrame"] == "1" and meta["OrigNumFrames"] == "4"
 
 
-def test_bvh_loads_with_independent_parser(track, tmp_path):
+def test_c3d_read_by_c3d_package(track, tmp_path):
+    _, _, tr = track
+    write_c3d(tmp_path / "p.c3d", tr)
+    with open(tmp_path / "p.c3d", "rb") as f, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data found", UserWarning)
+        reader = c3d.Reader(f)  # the pure-Python reader; the file was written with ezc3d
+        assert reader.point_rate == pytest.approx(FPS)
+        assert [str(n).strip() for n in reader.point_labels] == list(tr.keypoint_names)
+        assert reader.get("POINT:UNITS").string_value.strip() == "mm"
+        assert reader.analog_used == 0
+        frames = list(reader.read_frames())
+    assert len(frames) == 4
+    pts = np.stack([p for _, p, _ in frames])  # (T, n, 5): x, y, z, residual, cameras
+    ok = tr.valid
+    np.testing.assert_allclose(pts[ok, :, :3], tr.keypoints[ok] * 1000.0, atol=1e-3)  # < 1 um
+    assert (pts[~ok, :, 3] == -1).all() and (pts[ok, :, 3] >= 0).all()  # untracked: invalid
+
+
+def test_bvh_loads_with_independent_parsers(track, tmp_path):
     model, q, tr = track
     write_bvh(tmp_path / "p.bvh", model, tr)
     ref = Bvh((tmp_path / "p.bvh").read_text())
     assert ref.nframes == 4 and ref.frame_time == pytest.approx(1 / FPS)
     assert ref.get_joints_names()[0] == "pelvis"
-    elbow = ref.frame_joint_channels(2, "l_forearm", ["Zrotation"])[0]
-    assert elbow == pytest.approx(np.degrees(q[2, 15]), abs=1e-4)
+    zxy = ["Zrotation", "Xrotation", "Yrotation"]
+    assert ref.joint_channels("l_elbow") == zxy
     # the missing frame 1 repeats frame 0
-    assert ref.frame_joint_channels(1, "l_forearm", ["Zrotation"])[0] == pytest.approx(
-        np.degrees(q[0, 15]), abs=1e-4)
-    root = ref.frame_joint_channels(3, "pelvis", ["Xposition", "Yposition", "Zposition"])
-    assert np.isfinite(root).all()
+    np.testing.assert_allclose(ref.frame_joint_channels(1, "l_elbow", zxy),
+                               ref.frame_joint_channels(0, "l_elbow", zxy), atol=1e-9)
+    # bvhio's joint positions are the keypoints on the joints (Y up -> our Z up)
+    root = bvhio.readAsHierarchy(str(tmp_path / "p.bvh"))
+    M = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    for t, src in enumerate([0, 0, 2, 3]):
+        root.loadPose(t)
+        for j, _, _ in root.layout():
+            if j.Name in tr.keypoint_names:
+                k = tr.keypoint_names.index(j.Name)
+                np.testing.assert_allclose(M @ np.array(j.PositionWorld),
+                                           tr.keypoints[src, k], atol=2e-6)
 
 
 def test_write_exports_group(track, tmp_path):
@@ -113,6 +194,7 @@ def test_write_exports_group(track, tmp_path):
     with AtomicFiles() as files:
         paths = write_exports(files, tmp_path / "out", model, tr, extra=np.arange(4))
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(p.name for p in paths)
+    assert sorted(p.suffix for p in paths) == [".bvh", ".c3d", ".csv", ".npz", ".trc"]
     with np.load(tmp_path / "out" / "poses.npz") as z:
         np.testing.assert_array_equal(z["extra"], np.arange(4))
 

@@ -1,12 +1,18 @@
 """Frame sources and synchronised reading: frames equal to what was written (lossless PNG,
 MJPG within compression error), refusals of inconsistent inputs, damaged input read as far
-as it goes with the rest reported."""
+as it goes with the rest reported; the overlay writer's H.264 (codec, pixel format, frame
+rate read back by PyAV and OpenCV) and its noted mp4v fallback."""
 
+import io
+import sys
+from fractions import Fraction
+
+import av
 import cv2
 import numpy as np
 import pytest
 
-from jaxmocap.io.video import SyncReader, VideoError, open_source, quiet_ffmpeg
+from jaxmocap.io.video import SyncReader, VideoError, VideoWriter, open_source, quiet_ffmpeg
 
 H, W = 24, 32
 
@@ -109,3 +115,45 @@ def test_damaged_input_read_as_far_as_possible(tmp_path):
     assert len(got) == 12 and 3 <= n_ok < 12
     assert all(got[t] is not None for t in range(n_ok))  # a readable prefix
     assert f"ends after {n_ok} of 12 declared frames (truncated or corrupt)" in msg
+
+
+@pytest.mark.parametrize("fps", [30.0, 29.97, 10.0])
+def test_writer_h264_browser_playable_at_source_rate(tmp_path, fps):
+    fr = frames(6)[:, :23, :31]  # odd height and width: 4:2:0 needs even ones (padded)
+    path = tmp_path / "v.mp4"
+    with VideoWriter(path, fps, 31, 23) as w:
+        assert w.codec == "h264"
+        for f in fr:
+            w.write(np.ascontiguousarray(f))
+    with av.open(str(path)) as c:
+        s = c.streams.video[0]
+        assert s.codec_context.name == "h264" and s.codec_context.pix_fmt == "yuv420p"
+        assert (s.width, s.height) == (32, 24)
+        assert s.average_rate == Fraction(fps).limit_denominator(1001)
+        got = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+        assert c.format.name.split(",")[0] == "mov"  # the MP4 family of containers
+    assert len(got) == 6
+    for g, f in zip(got, fr, strict=True):  # the content (x264 at CRF 18, 4:2:0 chroma)
+        assert np.abs(g[:23, :31].astype(int) - f).mean() < 6
+    cap = cv2.VideoCapture(str(path))  # a second reader: OpenCV's FFmpeg
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(fps, rel=1e-4)
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
+    cap.release()
+
+
+def test_writer_falls_back_to_mp4v_with_a_note(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "av", None)  # as if PyAV were not installed
+    note = io.StringIO()
+    path = tmp_path / "v.mp4"
+    with VideoWriter(path, 15.0, W, H, note=note) as w:
+        assert w.codec == "mp4v"
+        for f in frames(4):
+            w.write(f)
+    lines = note.getvalue().splitlines()
+    assert len(lines) == 1 and "mp4v" in lines[0] and "H.264 encoder unavailable" in lines[0]
+    with av.open(str(path)) as c:  # the module imported above, still usable
+        s = c.streams.video[0]
+        assert s.codec_context.name == "mpeg4" and s.average_rate == 15  # MPEG-4 Part 2
+        assert s.frames == 4
+    with pytest.raises(ValueError, match="expected \\(24, 32, 3\\) uint8"):
+        VideoWriter(tmp_path / "w.mp4", 15.0, W, H, note=note).write(np.zeros((2, 2, 3)))

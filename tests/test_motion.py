@@ -126,37 +126,52 @@ def test_resample_slerp_matches_scipy():
         resample(clip, 0.0)
 
 
-# Bone: (our start link, our end link or keypoint), (source start link, source end) where a
-# source end is a link index or "head" (the neck sphere's centre).
+# Bone: (our start role link, our end role link or keypoint), (source start link, source end)
+# where a source end is a link index or "head" (the neck sphere's centre).
 BONES = {
     "spine": (("pelvis", "chest"), (0, 1)),
-    "chest": (("chest", "head"), (1, 2)),
-    "head": (("head", "kp:head"), (2, "head")),
+    "chest": (("chest", "neck"), (1, 2)),
+    "head": (("neck", "kp:head"), (2, "head")),
     "l_upper_arm": (("l_upper_arm", "l_forearm"), (12, 13)),
     "l_forearm": (("l_forearm", "l_hand"), (13, 14)),
     "r_upper_arm": (("r_upper_arm", "r_forearm"), (6, 7)),
     "r_forearm": (("r_forearm", "r_hand"), (7, 8)),
 }
-# Joints whose clipping can tilt each bone (its own and its ancestors' groups).
+# Joint roles whose clipping can tilt each bone (its own and its ancestors' groups).
 CHAINS = {
-    "spine": ["root"], "chest": ["spine"], "head": ["spine", "neck"],
+    "spine": [], "chest": ["spine"], "head": ["spine", "neck"],
     "l_upper_arm": ["spine", "l_shoulder"], "l_forearm": ["spine", "l_shoulder", "l_elbow"],
     "r_upper_arm": ["spine", "r_shoulder"], "r_forearm": ["spine", "r_shoulder", "r_elbow"],
 }
+
+
+@pytest.fixture(scope="module")
+def bodies(tmp_path_factory):
+    """The bundled body and the foreign body of tests/_foreign_body.py (URDF and MJCF)."""
+    from _foreign_body import foreign_mjcf, foreign_urdf
+
+    from jaxmocap.body import load_body
+
+    d = tmp_path_factory.mktemp("bodies")
+    return {"bundled": default_body(), "foreign_urdf": load_body(foreign_urdf(d / "f.urdf")),
+            "foreign_mjcf": load_body(foreign_mjcf(d / "f.xml"))}
 
 
 def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def test_retarget_bone_directions_and_root(humanoid):
+@pytest.mark.parametrize("which", ["bundled", "foreign_urdf", "foreign_mjcf"])
+def test_retarget_bone_directions_and_root(humanoid, bodies, which):
     """Retargeted bones point where pybullet's posed source bones point; root copied exactly.
+    By roles: the same on a body with other names, proportions, primitives and a neck link.
 
     Bound: the angle between a bone of ours and the source's is at most the total amount
     (rad) by which the joints on its chain were clipped to their limits, + 1e-6 rad: exact
     wherever no limit is hit (walk, walker turn), bounded by the clipping elsewhere.
     """
-    model = default_body()
+    model = bodies[which]
+    roles = model.roles
     names = model.chain.link_names
     specs = [("humanoid3d_walk", None), ("walker/turn_left0", None),
              ("humanoid3d_kick", None), ("humanoid3d_punch", 25.0)]  # all in one 64-frame bucket
@@ -199,11 +214,12 @@ def test_retarget_bone_directions_and_root(humanoid):
     dof = {n: i for i, n in enumerate(model.chain.dof_names)}
     for bone, ((a, b), (sa, sb)) in BONES.items():
         ours = (kp[:, keypoint_index(model, b[3:])[0]] if b.startswith("kp:")
-                else ours_pos[:, names.index(b)]) - ours_pos[:, names.index(a)]
+                else ours_pos[:, names.index(roles.link(b))]) - ours_pos[:, names.index(
+                    roles.link(a))]
         src_end = head_centre if sb == "head" else src_pos[:, sb]
         src = (src_end - src_pos[:, sa]) @ M.T
         angle = np.arccos(np.clip(np.sum(unit(ours) * unit(src), -1), -1, 1))
-        cols = [i for g in CHAINS[bone] for n, i in dof.items() if n.startswith(g)]
+        cols = [dof[n] for g in CHAINS[bone] for n in roles.dofs(g)]
         bound = excess[:, cols].sum(-1) + 1e-6
         assert np.all(angle <= bound), (bone, float(np.max(angle - bound)))
         free = bound < 1e-5
@@ -215,7 +231,10 @@ def test_retarget_bone_directions_and_root(humanoid):
     # joint limits respected, wrists untouched
     assert np.all(q[:, 6:] >= np.asarray(model.chain.lower[6:]) - 1e-12)
     assert np.all(q[:, 6:] <= np.asarray(model.chain.upper[6:]) + 1e-12)
-    assert np.all(q[:, [i for n, i in dof.items() if "wrist" in n]] == 0)
+    assert np.all(q[:, [dof[n] for w in ("l_wrist", "r_wrist") for n in roles.dofs(w)]] == 0)
+    assert np.all(np.isfinite(q))
+    if which != "bundled":
+        return
     report = limit_report(model, results[2])  # kick leans the spine/neck past our limits
     assert set(report) <= set(model.chain.dof_names) and report
     assert limit_report(model, results[0]) == {}  # walking stays within limits

@@ -8,6 +8,7 @@ import pytest
 
 from jaxmocap import camera as camlib
 from jaxmocap.body import default_body, fk, keypoint_index, stereo_dofs
+from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
 
 SIGMA = 0.2
@@ -281,12 +282,15 @@ def eqx_replace(module, **kw):
 
 def test_limb_model_errors():
     model = default_body()
-    with pytest.raises(ValueError, match="unknown geom"):
+    with pytest.raises(InputError, match="unknown geoms"):
         cues.limb_model(model, ("l_shin",))
-    with pytest.raises(ValueError, match="capsule or cylinder"):
-        cues.limb_model(model, ("thorax",))
+    with pytest.raises(InputError, match="several links"):
+        cues.limb_model(model, (("thorax", "head"),))
     limbs = cues.limb_model(model)
-    assert limbs.names[-1] == "abdomen+thorax"
+    assert limbs.names == ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm", "torso")
+    # the explicit form gives the same torso (two stacked ellipsoids: centre to centre)
+    explicit = cues.limb_model(model, ("l_upper_arm", ("abdomen", "thorax")))
+    np.testing.assert_array_equal(np.asarray(explicit.p1[1]), np.asarray(limbs.p1[-1]))
     np.testing.assert_allclose(np.asarray(limbs.radius), [0.05, 0.04, 0.05, 0.04, 0.16])
     # the torso's cross-section is elliptic: half-depth (body x) 0.115 m, round limbs equal
     np.testing.assert_allclose(np.asarray(limbs.depth), [0.05, 0.04, 0.05, 0.04, 0.115])

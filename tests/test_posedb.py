@@ -317,3 +317,43 @@ def test_files_and_cli(tmp_path, capsys):
     assert loaded.size == 12 and "12 poses" in capsys.readouterr().out
     cfg = posedb.SamplingConfig(size=12, seed=2)
     assert loaded.key == posedb.database_key(cfg, default_body(), default_garment())
+
+
+def test_tiny_maps_skip_geoms_below_the_shirt():
+    """A body with legs (pybullet's MJCF humanoid, 19 geoms): the database renders only the
+    geoms that can show or hide the shirt, and its maps equal the full model's render (the
+    oracle) for poses with the legs at rest."""
+    from pathlib import Path
+
+    import pybullet_data
+
+    from jaxmocap import render
+    from jaxmocap.body import load_mjcf
+    from jaxmocap.garment import make_garment
+
+    model = load_mjcf(Path(pybullet_data.getDataPath()) / "mjcf" / "humanoid.xml")
+    patches = [("chest", "torso1", [], 1), ("waist", "uwaist", [], 2), ("belly", "lwaist", [], 3),
+               ("r_upper", "right_uarm1", [], 2), ("l_upper", "left_uarm1", [], 3),
+               ("r_fore", "right_larm", [], 1), ("l_fore", "left_larm", [], 2)]  # fmt: skip
+    garment = make_garment(model, patches, [("red", (0.9, 0.1, 0.1)), ("green", (0.1, 0.9, 0.1)),
+                                            ("blue", (0.1, 0.1, 0.9))],
+                           skin_geoms=("head", "right_hand", "left_hand"))  # fmt: skip
+    sub, sub_garment = _build.tiny_map_subset(model, garment)
+    dropped = set(model.geometry.names) - set(sub.geometry.names)
+    assert dropped == {f"{s}_{p}" for s in ("left", "right")
+                       for p in ("thigh1", "shin1", "foot_cap1", "foot_cap2")}  # fmt: skip
+    assert sub_garment.patch_names == garment.patch_names
+    assert [sub.geometry.names[i] for i in np.asarray(sub_garment.patch_geom)] == [
+        p[1] for p in patches]
+    rng = np.random.default_rng(0)
+    upper = [i for i, n in enumerate(model.chain.dof_names)
+             if i >= 6 and not any(w in n for w in ("hip", "knee", "ankle"))]  # fmt: skip
+    poses = np.zeros((24, model.n_dof), np.float32)
+    poses[:, upper] = rng.uniform(-0.8, 0.8, (24, len(upper)))
+    poses[:, 5] = rng.uniform(-np.pi, np.pi, 24)  # yaw about the vertical
+    poses[:, 2] = 1.0
+    maps = posedb.render_maps(model, garment, poses, progress=False)
+    cam = posedb.canonical_camera(jnp.float32)
+    full = np.asarray(jax.jit(lambda qs: render.tiny_id_maps(model, garment, qs, cam))(poses))
+    assert (maps > 0).mean() > 0.2  # the shirt fills a good part of each map
+    assert (maps != full).mean() < 5e-4  # float rounding at silhouettes only

@@ -159,7 +159,7 @@ def scene_camera(eye=(3.0, 0.0, 0.0)):
 @functools.cache
 def scene_render():
     model = scene_model()
-    garment = garment_from_model(model, skin_geoms=())
+    garment = garment_from_model(model, skin_geoms=(), parts="all")
     return jax.jit(lambda q, cam: render.render_ids(model, garment, q, cam)), garment
 
 
@@ -233,7 +233,7 @@ def test_traced_kinds_match_static_kinds():
 
 def test_shading_lambert_illuminant_background_noise(rng):
     model = scene_model()
-    garment = garment_from_model(model, skin_geoms=())
+    garment = garment_from_model(model, skin_geoms=(), parts="all")
     cam = scene_camera()
     light = render.Lighting(
         ambient=0.1,

@@ -306,11 +306,19 @@ def test_fixed_lag_smoothing_keeps_the_filter(scene):
         sp.run(params, state, obs, -1)
 
 
-def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng):
+@pytest.mark.parametrize("which", ["bundled", "foreign"])
+def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, which, tmp_path):
     """``SwivelProposal._swivel``: hands, shoulders and head do not move; each elbow turns by
-    exactly phi about its shoulder-hand line (measured on the keypoints); jit and vmap."""
+    exactly phi about its shoulder-hand line (measured on the keypoints); jit and vmap. The
+    arms come from the body's roles: the same on the foreign body (tests/_foreign_body.py)."""
     model, cams = scene[0], scene[1]
-    params = sp.make_params(cams, swivel_fraction=0.1, dtype=jnp.float64)
+    if which == "foreign":
+        from _foreign_body import foreign_urdf
+
+        from jaxmocap.body import load_body
+
+        model = load_body(foreign_urdf(tmp_path / "foreign.urdf"))
+    params = sp.make_params(cams, model=model, swivel_fraction=0.1, dtype=jnp.float64)
     prop = params.filter.proposal
     assert isinstance(prop, sp.SwivelProposal) and len(prop.arms) == 2
     names = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand", "head")

@@ -23,6 +23,18 @@ from .model import (
     rest_pose,
     stereo_dofs,
 )
+from .roles import (
+    JOINT_ROLES,
+    LINK_ROLES,
+    BodyRoles,
+    body_digest,
+    infer_roles,
+    load_body,
+    read_roles_file,
+    require_roles,
+    roles_path,
+    roles_to_json,
+)
 from .urdf import load_urdf
 
 __all__ = [
@@ -31,5 +43,6 @@ __all__ = [
     "KEYPOINT_NAMES", "STEREO_JOINTS", "BodyModel", "make_body_model", "keypoints",
     "keypoints_from_transforms", "geom_world_poses", "keypoint_index", "dof_index",
     "stereo_dofs", "expand_q", "clip_to_limits", "rest_pose", "default_body",
-    "load_urdf", "load_mjcf",
+    "load_urdf", "load_mjcf", "BodyRoles", "LINK_ROLES", "JOINT_ROLES", "body_digest",
+    "infer_roles", "load_body", "read_roles_file", "require_roles", "roles_path", "roles_to_json",
 ]  # fmt: skip

@@ -200,16 +200,29 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
     return rows
 
 
+def mjcf_sites(m, link_names: Sequence[str]) -> dict[str, tuple[str, tuple[float, ...]]]:
+    """``{site name: (link, offset in the link frame)}`` of the sites on the body's links (a
+    link named after a MuJoCo body has that body's frame); world sites are not body markers."""
+    out = {}
+    for i in range(m.nsite):
+        link = _body_name(m, int(m.site_bodyid[i]))
+        if link in link_names:
+            out[m.site(i).name or f"site{i}"] = (link, tuple(float(v) for v in m.site_pos[i]))
+    return out
+
+
 def load_mjcf(
     path: str | os.PathLike,
     *,
     keypoints: dict[str, tuple[str, ArrayLike]] | None = None,
 ) -> BodyModel:
-    """Load an MJCF body (see module docstring); links are named after MuJoCo bodies."""
+    """Load an MJCF body (see module docstring); links are named after MuJoCo bodies. Its
+    ``<site>`` markers become keypoints named after them (``keypoints`` given here win)."""
     import pytorch_kinematics as pk
 
     m = compile_mjcf(path)
     text, origins, _ = flatten_to_urdf(m)
     chain = chain_from_pk(pk.build_chain_from_urdf(text), origins=origins)
     rows = mjcf_geometry(m, chain.link_names, str(path))
-    return make_body_model(chain, make_geometry(rows), keypoints)
+    return make_body_model(chain, make_geometry(rows),
+                           {**mjcf_sites(m, chain.link_names), **(keypoints or {})})

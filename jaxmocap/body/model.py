@@ -19,17 +19,15 @@ from jaxtyping import Array, Float, Int
 
 from .chain import ROOT_DOFS, KinematicChain, fk
 from .geometry import ArrayLike, Geometry
+from .roles import BodyRoles, require_roles
 
 KEYPOINT_NAMES = (
     "pelvis", "chest", "neck", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
     "l_wrist", "r_wrist", "l_hand", "r_hand",
 )  # fmt: skip
 ROOT_DOF_NAMES = ("root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz")
-# Azad et al. 2007 §III.A: 6 root DOFs + 3 per shoulder + 1 per elbow = 14 DOFs.
-STEREO_JOINTS = (
-    "l_shoulder_x", "l_shoulder_y", "l_shoulder_z", "r_shoulder_x", "r_shoulder_y",
-    "r_shoulder_z", "l_elbow", "r_elbow",
-)  # fmt: skip
+# Azad et al. 2007 §III.A: 6 root DOFs + 3 per shoulder + 1 per elbow = 14 DOFs (joint roles).
+STEREO_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow")
 DEFAULT_URDF = Path(__file__).parent / "data" / "upper_body.urdf"
 # Keypoints of the bundled model: link and offset (m, link frame), cf. data/upper_body.urdf.
 DEFAULT_KEYPOINTS = {
@@ -49,13 +47,16 @@ DEFAULT_KEYPOINTS = {
 
 
 class BodyModel(eqx.Module):
-    """Kinematic chain, its geometry, and named keypoints (link index + offset in link frame)."""
+    """Kinematic chain, its geometry, named keypoints (link index + offset in link frame) and
+    the roles of its parts (:class:`~jaxmocap.body.roles.BodyRoles`; None for hand-made
+    models: functions that need roles then say so in one line)."""
 
     chain: KinematicChain
     geometry: Geometry
     keypoint_link: Int[Array, " n_keypoints"]
     keypoint_offset: Float[Array, "n_keypoints 3"]
     keypoint_names: tuple[str, ...] = eqx.field(static=True)
+    roles: BodyRoles | None = eqx.field(static=True, default=None)
 
     @property
     def n_dof(self) -> int:
@@ -66,8 +67,10 @@ def make_body_model(
     chain: KinematicChain,
     geometry: Geometry,
     keypoints: dict[str, tuple[str, ArrayLike]] | None = None,
+    roles: BodyRoles | None = None,
 ) -> BodyModel:
-    """BodyModel with keypoints given as ``{name: (link name, offset xyz in the link frame)}``."""
+    """BodyModel with keypoints given as ``{name: (link name, offset xyz in the link frame)}``
+    and optional roles."""
     keypoints = keypoints or {}
     names = tuple(keypoints)
     links = np.array([chain.link_index(keypoints[k][0]) for k in names], dtype=np.int32)
@@ -78,6 +81,7 @@ def make_body_model(
         keypoint_link=jnp.asarray(links),
         keypoint_offset=jnp.asarray(offsets),
         keypoint_names=names,
+        roles=roles,
     )
 
 
@@ -126,8 +130,11 @@ def dof_index(model: BodyModel | KinematicChain, names: str | Sequence[str]) -> 
 
 
 def stereo_dofs(model: BodyModel) -> np.ndarray:
-    """The 14 DOFs of Azad et al. 2007 §III.A, ascending: root 6, shoulders 3+3, elbows 1+1."""
-    return np.sort(dof_index(model, ROOT_DOF_NAMES + STEREO_JOINTS))
+    """The 14 DOFs of Azad et al. 2007 §III.A, ascending: root 6, shoulders 3+3, elbows 1+1
+    (the DOFs of the joint roles :data:`STEREO_JOINTS`: as many as the body has there)."""
+    roles = require_roles(model, "stereo_dofs")
+    joints = tuple(d for j in STEREO_JOINTS for d in roles.dofs(j))
+    return np.sort(dof_index(model, ROOT_DOF_NAMES + joints))
 
 
 def expand_q(
@@ -163,10 +170,16 @@ def rest_pose(model: BodyModel, dtype=None) -> Float[Array, " n_dof"]:
 
 @functools.cache
 def default_body() -> BodyModel:
-    """The bundled generic adult upper body (``data/upper_body.urdf``), loaded once."""
+    """The bundled generic adult upper body (``data/upper_body.urdf``), loaded once, with its
+    roles inferred from its names and the keypoints :data:`DEFAULT_KEYPOINTS` (which are what
+    the roles' keypoint rules give; tests/test_roles.py checks it)."""
+    from .roles import infer_roles
     from .urdf import load_urdf
 
-    return load_urdf(DEFAULT_URDF, keypoints=DEFAULT_KEYPOINTS)
+    model = load_urdf(DEFAULT_URDF)
+    kp = {k: (link, tuple(float(v) for v in off)) for k, (link, off) in DEFAULT_KEYPOINTS.items()}
+    roles = infer_roles(model.chain, model.geometry, DEFAULT_URDF, {"keypoints": kp})
+    return make_body_model(model.chain, model.geometry, DEFAULT_KEYPOINTS, roles=roles)
 
 
 __all__ = [

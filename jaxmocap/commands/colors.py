@@ -174,8 +174,24 @@ def load_white_balance(path: str | os.PathLike, names: list[str]) -> np.ndarray:
     return np.stack(out)
 
 
+def _garment_colours(args) -> tuple[str, ...] | None:
+    """The colour names of ``--garment`` (on ``--body``), in the file's order: label k of the
+    masks is then the garment's k-th colour, and the model is named after them."""
+    if not getattr(args, "garment", None):
+        return None
+    from jaxmocap.commands._body import body_from_args, garment_from_args
+
+    if args.names or args.n_colors:
+        raise InputError("--garment names the colours and their count; leave out --names and "
+                         "--n-colors")
+    return garment_from_args(args, body_from_args(args)).colour_names
+
+
 def _run_model(args, out: Path) -> int:
+    garment_names = _garment_colours(args)
     images, labels = _read_pairs(args)
+    if garment_names is not None:
+        args.names, args.n_colors = list(garment_names), len(garment_names)
     n = args.n_colors or int(max(lab.max() for lab in labels))
     if n < 1:
         raise InputError("the label masks hold no labels (all 0): scribble each shirt colour "
@@ -244,6 +260,9 @@ def add_parser(sub) -> None:
                    help="fit the initial white balance W0 per camera instead of the model")
     p.add_argument("--colors", metavar="COLORS_JSON",
                    help="the colour model (required with --white-balance)")
+    from jaxmocap.commands._body import add_body_args
+
+    add_body_args(p)
     p.set_defaults(func=run)
 
 

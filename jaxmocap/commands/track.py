@@ -1,5 +1,5 @@
-"""``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, CSV, NPZ),
-per-frame diagnostics and an optional overlay video.
+"""``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, C3D, CSV, NPZ),
+per-frame diagnostics and an optional overlay video (H.264 MP4 at the capture's frame rate).
 
 The command drives any tracker through a small **frame protocol** (:class:`FrameTracker`):
 
@@ -39,7 +39,7 @@ from jaxmocap.camera import Camera, load_cameras, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
-from jaxmocap.io.video import SyncReader, quiet_ffmpeg
+from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
 
 __all__ = [
     "BONES",
@@ -60,7 +60,6 @@ BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
          ("l_wrist", "l_hand"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"),
          ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
 OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
-OVERLAY_CODEC = "mp4v"
 
 EPILOG = """examples:
   # the colour shirt, two recorded cameras
@@ -72,9 +71,10 @@ EPILOG = """examples:
   jaxmocap track --method shirt --cameras cameras.json --colors colors.json 0 \\
       --max-frames 300 --show
 
-outputs in --out: poses.bvh poses.trc poses.csv poses.npz (see --formats), diagnostics.csv,
-overlay.mp4 (--overlay). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
-2 bad input (nothing written).
+outputs in --out: poses.bvh poses.trc poses.c3d poses.csv poses.npz (see --formats),
+diagnostics.csv, overlay.mp4 (--overlay: H.264 at the capture's frame rate).
+Exit codes: 0 done, 1 done but some frames were unreadable (reported), 2 bad input (nothing
+written).
 """
 
 
@@ -146,19 +146,24 @@ class ShirtFrameTracker:
     ``reference_added_c``; and ``patches`` (measured patch centroids, all cameras)."""
 
     def __init__(self, cams: list[Camera], names: list[str], color, W0: np.ndarray | None,
-                 db, cov=None, work_size: int | None = None):
+                 db, cov=None, work_size: int | None = None, body: BodyModel | None = None,
+                 garment=None):
         from jaxmocap.garment import default_garment
         from jaxmocap.ik import anchors_from_garment
         from jaxmocap.trackers import shirt
 
         self._shirt = shirt
-        self.body = default_body()
-        garment = default_garment(self.body)
+        self.body = default_body() if body is None else body
+        garment = default_garment(self.body) if garment is None else garment
         if color.n_colors != garment.n_colours:
             raise InputError(f"--colors: the colour model has {color.n_colors} colours, the "
                              f"shirt has {garment.n_colours}; fit one colour per shirt colour")
         if cov is None:
-            cov = shirt.trained_covariances(self.body.n_dof)
+            cov, defaults = shirt.covariances_for_body(self.body)
+            if defaults:
+                print(f"jaxmocap track: IK covariances transferred by role from the bundled "
+                      f"body; {len(defaults)} DOFs without a counterpart use the defaults: "
+                      f"{', '.join(defaults)} (train your own: --ik-cov)", file=sys.stderr)
         kw = {} if work_size is None else {"work_size": work_size}
         self.params = shirt.make_params(color, self.body, garment, stack_cameras(cams),
                                         anchors_from_garment(self.body, garment), cov, db, **kw)
@@ -220,7 +225,8 @@ class StereoPFFrameTracker:
 
     diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs")
 
-    def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default"):
+    def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
+                 body: BodyModel | None = None):
         from jaxmocap import blobs
         from jaxmocap.segment import HSVInterval, SegmentParams
         from jaxmocap.trackers import stereo_pf
@@ -235,7 +241,8 @@ class StereoPFFrameTracker:
         if skin == "synth":
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
-        self.params = stereo_pf.make_params(cams, n_particles=n_particles, segment=segment)
+        self.params = stereo_pf.make_params(cams, model=body, n_particles=n_particles,
+                                            segment=segment)
         self._step = stereo_pf.compile_step(self.params)
         self.body = self.params.model
         self.cams = cams
@@ -332,13 +339,8 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 if view is not None:
                     if writer is None:
                         size = (view.shape[1], view.shape[0])
-                        path = files.path(out / "overlay.mp4")
-                        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(
-                            *OVERLAY_CODEC), float(fps), size)
-                        if not writer.isOpened():
-                            raise OSError(f"{out / 'overlay.mp4'}: OpenCV cannot open a "
-                                          f"{OVERLAY_CODEC} video writer")
-                    writer.write(np.ascontiguousarray(view[..., ::-1]))
+                        writer = VideoWriter(files.path(out / "overlay.mp4"), fps, *size)
+                    writer.write(view)
             if show and view is not None:
                 cv2.imshow("jaxmocap track", view[..., ::-1])
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
@@ -347,18 +349,25 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
         print("interrupted: writing the frames tracked so far", file=sys.stderr)
     finally:
         if writer is not None:
-            writer.release()
+            writer.close()
     return np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows
 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
+    from jaxmocap.commands._body import body_from_args, garment_from_args
+
+    body = body_from_args(args)
+    if args.method == "pf" and args.garment:
+        raise InputError("--garment describes the colour shirt of --method shirt; the particle "
+                         "filter (--method pf) segments a single-colour shirt and skin")
     if args.method == "pf":
-        return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin)
+        return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin, body)
     from jaxmocap.color import load_color_model
 
     if not args.colors:
         raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
     color = load_color_model(args.colors)
+    garment = garment_from_args(args, body, color if args.garment else None)
     W0 = None
     if args.white_balance:
         from jaxmocap.commands.colors import load_white_balance
@@ -372,10 +381,17 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             cov = IKCovariances.load(args.ik_cov)
         except ValueError as e:
             raise InputError(str(e)) from None
-    from jaxmocap.posedb import DatabaseError, load_database, load_or_build
+    from jaxmocap.posedb import (
+        DatabaseError,
+        check_database_for,
+        database_meta,
+        load_database,
+        load_or_build,
+    )
 
     if args.db:
         try:
+            check_database_for(args.db, database_meta(args.db), body, garment)
             db = load_database(args.db)
         except FileNotFoundError:
             raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
@@ -383,8 +399,8 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
         except DatabaseError as e:
             raise InputError(str(e)) from None
     else:
-        db = load_or_build(progress=not args.quiet)
-    return ShirtFrameTracker(cams, names, color, W0, db, cov, args.work_size)
+        db = load_or_build(model=body, garment=garment, progress=not args.quiet)
+    return ShirtFrameTracker(cams, names, color, W0, db, cov, args.work_size, body, garment)
 
 
 def add_parser(sub) -> None:
@@ -393,7 +409,7 @@ def add_parser(sub) -> None:
         description="Track the upper body with the colour-shirt tracker (Wang et al. 2011, "
         "--method shirt) or the stereo particle filter (Azad et al. 2007, --method pf). Give "
         "one input per camera of cameras.json, in its order: a video file, a folder of "
-        "frames, or a camera index for live capture. Writes the poses (BVH, TRC, CSV, NPZ), "
+        "frames, or a camera index for live capture. Writes the poses (BVH, TRC, C3D, CSV, NPZ), "
         "per-frame diagnostics and optionally an overlay video into --out.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", metavar="INPUT",
@@ -415,6 +431,9 @@ def add_parser(sub) -> None:
     p.add_argument("--fps", type=float,
                    help=f"frame rate of the outputs (default: the video's, else {DEFAULT_FPS:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from jaxmocap.commands._body import add_body_args
+
+    add_body_args(p)
     g = p.add_argument_group("shirt (--method shirt)")
     g.add_argument("--colors", metavar="COLORS_JSON",
                    help="the shirt's colour model (from `jaxmocap colors`)")

@@ -6,15 +6,19 @@ a MOTION block (one row of channel values per frame). Conventions used here:
 * Rotation channels are Euler angles in **degrees**, applied in the order listed:
   ``Zrotation Xrotation Yrotation`` means ``R_local = Rz(a) @ Rx(b) @ Ry(c)``; any order and
   any subset of the three axes is accepted.
-* A joint's position is ``parent position + R_parent @ (OFFSET + position channels)``.
+* A joint's local position is its ``OFFSET``, with each position channel **replacing** the
+  offset's component (as Blender's importer and bvhio read it); its position is
+  ``parent position + R_parent @ local position``.
 * Files are **Y up** (the BVH convention); our world is Z up: ``v_ours = M v_bvh`` with
   ``M = Y_UP_TO_Z_UP`` (x forward stays x, BVH z = our -y).
 
-:func:`body_to_bvh` writes our model's pose sequence: one BVH joint per body segment
-(pelvis, chest, head, upper arms, forearms, hands), offsets from the model's rest pose, and one
-rotation channel per 1-DOF joint in chain order (a 3-DOF ``*_x, *_y, *_z`` joint becomes
-``Xrotation Zrotation Yrotation`` with the Z channel = -angle, as our y axis is BVH's -z);
-the root has ``Xposition Yposition Zposition Xrotation Yrotation Zrotation``.
+:func:`body_to_bvh` writes any body model's pose sequence: one BVH joint per pivot of the
+chain (:func:`body_bvh_layout`), named after the keypoint role on it, offsets from the
+model's rest pose, three rotation channels ``Zrotation Xrotation Yrotation`` per animated
+joint (none for a fixed one) holding the rest-relative rotation, and
+``Xposition Yposition Zposition`` on the root; Blender's ``import_anim.bvh`` (default axis
+conversion), bvhio and the PyPI ``bvh`` parser read it back with joint positions equal to the
+body's forward kinematics.
 :func:`bvh_to_body_q` drives our model from any BVH clip by rotation transfer
 (:mod:`jaxmocap.synth.retarget`), with a default name mapping for common skeletons.
 """
@@ -25,28 +29,29 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmocap.body import FIXED, BodyModel, default_body
-from jaxmocap.synth._rotations import Y_UP_TO_Z_UP, euler_xyz
+from jaxmocap.body import FIXED, PRISMATIC, BodyModel, default_body, fk, require_roles
+from jaxmocap.synth._rotations import Y_UP_TO_Z_UP
 from jaxmocap.synth.retarget import (
-    DEFAULT_BONE_ENDS,
     Retargeted,
     SourcePose,
-    _rest_transforms,
     _segment_links,
     plan,
     retarget,
+    role_bone_ends,
 )
 
 ROTATIONS = ("Xrotation", "Yrotation", "Zrotation")
 POSITIONS = ("Xposition", "Yposition", "Zposition")
 _M = np.array(Y_UP_TO_Z_UP)
 
-# Our link -> BVH joint names tried in order (our own names first, then common skeletons:
-# CMU / Mixamo / Biovision).
+# Our link *role* -> BVH joint names tried in order (after the body's own link name for the
+# role: common skeletons CMU / Mixamo / Biovision).
 DEFAULT_BVH_NAMES: dict[str, tuple[str, ...]] = {
     "pelvis": ("pelvis", "Hips", "hips", "Hip", "hip", "Pelvis", "Root", "root"),
     "chest": ("chest", "Chest", "Spine1", "Spine2", "UpperChest", "Spine", "spine", "chest1"),
@@ -267,7 +272,7 @@ def format_bvh(bvh: BVH) -> str:
         lines.append(f"{pad}}}")
 
     emit(0, 0)
-    lines += ["MOTION", f"Frames: {bvh.n_frames}", f"Frame Time: {bvh.frame_time:.8f}"]
+    lines += ["MOTION", f"Frames: {bvh.n_frames}", f"Frame Time: {bvh.frame_time:.10f}"]
     lines += [_fmt(row) for row in bvh.motion]
     return "\n".join(lines) + "\n"
 
@@ -277,105 +282,163 @@ def write_bvh(path: str | os.PathLike, bvh: BVH) -> None:
     Path(path).write_text(format_bvh(bvh))
 
 
-def _axis_channel(axis_bvh: np.ndarray, where: str) -> tuple[str, float]:
-    k = int(np.argmax(np.abs(axis_bvh)))
-    if not np.isclose(abs(axis_bvh[k]), 1.0, atol=1e-9):
-        raise ValueError(f"body_to_bvh: joint {where!r} has axis {axis_bvh} (BVH frame); "
-                         "only axes along x, y or z can be written as BVH channels")
-    return ROTATIONS[k], float(np.sign(axis_bvh[k]))
+# Rotation channels of every animated joint, in the Biovision / CMU / MotionBuilder order that
+# Blender's importer, bvhio and MotionBuilder-style readers all read: R = Rz(a) @ Rx(b) @ Ry(c).
+ROTATION_ORDER = ("Zrotation", "Xrotation", "Yrotation")
+
+
+def euler_zxy(r: np.ndarray) -> np.ndarray:
+    """Angles ``(a, b, c)`` (rad) with ``r = Rz(a) @ Rx(b) @ Ry(c)``, ``b`` in [-pi/2, pi/2];
+    at the gimbal lock ``|b| = pi/2`` the split is ``c = 0`` (the product stays exact)."""
+    r = np.asarray(r, np.float64)
+    cos_b = np.hypot(r[..., 2, 0], r[..., 2, 2])
+    b = np.arctan2(r[..., 2, 1], cos_b)  # well conditioned near +-pi/2, unlike arcsin
+    lock = cos_b < 1e-9
+    a = np.where(lock, np.arctan2(r[..., 1, 0], r[..., 0, 0]),
+                 np.arctan2(-r[..., 0, 1], r[..., 1, 1]))
+    c = np.where(lock, 0.0, np.arctan2(-r[..., 2, 0], r[..., 2, 2]))
+    return np.stack([a, b, c], axis=-1)
+
+
+class BodyBVHLayout(NamedTuple):
+    """How a body model maps to BVH joints (:func:`body_bvh_layout`).
+
+    ``links[j]`` is the body link whose origin and orientation BVH joint ``j`` carries,
+    ``parents[j]`` the BVH parent (-1 for the root), ``names[j]`` its name, ``rotates[j]``
+    whether its joint group has a moving joint (3 rotation channels, else 0), ``slides[j]``
+    whether it has a prismatic one (3 position channels too), ``end_keypoints[j]`` the
+    keypoint index of a leaf's End Site (-1: none)."""
+
+    links: tuple[int, ...]
+    parents: tuple[int, ...]
+    names: tuple[str, ...]
+    rotates: tuple[bool, ...]
+    slides: tuple[bool, ...]
+    end_keypoints: tuple[int, ...]
+
+
+def body_bvh_layout(model: BodyModel) -> BodyBVHLayout:
+    """The BVH hierarchy of any body model, from its kinematic chain alone.
+
+    BVH joints are the chain's segment links (root, links with geometry, branch points,
+    children of fixed joints) and every link that a child joint is offset from; the massless
+    links in between (the 1-DOF axes of a ball or universal joint at one pivot) merge into
+    the BVH joint below them. With that choice each BVH joint's origin is fixed in its BVH
+    parent's frame unless a prismatic joint lies between them (then it gets position
+    channels). A joint is named after the keypoint role that sits on its pivot
+    (``model.keypoint_names``: pelvis, neck, l_shoulder, l_elbow, l_wrist, ...), else after its
+    link (``<link>_link`` where that is a keypoint's name elsewhere: a BVH joint named like a
+    keypoint is at that keypoint); leaves end in an End Site at their farthest keypoint.
+    """
+    chain = model.chain
+    topo = chain.topology
+    origin_t = np.asarray(chain.joint_origin, np.float64)[:, :3, 3]
+    offset_from = {topo[i][0] for i in range(1, len(topo)) if np.any(origin_t[i] != 0)}
+    links = sorted(set(_segment_links(model)) | offset_from | {0})
+    parents, groups = [], []
+    for j in links:
+        group, i = [], j
+        while i > 0 and (i == j or i not in links):
+            group.append(i)
+            i = topo[i][0]
+        parents.append(-1 if j == 0 else links.index(i))
+        groups.append([0] if j == 0 else group)
+    rest = np.asarray(fk(chain, jnp.zeros(chain.n_dof)), np.float64)
+    kp_link = np.asarray(model.keypoint_link)
+    kp_off = np.asarray(model.keypoint_offset, np.float64)
+    kp_rest = np.einsum("kij,kj->ki", rest[kp_link, :3, :3], kp_off) + rest[kp_link, :3, 3]
+    slides = [j != 0 and any(topo[i][1] == PRISMATIC for i in g)
+              for j, g in zip(links, groups, strict=True)]
+    names, used = [], set()
+    for n, j in enumerate(links):
+        # links a point on the pivot moves with: the joint's group, and its parent's link
+        # unless a prismatic joint slides the pivot against the parent
+        carriers = set(groups[n]) | ({links[parents[n]]} if parents[n] >= 0
+                                     and not slides[n] else set())
+        on_pivot = [k for k in range(len(kp_link)) if int(kp_link[k]) in carriers
+                    and np.linalg.norm(kp_rest[k] - rest[j, :3, 3]) < 1e-9]
+        name = next((model.keypoint_names[k] for k in on_pivot
+                     if model.keypoint_names[k] not in used), None)
+        if name is None:  # no keypoint on the pivot: the link's name, never a keypoint's
+            name = chain.link_names[j]
+            name = f"{name}_link" if name in model.keypoint_names else name
+        name = "_".join(name.split())
+        while name in used:
+            name += "_"
+        used.add(name)
+        names.append(name)
+    leaves = [n for n in range(len(links)) if n not in parents]
+    ends = []
+    for n, j in enumerate(links):
+        kps = [k for k in range(len(kp_link)) if kp_link[k] == j and np.any(kp_off[k] != 0)]
+        far = max(kps, key=lambda k: np.linalg.norm(kp_off[k]), default=-1)
+        ends.append(far if n in leaves else -1)
+    return BodyBVHLayout(
+        links=tuple(links), parents=tuple(parents), names=tuple(names),
+        rotates=tuple(j == 0 or any(topo[i][1] != FIXED for i in g)
+                      for j, g in zip(links, groups, strict=True)),
+        slides=tuple(slides),
+        end_keypoints=tuple(ends))
 
 
 def body_to_bvh(model: BodyModel, q, fps: float) -> BVH:
     """Our pose sequence ``q`` (n_frames, n_dof) as a Y-up BVH clip at ``fps`` (metres, deg).
 
-    One BVH joint per segment link of the model, named after it; channels as in the module
-    docstring. Needs joint frames aligned with the world at rest (true of the bundled body);
-    raises ``ValueError`` naming the joint otherwise.
+    Hierarchy from :func:`body_bvh_layout` (any body). The BVH rest pose (all channels 0) is
+    the body's rest pose ``q = 0``; each joint's rotation channels hold its rest-relative
+    rotation ``D_j = R_j(q) R_j(0)^T`` (world, hence frame-free) relative to its parent's,
+    ``D_parent^T D_j``, as ``Zrotation Xrotation Yrotation`` Euler angles (unwrapped over
+    time). Then BVH forward kinematics (``p_j = p_parent + D_parent offset_j``) reproduces the
+    body's link origins exactly, whatever the joints' axes or rest frames. The root has
+    ``Xposition Yposition Zposition`` (its origin, ``OFFSET 0``) before its rotations; fixed
+    joints have no channels; a joint behind a prismatic joint keeps its rest ``OFFSET`` and
+    gets its whole local position in position channels (which replace the offset, as Blender
+    and bvhio read them).
     """
     q = np.asarray(q, dtype=np.float64)
     chain = model.chain
     if q.ndim != 2 or q.shape[1] != chain.n_dof:
         raise ValueError(f"body_to_bvh: q has shape {q.shape}, expected (n_frames, "
                          f"{chain.n_dof})")
-    topo = chain.topology
-    origin = np.asarray(chain.joint_origin, dtype=np.float64)
-    axes = np.asarray(chain.joint_axis, dtype=np.float64)
-    rest = _rest_transforms(origin, topo)
-    segs = _segment_links(model)
-    kp_link = np.asarray(model.keypoint_link)
-    kp_off = np.asarray(model.keypoint_offset, dtype=np.float64)
-    names = chain.link_names
-    joints, columns = [], []
-    for s in segs:
-        if not np.allclose(rest[s, :3, :3], np.eye(3), atol=1e-9):
-            raise ValueError(f"body_to_bvh: link {names[s]!r} is rotated at rest; BVH joints "
-                             "must be aligned with the world at rest")
-        parent_seg = -1
-        group = []
-        i = s
-        while i != 0:
-            group.append(i)
-            i = topo[i][0]
-            if i in segs:
-                parent_seg = segs.index(i)
-                break
-        group = group[::-1]
-        chans, cols = [], []
-        if s == 0:
-            chans = list(POSITIONS) + list(ROTATIONS)
-            cols = [("root_t", k) for k in range(3)] + [("root_r", k) for k in range(3)]
-            offset = np.zeros(3)  # the position channels carry the root link's origin
-        else:
-            offset = _M.T @ (rest[s, :3, 3] - rest[segs[parent_seg], :3, 3])
-            for m, i in enumerate(group):
-                if m > 0 and np.any(origin[i, :3, 3] != 0):
-                    raise ValueError(f"body_to_bvh: joint of {names[i]!r} is offset from the "
-                                     "previous joint of its group; BVH needs one pivot")
-                if topo[i][1] == FIXED:
-                    continue
-                ch, sign = _axis_channel(_M.T @ axes[i], names[i])
-                chans.append(ch)
-                cols.append(("dof", topo[i][2], sign))
-        end = None
-        if not any(_seg_parent(topo, segs, c) == s for c in segs if c != 0):  # a leaf
-            kps = [k for k in range(len(kp_link)) if kp_link[k] == s]
-            far = max(kps, key=lambda k: np.linalg.norm(kp_off[k]), default=None)
-            end = tuple(_M.T @ kp_off[far]) if far is not None else (0.0, 0.0, 0.0)
-        joints.append(BVHJoint(names[s], parent_seg, tuple(offset), tuple(chans), end))
-        columns.append(cols)
+    if not fps > 0:
+        raise ValueError(f"body_to_bvh: fps must be > 0, got {fps}")
+    lay = body_bvh_layout(model)
+    rest = np.asarray(fk(chain, jnp.zeros(chain.n_dof)), np.float64)
     n = q.shape[0]
-    root_r = _root_matrix(q[:, 3:6])
-    root_p = q[:, 0:3] + root_r @ origin[0, :3, 3]
-    root_euler = np.degrees(np.asarray(euler_xyz(jnp.asarray(_M.T @ root_r @ _M))))
-    motion = []
-    for cols in columns:
-        for c in cols:
-            if c[0] == "root_t":
-                motion.append((root_p @ _M)[:, c[1]])
-            elif c[0] == "root_r":
-                motion.append(root_euler[:, c[1]])
+    if n:
+        tr = np.asarray(jax.vmap(fk, in_axes=(None, 0))(chain, jnp.asarray(q)), np.float64)
+    else:
+        tr = np.zeros((0,) + rest.shape)
+    links = list(lay.links)
+    # rest-relative world rotations and positions in the BVH frame (v_bvh = M^T v_world)
+    tr, rest_l = tr[:, links], rest[links]
+    d = _M.T @ (tr[..., :3, :3] @ np.swapaxes(rest_l[:, :3, :3], -1, -2)) @ _M
+    p = tr[..., :3, 3] @ _M
+    p_rest = rest_l[:, :3, 3] @ _M
+    kp_off = np.asarray(model.keypoint_offset, np.float64)
+    joints, motion = [], []
+    for j, link in enumerate(links):
+        par = lay.parents[j]
+        chans: list[str] = []
+        offset = np.zeros(3) if par < 0 else p_rest[j] - p_rest[par]
+        if par < 0 or lay.slides[j]:
+            chans += list(POSITIONS)
+            if par < 0:
+                motion.append(p[:, j])
             else:
-                motion.append(c[2] * np.degrees(q[:, c[1]]))
-    motion = np.stack(motion, axis=1) if motion else np.zeros((n, 0))
+                motion.append(np.einsum("nji,nj->ni", d[:, par], p[:, j] - p[:, par]))
+        if lay.rotates[j]:
+            chans += list(ROTATION_ORDER)
+            local = d[:, j] if par < 0 else np.swapaxes(d[:, par], -1, -2) @ d[:, j]
+            motion.append(np.degrees(np.unwrap(euler_zxy(local), axis=0)))
+        end = None
+        if j not in lay.parents:
+            k = lay.end_keypoints[j]
+            end = (0.0, 0.0, 0.0) if k < 0 else tuple(_M.T @ rest[link, :3, :3] @ kp_off[k])
+        joints.append(BVHJoint(lay.names[j], par, tuple(float(v) for v in offset),
+                               tuple(chans), end))
+    motion = np.concatenate(motion, axis=1) if motion else np.zeros((n, 0))
     return BVH(joints=tuple(joints), frame_time=1.0 / fps, motion=motion)
-
-
-def _seg_parent(topo, segs, c: int) -> int:
-    i = topo[c][0]
-    while i not in segs:
-        i = topo[i][0]
-    return i
-
-
-def _root_matrix(w: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(w, axis=-1, keepdims=True)
-    axis = w / np.where(theta > 0, theta, 1.0)
-    x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
-    o = np.zeros_like(x)
-    k = np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1),
-                  np.stack([-y, x, o], -1)], -2)
-    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
 
 
 def write_body_bvh(path: str | os.PathLike, model: BodyModel, q, fps: float) -> None:
@@ -413,7 +476,7 @@ def bvh_fk(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
         local_t = np.broadcast_to(np.asarray(j.offset), (n, 3)).copy()
         for m, c in enumerate(j.channels):
             if c in POSITIONS:
-                local_t[:, POSITIONS.index(c)] += vals[:, m]
+                local_t[:, POSITIONS.index(c)] = vals[:, m]
         if j.parent < 0:
             rots.append(local_r)
             pos.append(local_t)
@@ -425,12 +488,22 @@ def bvh_fk(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
 
 
 def default_mapping(bvh: BVH, model: BodyModel) -> dict[str, str]:
-    """Our segment link -> BVH joint, from :data:`DEFAULT_BVH_NAMES` (first name present)."""
+    """Our segment link -> BVH joint: the joints :func:`body_to_bvh` wrote for this body when
+    the file has them all (:func:`body_bvh_layout`), else for every role of
+    :data:`DEFAULT_BVH_NAMES` the link playing it (by the body's roles) gets the first BVH joint
+    present among its own name and the role's candidates."""
+    lay = body_bvh_layout(model)
+    if set(lay.names) <= set(bvh.names):
+        segs = set(_segment_links(model))
+        return {model.chain.link_names[link]: name
+                for link, name in zip(lay.links, lay.names, strict=True) if link in segs}
+    roles = require_roles(model, "bvh_to_body_q")
     out = {}
-    for ours, cands in DEFAULT_BVH_NAMES.items():
-        if ours not in model.chain.link_names:
+    for role, cands in DEFAULT_BVH_NAMES.items():
+        ours = roles.link(role)
+        if ours in out:
             continue
-        hit = next((c for c in cands if c in bvh.names and c not in out.values()), None)
+        hit = next((c for c in (ours, *cands) if c in bvh.names and c not in out.values()), None)
         if hit is not None:
             out[ours] = hit
     return out
@@ -438,9 +511,10 @@ def default_mapping(bvh: BVH, model: BodyModel) -> dict[str, str]:
 
 def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
                   mapping: Mapping[str, str] | None = None, scale: float = 1.0,
-                  bone_ends: Mapping[str, str] = DEFAULT_BONE_ENDS) -> Retargeted:
+                  bone_ends: Mapping[str, str] | None = None) -> Retargeted:
     """Drive ``model`` (default: the bundled body) with a BVH clip.
 
+    ``bone_ends``: link -> bone end (default: by the body's roles, ``role_bone_ends``).
     ``mapping`` maps our link names to BVH joint names (default :func:`default_mapping`; it
     must include our root link). ``scale`` converts the file's units to metres (e.g. 0.01 for
     centimetres). The BVH rest pose may differ from ours (a T-pose, say): each segment's rest
@@ -448,6 +522,7 @@ def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
     End Site — is aligned by the rotation transfer of :mod:`jaxmocap.synth.retarget`.
     """
     model = default_body() if model is None else model
+    bone_ends = role_bone_ends(model) if bone_ends is None else bone_ends
     mapping = dict(default_mapping(bvh, model) if mapping is None else mapping)
     root = model.chain.link_names[0]
     for ours, theirs in mapping.items():
@@ -491,5 +566,6 @@ def bvh_to_body_q(bvh: BVH, model: BodyModel | None = None,
 __all__ = [
     "BVH", "BVHJoint", "BVHError", "DEFAULT_BVH_NAMES", "parse_bvh", "read_bvh", "format_bvh",
     "write_bvh", "body_to_bvh", "write_body_bvh", "bvh_fk", "default_mapping",
+    "body_bvh_layout", "BodyBVHLayout", "euler_zxy", "ROTATION_ORDER",
     "bvh_to_body_q",
 ]  # fmt: skip

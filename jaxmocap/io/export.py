@@ -1,5 +1,5 @@
-"""Exports of a tracked pose sequence: BVH, TRC (OpenSim markers), CSV and NPZ — and reading
-our CSV / NPZ back (for ``jaxmocap eval``).
+"""Exports of a tracked pose sequence: BVH, TRC (OpenSim markers), C3D, CSV and NPZ — and
+reading our CSV / NPZ back (for ``jaxmocap eval``).
 
 A tracked sequence is a :class:`PoseTrack`: per frame the pose ``q`` (the body model's layout,
 see :mod:`jaxmocap.body`: root translation m, root rotation vector rad, 1-DOF joint angles
@@ -10,16 +10,24 @@ unreadable frame, a lost subject) are **NaN** in ``q`` and ``keypoints``.
 Formats (all written atomically, :mod:`jaxmocap.io.atomic`):
 
 * **NPZ** — arrays ``q`` (T, n_dof), ``keypoints`` (T, n_kp, 3), ``valid`` (T,), ``times``
-  (T,) s, ``fps`` (), ``dof_names`` (n_dof,), ``keypoint_names`` (n_kp,) — the same key
-  names as a synthetic dataset's ``groundtruth.npz``, so ground truth and results compare
-  directly.
+  (T,) s, ``fps`` (), ``dof_names`` (n_dof,), ``dof_units`` (n_dof,: ``m`` or ``rad``),
+  ``keypoint_names`` (n_kp,) — the same key names as a synthetic dataset's
+  ``groundtruth.npz``, so ground truth and results compare directly.
 * **CSV** — one header row, one row per frame: ``frame, time_s, valid``, then
-  ``<keypoint>_x/_y/_z`` (m, world Z up) per keypoint, then one column per DOF (``q_<name>``);
-  NaN written as an empty field.
+  ``<keypoint>_x_m/_y_m/_z_m`` (metres, world Z up) per keypoint, then one column per DOF
+  named with its unit: ``q_root_tx_m .. q_root_tz_m`` (root translation),
+  ``q_root_rotvec_x_rad .. _z_rad`` (root rotation vector, world frame) and
+  ``q_<joint>_rad`` (``_m`` for a prismatic joint); NaN written as an empty field.
 * **TRC** — OpenSim's marker-trajectory text format (tab separated, ``PathFileType 4``),
   one marker per keypoint, in **Y-up** coordinates as OpenSim expects
   (``v_trc = M^T v_world``, ``M = Y_UP_TO_Z_UP``: x forward stays x, our z is TRC's y, our y
-  is TRC's -z), units metres; untracked frames have empty fields (OpenSim's missing marker).
+  is TRC's -z), units metres; an untracked frame has ``NaN`` in its marker fields (OpenSim's
+  missing marker: every data line keeps its ``2 + 3 * NumMarkers`` fields).
+* **C3D** — the binary format of biomechanics labs (written with ezc3d, the library OpenSim's
+  C3D reader is built on): one 3D point per keypoint in **millimetres**, world frame (Z up,
+  ``POINT:X_SCREEN +X``, ``Y_SCREEN +Z``), ``POINT:RATE`` = the capture's frame rate,
+  residual 0 for tracked points and -1 (C3D's invalid point, coordinates 0) for untracked
+  frames; no analog channels.
 * **BVH** — :func:`jaxmocap.io.bvh.body_to_bvh` (Y up, degrees). BVH cannot hold missing
   frames: an untracked frame repeats the last tracked pose (the rest pose before the first).
 """
@@ -36,8 +44,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmocap.body import BodyModel
+from jaxmocap.body import PRISMATIC, ROOT_DOFS, BodyModel
 from jaxmocap.body import keypoints as body_keypoints
+from jaxmocap.body.model import ROOT_DOF_NAMES
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, atomic_path, write_text
 from jaxmocap.io.bvh import body_to_bvh, format_bvh
@@ -47,19 +56,22 @@ __all__ = [
     "FORMATS",
     "PoseFileError",
     "PoseTrack",
+    "csv_header",
+    "dof_units",
     "fill_missing",
     "format_csv",
     "format_trc",
     "load_track",
     "pose_track",
     "write_bvh",
+    "write_c3d",
     "write_csv",
     "write_exports",
     "write_npz",
     "write_trc",
 ]
 
-FORMATS = ("bvh", "trc", "csv", "npz")
+FORMATS = ("bvh", "trc", "c3d", "csv", "npz")
 _M = np.asarray(Y_UP_TO_Z_UP)  # v_world = M v_yup
 
 
@@ -76,6 +88,7 @@ class PoseTrack(NamedTuple):
     fps: float
     dof_names: tuple[str, ...]
     keypoint_names: tuple[str, ...]
+    dof_units: tuple[str, ...] = ()  # per DOF "m" or "rad"; () = the chain layout's default
 
     @property
     def n_frames(self) -> int:
@@ -107,7 +120,24 @@ def pose_track(model: BodyModel, q: np.ndarray, valid: np.ndarray | None, fps: f
         kp = np.zeros((0, len(model.keypoint_names), 3))
     kp[~valid] = np.nan
     return PoseTrack(q, kp, valid, float(fps), tuple(model.chain.dof_names),
-                     tuple(model.keypoint_names))
+                     tuple(model.keypoint_names), dof_units(model))
+
+
+def dof_units(model: BodyModel) -> tuple[str, ...]:
+    """Unit of every DOF of ``q``: ``m`` for the root translation and prismatic joints,
+    ``rad`` for the root rotation vector and revolute joints."""
+    units = ["m"] * 3 + ["rad"] * 3 + ["rad"] * (model.n_dof - ROOT_DOFS)
+    for _, kind, dof in model.chain.topology:
+        if kind == PRISMATIC:
+            units[dof] = "m"
+    return tuple(units)
+
+
+def _units(track: PoseTrack) -> tuple[str, ...]:
+    if track.dof_units:
+        return track.dof_units
+    n = len(track.dof_names)
+    return tuple(("m", "m", "m", "rad", "rad", "rad")[:n]) + ("rad",) * max(0, n - ROOT_DOFS)
 
 
 def fill_missing(q: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -129,14 +159,23 @@ def _num(x: float) -> str:
     return "" if not np.isfinite(x) else f"{x:.6f}"
 
 
+def csv_header(track: PoseTrack) -> list[str]:
+    """The CSV's column names, each with its unit (module docstring)."""
+    header = ["frame", "time_s", "valid"]
+    header += [f"{n}_{a}_m" for n in track.keypoint_names for a in "xyz"]
+    for i, (name, unit) in enumerate(zip(track.dof_names, _units(track), strict=True)):
+        if 3 <= i < ROOT_DOFS:
+            header.append(f"q_root_rotvec_{'xyz'[i - 3]}_rad")
+        else:
+            header.append(f"q_{name}_{unit}")
+    return header
+
+
 def format_csv(track: PoseTrack) -> str:
     """The CSV text (module docstring)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    header = ["frame", "time_s", "valid"]
-    header += [f"{n}_{a}" for n in track.keypoint_names for a in "xyz"]
-    header += [f"q_{n}" for n in track.dof_names]
-    w.writerow(header)
+    w.writerow(csv_header(track))
     for t in range(track.n_frames):
         row = [str(t), f"{t / track.fps:.6f}", str(int(track.valid[t]))]
         row += [_num(v) for v in track.keypoints[t].reshape(-1)]
@@ -160,7 +199,7 @@ def format_trc(track: PoseTrack, file_name: str = "poses.trc") -> str:
     ]
     yup = track.keypoints @ _M  # rows: v_yup = M^T v_world
     for t in range(n):
-        vals = [_num(v) for v in yup[t].reshape(-1)]
+        vals = [f"{v:.6f}" if np.isfinite(v) else "NaN" for v in yup[t].reshape(-1)]
         lines.append("\t".join([str(t + 1), f"{t / track.fps:.6f}"] + vals))
     return "\n".join(lines) + "\n"
 
@@ -175,12 +214,43 @@ def write_trc(path: str | os.PathLike, track: PoseTrack) -> Path:
     return write_text(path, format_trc(track, Path(path).name))
 
 
+def _save_c3d(path: Path, track: PoseTrack) -> None:
+    """The C3D file (module docstring) at ``path``, written by ezc3d."""
+    import ezc3d
+
+    t, k = track.n_frames, len(track.keypoint_names)
+    ok = np.isfinite(track.keypoints).all(axis=-1)  # (T, k)
+    pts = np.zeros((4, k, t))
+    pts[:3] = np.where(ok[..., None], track.keypoints * 1000.0, 0.0).transpose(2, 1, 0)
+    pts[3] = 1.0
+    c = ezc3d.c3d()
+    point = c["parameters"]["POINT"]
+    point["RATE"]["value"] = [float(track.fps)]
+    point["LABELS"]["value"] = tuple(track.keypoint_names)
+    point["UNITS"]["value"] = ["mm"]
+    c.add_parameter("POINT", "X_SCREEN", ["+X"])
+    c.add_parameter("POINT", "Y_SCREEN", ["+Z"])
+    c["data"]["points"] = pts
+    c["data"]["meta_points"] = {
+        "residuals": np.where(ok.T, 0.0, -1.0)[None],
+        "camera_masks": np.zeros((7, k, t), bool),
+    }
+    c.write(str(path))
+
+
+def write_c3d(path: str | os.PathLike, track: PoseTrack) -> Path:
+    """Write the C3D atomically."""
+    with atomic_path(path) as tmp:
+        _save_c3d(tmp, track)
+    return Path(path)
+
+
 def _save_npz(path: Path, track: PoseTrack, extra: dict[str, np.ndarray]) -> None:
     with open(path, "wb") as f:
         np.savez(f, q=track.q, keypoints=track.keypoints, valid=track.valid,
                  times=track.times, fps=np.float64(track.fps),
-                 dof_names=np.array(track.dof_names), keypoint_names=np.array(track.keypoint_names),
-                 **extra)
+                 dof_names=np.array(track.dof_names), dof_units=np.array(_units(track)),
+                 keypoint_names=np.array(track.keypoint_names), **extra)
 
 
 def write_npz(path: str | os.PathLike, track: PoseTrack, **extra: np.ndarray) -> Path:
@@ -212,6 +282,8 @@ def write_exports(files: AtomicFiles, folder: str | os.PathLike, model: BodyMode
             tmp.write_text(format_csv(track))
         elif fmt == "trc":
             tmp.write_text(format_trc(track, target.name))
+        elif fmt == "c3d":
+            _save_c3d(tmp, track)
         elif fmt == "bvh":
             tmp.write_text(format_bvh(body_to_bvh(model, fill_missing(track.q, track.valid),
                                                   track.fps)))
@@ -252,7 +324,12 @@ def _load_npz(path: Path) -> PoseTrack:
              else np.isfinite(kp).all(axis=(1, 2)))
     if valid.shape != (t,):
         raise PoseFileError(f"{path}: field 'valid' has shape {valid.shape}, expected ({t},)")
-    return PoseTrack(q, kp, valid & np.isfinite(kp).all(axis=(1, 2)), fps, dof_names, names)
+    units = tuple(str(u) for u in data.get("dof_units", ()))
+    if units and len(units) != q.shape[1]:
+        raise PoseFileError(f"{path}: field 'dof_units' has {len(units)} units for "
+                            f"{q.shape[1]} DOFs")
+    return PoseTrack(q, kp, valid & np.isfinite(kp).all(axis=(1, 2)), fps, dof_names, names,
+                     units)
 
 
 def _fps_from_times(path: Path, times, t: int) -> float:
@@ -276,10 +353,13 @@ def _load_csv(path: Path) -> PoseTrack:
                             "of a jaxmocap pose CSV")
     header = rows[0]
     kp_cols = [c for c in header[3:] if not c.startswith("q_")]
-    if len(kp_cols) % 3 or any(not c.endswith(f"_{'xyz'[i % 3]}") for i, c in enumerate(kp_cols)):
-        raise PoseFileError(f"{path}: line 1: keypoint columns must come as <name>_x, _y, _z")
-    names = tuple(c[:-2] for c in kp_cols[::3])
-    dof_names = tuple(c[2:] for c in header[3 + len(kp_cols):])
+    unit = "_m" if kp_cols and kp_cols[0].endswith("_m") else ""  # "" : files before units
+    if len(kp_cols) % 3 or any(not c.endswith(f"_{'xyz'[i % 3]}{unit}")
+                               for i, c in enumerate(kp_cols)):
+        raise PoseFileError(f"{path}: line 1: keypoint columns must come as <name>_x_m, "
+                            "<name>_y_m, <name>_z_m")
+    names = tuple(c[:-2 - len(unit)] for c in kp_cols[::3])
+    dof_names, units = _dof_columns(header[3 + len(kp_cols):])
     values = np.full((len(rows) - 1, len(header)), np.nan)
     for i, row in enumerate(rows[1:]):
         if len(row) != len(header):
@@ -294,7 +374,21 @@ def _load_csv(path: Path) -> PoseTrack:
     q = values[:, 3 + 3 * k:]
     valid = (values[:, 2] == 1) & np.isfinite(kp).all(axis=(1, 2))
     fps = _fps_from_times(path, values[:, 1], t)
-    return PoseTrack(q, kp, valid, fps, dof_names, names)
+    return PoseTrack(q, kp, valid, fps, dof_names, names, units)
+
+
+def _dof_columns(cols: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """DOF names and units of the ``q_*`` CSV columns (inverse of :func:`csv_header`)."""
+    names, units = [], []
+    for c in cols:
+        name = c[2:]
+        unit = next((u for u in ("m", "rad") if name.endswith(f"_{u}")), "")
+        name = name[:-len(unit) - 1] if unit else name
+        if name.startswith("root_rotvec_") and name[-1] in "xyz":
+            name = ROOT_DOF_NAMES[3 + "xyz".index(name[-1])]
+        names.append(name)
+        units.append(unit)
+    return tuple(names), (tuple(units) if all(units) else ())
 
 
 def load_track(path: str | os.PathLike) -> PoseTrack:

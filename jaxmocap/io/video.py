@@ -20,12 +20,19 @@ not open, mixed live and recorded sources, and sources with no frames.
 corrupt or empty image file, a frame of another size, a video that ends before the number of
 frames its header declares — a truncated file) is yielded as ``None`` for that instant and
 recorded; :meth:`SyncReader.problems` sums them up in one line for the user.
+
+**Writing** (overlay videos): :class:`VideoWriter` encodes RGB frames as **H.264 in MP4**
+(``yuv420p``, even width and height, ``+faststart``: what web browsers play) at the given
+frame rate with PyAV's bundled FFmpeg/libx264; without it, it falls back to OpenCV's MPEG-4
+Part 2 (``mp4v``) and says so in one line.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator, Sequence
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -38,6 +45,7 @@ __all__ = [
     "FrameSource",
     "SyncReader",
     "VideoError",
+    "VideoWriter",
     "open_source",
     "quiet_ffmpeg",
 ]
@@ -296,3 +304,94 @@ def _ranges(ts: Sequence[int]) -> str:
             out.append(str(start) if start == t else f"{start}-{t}")
             start = None
     return "frames " + ", ".join(out)
+
+
+# ----------------------------------------------------------------------------- writing
+
+H264_CRF = 18  # x264 constant-rate factor: visually lossless for thin skeleton lines
+
+
+def _h264_unavailable() -> str | None:
+    """Why PyAV cannot encode H.264 here (one line), or None when it can."""
+    try:
+        import av
+
+        av.codec.Codec("libx264", "w")
+    except (ImportError, ValueError) as e:  # no PyAV, or an FFmpeg build without libx264
+        return f"{type(e).__name__}: {e}".splitlines()[0]
+    return None
+
+
+class VideoWriter:
+    """Write RGB uint8 (H, W, 3) frames to an MP4 file at ``fps`` (module docstring).
+
+    ``codec`` is ``"h264"`` (PyAV + libx264, ``yuv420p``; an odd width or height is padded by
+    one edge pixel since 4:2:0 needs even sizes) or ``"mp4v"`` (the OpenCV fallback, noted
+    once on ``note``, default stderr). ``path`` must end in ``.mp4``; the caller makes it
+    atomic (write to a temporary from :mod:`jaxmocap.io.atomic`).
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float, width: int, height: int,
+                 note=None):
+        if not (np.isfinite(fps) and fps > 0):
+            raise ValueError(f"VideoWriter: fps must be > 0, got {fps}")
+        self.path, self.fps, self.size = str(path), float(fps), (int(width), int(height))
+        self._n = 0
+        self._cv = self._av = None
+        why = _h264_unavailable()
+        if why is not None:
+            print(f"note: H.264 encoder unavailable ({why}); writing {Path(path).name} as "
+                  "MPEG-4 Part 2 (mp4v), which web browsers do not play",
+                  file=sys.stderr if note is None else note)
+            self.codec = "mp4v"
+            self._cv = cv2.VideoWriter(self.path, cv2.VideoWriter_fourcc(*"mp4v"), self.fps,
+                                       self.size)
+            if not self._cv.isOpened():
+                raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
+            return
+        import av
+
+        self.codec = "h264"
+        self.rate = Fraction(self.fps).limit_denominator(1001)
+        self._av = av.open(self.path, mode="w", format="mp4",
+                           options={"movflags": "+faststart"})
+        stream = self._av.add_stream("libx264", rate=self.rate)
+        stream.width, stream.height = (v + v % 2 for v in self.size)
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": str(H264_CRF), "preset": "medium"}
+        self._stream = stream
+        self._frame_cls = av.VideoFrame
+
+    def write(self, rgb: np.ndarray) -> None:
+        """Append one RGB uint8 (H, W, 3) frame of the writer's size."""
+        w, h = self.size
+        if rgb.shape != (h, w, 3) or rgb.dtype != np.uint8:
+            raise ValueError(f"VideoWriter: frame is {rgb.shape} {rgb.dtype}, expected "
+                             f"({h}, {w}, 3) uint8")
+        if self._cv is not None:
+            self._cv.write(np.ascontiguousarray(rgb[..., ::-1]))
+            return
+        img = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        frame = self._frame_cls.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+        frame.pts = self._n
+        frame.time_base = 1 / self.rate
+        for packet in self._stream.encode(frame):
+            self._av.mux(packet)
+        self._n += 1
+
+    def close(self) -> None:
+        """Flush the encoder and close the file (idempotent)."""
+        if self._cv is not None:
+            self._cv.release()
+            self._cv = None
+        if self._av is not None:
+            for packet in self._stream.encode(None):
+                self._av.mux(packet)
+            self._av.close()
+            self._av = None
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -6,7 +6,8 @@ log-likelihoods (§II-C), and the two cameras by the same rule ("implicit stereo
 
 **Limb contour model.** A limb is a cylinder of radius r (m) around the segment A B fixed in
 one link of the body (the capsules / cylinders of :class:`jaxmocap.body.Geometry`; the torso
-is approximated by one vertical cylinder between the abdomen and thorax centres). In a camera
+is one cylinder of elliptic cross-section fitted to the body's torso geoms; the limbs come from
+the body's roles and geometry, :func:`limb_model`). In a camera
 with focal length f its projected contour is the two silhouette lines
 
     a +- n r_a  ->  b +- n r_b,      r_a = f r / z_a,   r_b = f r / z_b,
@@ -49,11 +50,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from jaxmocap.body import CAPSULE, CYLINDER, ELLIPSOID, BodyModel, fk, keypoint_index
+from jaxmocap.body import CAPSULE, CYLINDER, BodyModel, fk, keypoint_index, require_roles
+from jaxmocap.body.roles import CONTOUR_LIMBS, geom_support, limb_axis
 from jaxmocap.camera import Camera, project, to_camera
+from jaxmocap.errors import InputError
 
 __all__ = [
-    "DEFAULT_LIMBS",
     "DISTANCE_NAMES",
     "EDGE_OUTSIDE",
     "POINTS_PER_LINE",
@@ -72,6 +74,7 @@ __all__ = [
     "edge_loglik",
     "edge_samples",
     "limb_endpoints",
+    "fit_limb",
     "limb_model",
     "pose_transforms",
     "project_limbs",
@@ -106,8 +109,6 @@ POINTS_PER_LINE = 12  # M samples per contour line (5 limbs x 2 lines x 12 = 120
 REGION_ACROSS = 3  # region-cue samples across a limb (x POINTS_PER_LINE along it)
 # the entities of the distance cue, in the order of jaxmocap.blobs.ENTITY_NAMES
 DISTANCE_NAMES = ("head", "l_hand", "r_hand")
-# The bundled body's limbs: capsule geoms by name, and the torso (see module docstring).
-DEFAULT_LIMBS = ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm", ("abdomen", "thorax"))
 
 
 class LimbModel(eqx.Module):
@@ -134,56 +135,54 @@ class LimbModel(eqx.Module):
 
 
 def limb_model(
-    model: BodyModel, limbs: Sequence[str | tuple[str, str]] = DEFAULT_LIMBS
+    model: BodyModel, limbs: Sequence[str | tuple[str, ...]] | None = None
 ) -> LimbModel:
     """Contour model from the body geometry.
 
-    An entry ``"name"`` is a capsule or cylinder geom: its axis (geom z, +-half length) and
-    radius (round cross-section). An entry ``("a", "b")`` is two ellipsoid geoms of the same
-    link (a torso): the segment between their centres, an elliptic cross-section with
-    half-widths the mean of the two ellipsoids' half-widths along the link's y axis (the body's
-    left-right axis: ``radius``, the silhouette half-width seen from the front) and along its x
-    axis (``depth``: the half-width seen from the side).
+    ``limbs=None``: the body's roles -- the four arm segments (:data:`CONTOUR_LIMBS`, the geoms
+    of each role link, along its bone: joint centre to the next role link's joint centre) and
+    the torso (the role's torso geoms, along the chest's bone up to the neck), named by role.
+    An explicit entry is a geom name or a tuple of geom names of one link (named by the geoms).
+
+    Fit of one limb to its geoms (:func:`fit_limb`): a single capsule or cylinder along the bone
+    is itself (axis +- its half length, round, radius r). Several geoms (a stacked torso) give
+    the segment between the lowest and the highest geom centre along the bone, with an elliptic
+    cross-section whose half-widths are the mean of the geoms' half-extents along the body's
+    left-right axis (``radius``, the silhouette half-width seen from the front) and across it
+    (``depth``). Any other single geom (box, ellipsoid, sphere, a capsule across the bone)
+    gives its centre +- its half-extent along the bone, with its half-extents across the bone
+    as ``radius`` / ``depth``. Half-extents are the solids' exact support functions.
     """
     geo = model.geometry
-    pose = np.asarray(geo.pose, np.float64)
-    size = np.asarray(geo.size, np.float64)
-    kind = np.asarray(geo.kind)
     glink = np.asarray(geo.link)
-
-    def geom(name: str) -> int:
-        if name not in geo.names:
-            raise ValueError(f"limb_model: unknown geom {name!r}; the model has {geo.names}")
-        return geo.names.index(name)
+    if limbs is None:
+        roles = require_roles(model, "limb_model")
+        entries = [(role, roles.limb(role), limb_axis(model, role)) for role in
+                   CONTOUR_LIMBS + ("torso",)]
+    else:
+        entries = [((e, (e,)) if isinstance(e, str) else ("+".join(e), tuple(e))) + (None,)
+                   for e in limbs]
 
     p0, p1, rad, dep, side, link, names = [], [], [], [], [], [], []
-    for entry in limbs:
-        if isinstance(entry, str):
-            g = geom(entry)
-            if kind[g] not in (CAPSULE, CYLINDER):
-                raise ValueError(f"limb_model: geom {entry!r} is not a capsule or cylinder")
-            r, h = size[g, 0], size[g, 1]
-            p0.append(pose[g, :3, :3] @ [0, 0, -h] + pose[g, :3, 3])
-            p1.append(pose[g, :3, :3] @ [0, 0, h] + pose[g, :3, 3])
-            rad.append(r)
-            dep.append(r)
-            side.append(pose[g, :3, :3] @ [1.0, 0.0, 0.0])
-            link.append(int(glink[g]))
-            names.append(entry)
-        else:
-            ga, gb = (geom(n) for n in entry)
-            if not (kind[ga] == kind[gb] == ELLIPSOID and glink[ga] == glink[gb]):
-                raise ValueError(f"limb_model: {entry} must be two ellipsoids of one link")
-            p0.append(pose[ga, :3, 3])
-            p1.append(pose[gb, :3, 3])
-            half = [np.linalg.norm(pose[g, :3, :3] @ np.diag(size[g]), axis=1) for g in (ga, gb)]
-            rad.append(float(np.mean([h[1] for h in half])))
-            dep.append(float(np.mean([h[0] for h in half])))
-            axis = p1[-1] - p0[-1]
-            y = np.array([0.0, 1.0, 0.0]) - axis * axis[1] / (axis @ axis)  # link y, normal to axis
-            side.append(y / np.linalg.norm(y))
-            link.append(int(glink[ga]))
-            names.append("+".join(entry))
+    for name, geoms, axis in entries:
+        unknown = [g for g in geoms if g not in geo.names]
+        if unknown or not geoms:
+            raise InputError(
+                f"limb_model: limb {name!r}: unknown geoms {unknown or '(none)'}; the model "
+                f"has {geo.names}" + (f" (roles from {model.roles.source})" if limbs is None
+                                      else "")
+            )
+        idx = [geo.names.index(g) for g in geoms]
+        if len({int(glink[g]) for g in idx}) != 1:
+            raise InputError(f"limb_model: limb {name!r}: geoms {geoms} lie on several links")
+        a, b, r, d, sd = fit_limb(model, idx, axis)
+        p0.append(a)
+        p1.append(b)
+        rad.append(r)
+        dep.append(d)
+        side.append(sd)
+        link.append(int(glink[idx[0]]))
+        names.append(name)
     return LimbModel(
         p0=jnp.asarray(np.array(p0)),
         p1=jnp.asarray(np.array(p1)),
@@ -193,6 +192,49 @@ def limb_model(
         link=tuple(link),
         names=tuple(names),
     )
+
+
+def fit_limb(model: BodyModel, geoms: Sequence[int], axis: np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
+    """(p0, p1, radius, depth, side) of the contour cylinder of ``geoms`` (one link) along
+    the unit link-frame ``axis`` (None: a capsule/cylinder's own axis, else the direction of
+    the largest extent); see :func:`limb_model`."""
+    geo = model.geometry
+    pose = np.asarray(geo.pose, np.float64)
+    size = np.asarray(geo.size, np.float64)
+    kind = np.asarray(geo.kind)
+    g0 = geoms[0]
+    rot0, c0 = pose[g0, :3, :3], pose[g0, :3, 3]
+    if axis is None and len(geoms) == 1:
+        if kind[g0] in (CAPSULE, CYLINDER):
+            axis = rot0[:, 2]
+        else:
+            ext = [geom_support(int(kind[g0]), size[g0], rot0, rot0[:, k]) for k in range(3)]
+            axis = rot0[:, int(np.argmax(ext))]
+    elif axis is None:
+        axis = pose[geoms[-1], :3, 3] - c0
+        axis = axis / np.linalg.norm(axis)
+    axis = np.asarray(axis, np.float64)
+    if len(geoms) == 1 and kind[g0] in (CAPSULE, CYLINDER) and abs(rot0[:, 2] @ axis) > 0.9:
+        r, h = size[g0, 0], size[g0, 1]
+        return (rot0 @ [0, 0, -h] + c0, rot0 @ [0, 0, h] + c0, float(r), float(r),
+                rot0 @ [1.0, 0.0, 0.0])
+    if len(geoms) > 1:
+        t = [pose[g, :3, 3] @ axis for g in geoms]
+        a, b = pose[geoms[int(np.argmin(t))], :3, 3], pose[geoms[int(np.argmax(t))], :3, 3]
+        line = b - a
+        line = line / np.linalg.norm(line)
+    else:
+        ext = geom_support(int(kind[g0]), size[g0], rot0, axis)
+        a, b, line = c0 - ext * axis, c0 + ext * axis, axis
+    sd = np.array([0.0, 1.0, 0.0]) - line * line[1]  # the body's left-right axis, normal to it
+    if np.linalg.norm(sd) < 0.3:  # a limb along y (arms out): use the body's x instead
+        sd = np.array([1.0, 0.0, 0.0]) - line * line[0]
+    sd = sd / np.linalg.norm(sd)
+    front = np.cross(line, sd)
+    r = np.mean([geom_support(int(kind[g]), size[g], pose[g, :3, :3], sd) for g in geoms])
+    d = np.mean([geom_support(int(kind[g]), size[g], pose[g, :3, :3], front) for g in geoms])
+    return a, b, float(r), float(d), sd
 
 
 def limb_endpoints(

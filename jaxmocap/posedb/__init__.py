@@ -19,7 +19,10 @@ from ._build import (
     add_parser,
     build_database,
     cache_path,
+    check_database_for,
     database_key,
+    database_meta,
+    garment_digest,
     load_database,
     load_or_build,
     render_maps,
@@ -63,7 +66,8 @@ from ._search import (
 )
 
 __all__ = [
-    "CODE_VERSION", "add_parser", "build_database", "cache_path", "database_key",
+    "CODE_VERSION", "add_parser", "build_database", "cache_path", "check_database_for",
+    "database_key", "database_meta", "garment_digest",
     "load_database", "load_or_build", "render_maps", "run", "save_database",
     "CANON_DISTANCE", "DEFAULT_SIZE", "Mirror", "SamplingConfig", "SamplingError",
     "canonical_camera", "mirror_pose", "mirror_table", "pose_in_camera", "sample_poses",

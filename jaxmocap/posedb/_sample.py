@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..body import ROOT_DOFS, BodyModel, so3_exp
+from ..body import ROOT_DOFS, BodyModel, require_roles, so3_exp
 from ..camera import Camera, look_at
 from ..errors import InputError
 from ..synth._rotations import matrix_to_rotvec
@@ -119,40 +119,32 @@ class Mirror(NamedTuple):
 def mirror_table(model: BodyModel) -> Mirror:
     """The reflection ``y -> -y`` (the body's sagittal plane at rest) as a map of pose vectors.
 
-    ``l_*`` and ``r_*`` joints swap. With ``M = diag(1, -1, 1)``, ``M Rot(a, theta) M =
-    Rot(M a, -theta)``, so a joint whose partner's rest axis (world) is ``+M a`` changes sign and
-    one whose partner axis is ``-M a`` keeps it. Root: ``t -> M t``, ``w -> (-w_x, w_y, -w_z)``.
-    Raises ``ValueError`` if the model is not mirror-symmetric at rest.
+    Joints swap with their mirror partners of the body's roles
+    (:class:`~jaxmocap.body.BodyRoles` ``mirror``: the arm joints by role, the others by
+    geometry). With ``M = diag(1, -1, 1)``, ``M Rot(a, theta) M = Rot(M a, -theta)``, so a joint
+    whose partner's rest axis (world) is ``+M a`` changes sign and one whose partner axis is
+    ``-M a`` keeps it. Root: ``t -> M t``, ``w -> (-w_x, w_y, -w_z)``. Raises one line for a
+    joint without a partner or a pair whose rest axes are not mirror images.
     """
-    chain = model.chain
-    names = chain.dof_names
-    origin = np.asarray(chain.joint_origin, np.float64)[:, :3, :3]
-    rest = []  # world rotation of every joint frame at q = 0 (the root: identity)
-    for link, (parent, _, _) in enumerate(chain.topology):
-        rest.append(origin[link] if parent < 0 else rest[parent] @ origin[link])
-    axis_world = {}
-    for link, (_, _, dof) in enumerate(chain.topology):
-        if dof >= ROOT_DOFS:
-            axis_world[dof] = rest[link] @ np.asarray(chain.joint_axis[link], np.float64)
-    m = np.array([1.0, -1.0, 1.0])
+    roles = require_roles(model, "mirror_table")
+    names = model.chain.dof_names
+    pairs = {a: (b, s) for a, b, s in roles.mirror}
     perm = np.arange(len(names))
     sign = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0] + [1.0] * (len(names) - ROOT_DOFS))
+    unpaired = [n for n in names[ROOT_DOFS:] if n not in pairs]
+    if unpaired:
+        raise InputError(
+            f"mirror_table: {roles.source}: joints {unpaired} have no left/right mirror partner; "
+            "name the pairs under 'mirror' in the body's roles file (or give p_mirror=0)"
+        )
     for i in range(ROOT_DOFS, len(names)):
-        n = names[i]
-        partner = ("r_" + n[2:]) if n.startswith("l_") else ("l_" + n[2:]) if n.startswith(
-            "r_") else n
-        if partner not in names:
-            raise ValueError(f"mirror_table: joint {n!r} has no mirror partner {partner!r}")
-        j = names.index(partner)
-        a, b = m * axis_world[i], axis_world[j]
-        if np.allclose(a, b, atol=1e-6):
-            s = -1.0
-        elif np.allclose(a, -b, atol=1e-6):
-            s = 1.0
-        else:
-            raise ValueError(f"mirror_table: the rest axes of {n!r} and {partner!r} are not "
-                             "mirror images; the model is not left/right symmetric")
-        perm[i], sign[i] = j, s
+        partner, s = pairs[names[i]]
+        if s == 0.0:
+            raise InputError(
+                f"mirror_table: {roles.source}: the rest axes of {names[i]!r} and {partner!r} "
+                "are not mirror images; the body is not left/right symmetric (give p_mirror=0)"
+            )
+        perm[i], sign[i] = names.index(partner), s
     return Mirror(perm=perm, sign=sign)
 
 
@@ -210,9 +202,10 @@ def sample_poses(
     theta = theta + config.joint_noise * rng.standard_normal(theta.shape)
     q = np.zeros((n, model.n_dof))
     q[:, ROOT_DOFS:] = theta
-    mir = mirror_table(model)
     flip = rng.uniform(size=n) < config.p_mirror
-    q[flip] = q[flip][:, mir.perm] * mir.sign
+    if flip.any():
+        mir = mirror_table(model)
+        q[flip] = q[flip][:, mir.perm] * mir.sign
     lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
     q[:, ROOT_DOFS:] = np.clip(q[:, ROOT_DOFS:], lo[ROOT_DOFS:], hi[ROOT_DOFS:])
     yaw = rng.uniform(-config.yaw_range, config.yaw_range, n)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxmocap.body import BodyModel, default_body
+from jaxmocap.body import BodyModel, default_body, require_roles
 from jaxmocap.synth._rotations import Y_UP_TO_Z_UP, mm, mv
 from jaxmocap.synth.deepmimic import LINKS, Clip, deepmimic_skeleton, resample, skeleton_fk
 from jaxmocap.synth.retarget import (
@@ -29,6 +29,7 @@ from jaxmocap.synth.retarget import (
     frame_bucket,
     pad_frames,
     plan,
+    role_bone_ends,
 )
 
 TRAIN_CLIPS = (
@@ -42,12 +43,13 @@ TRAIN_CLIPS = (
 HELDOUT_CLIPS = ("humanoid3d_punch", "humanoid3d_dance_b", "walker/turn_left0",
                  "walker/turn_left1")
 
-# Our body link -> the DeepMimic link that drives it. Hands are not driven (the source wrists
-# are fixed joints), so the wrist angles stay 0.
+# Our body's link *role* -> the DeepMimic link that drives it (the body's roles name the link:
+# ``model.roles.link(role)``; the neck role is the head link on a body without a neck link).
+# Hands are not driven (the source wrists are fixed joints), so the wrist angles stay 0.
 DEEPMIMIC_TO_BODY = {
     "pelvis": "root",
     "chest": "chest",
-    "head": "neck",
+    "neck": "neck",
     "l_upper_arm": "left_shoulder",
     "l_forearm": "left_elbow",
     "r_upper_arm": "right_shoulder",
@@ -55,8 +57,10 @@ DEEPMIMIC_TO_BODY = {
 }
 
 
-def deepmimic_source(clip: Clip, mapping: dict[str, str] = DEEPMIMIC_TO_BODY) -> SourcePose:
-    """The clip as a :class:`SourcePose` in our Z-up world.
+def deepmimic_source(clip: Clip, mapping: dict[str, str] = DEEPMIMIC_TO_BODY,
+                     model: BodyModel | None = None) -> SourcePose:
+    """The clip as a :class:`SourcePose` in our Z-up world; ``links`` are the links of
+    ``model`` playing ``mapping``'s roles (the role names themselves when no model is given).
 
     With ``M`` the Y-up -> Z-up rotation, the root position is ``M p`` and a source link with
     world rotation ``G`` (rest: identity) has the rest-relative rotation ``M G M^T``; its rest
@@ -72,8 +76,15 @@ def deepmimic_source(clip: Clip, mapping: dict[str, str] = DEEPMIMIC_TO_BODY) ->
         root_pos=mv(m, clip.root_pos),
         delta=mm(mm(m, rots[:, np.array(src)]), m.T),
         rest_dir=mv(m, jnp.asarray(bones.astype(dt))),
-        links=tuple(mapping),
+        links=tuple(mapping) if model is None else driven_links(model, mapping),
     )
+
+
+def driven_links(model: BodyModel, mapping: dict[str, str] = DEEPMIMIC_TO_BODY
+                 ) -> tuple[str, ...]:
+    """The links of ``model`` that play ``mapping``'s roles (by the body's roles)."""
+    roles = require_roles(model, "clip_to_body_q")
+    return tuple(roles.link(r) for r in mapping)
 
 
 @partial(jax.jit, static_argnums=(0,))
@@ -95,7 +106,7 @@ def clip_to_body_q(clip: Clip, model: BodyModel | None = None, fps: float | None
     model = default_body() if model is None else model
     if fps is not None:
         clip = resample(clip, fps)
-    groups = plan(model, tuple(DEEPMIMIC_TO_BODY))
+    groups = plan(model, driven_links(model), role_bone_ends(model))
     n, nb = clip.n_frames, frame_bucket(clip.n_frames)
     arrays = tuple(pad_frames(a, nb) for a in
                    (clip.times, clip.root_pos, clip.root_quat, clip.joint_quat, clip.hinge))
@@ -106,7 +117,7 @@ def clip_to_body_q(clip: Clip, model: BodyModel | None = None, fps: float | None
 
 def source_bone_directions(clip: Clip, mapping: dict[str, str] = DEEPMIMIC_TO_BODY
                            ) -> Float[Array, "n_frames n_seg 3"]:
-    """World directions (our Z-up frame, unit) of the source bones driving ``mapping``'s links."""
+    """World directions (our Z-up frame, unit) of the source bones driving ``mapping``'s roles."""
     dt = clip.times.dtype
     m = jnp.asarray(np.array(Y_UP_TO_Z_UP), dtype=dt)
     rots, _ = skeleton_fk(clip)

@@ -40,11 +40,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxmocap.body import FIXED, BodyModel, so3_exp
+from jaxmocap.body import FIXED, BodyModel, require_roles, so3_exp
+from jaxmocap.errors import InputError
 from jaxmocap.synth._rotations import axis_angle_matrix, euler_xyz, matrix_to_rotvec, mm, mtm, mv
 
 # Where the bone of each driven segment of the bundled body ends: a descendant link (its rest
-# origin) or a keypoint on the segment itself.
+# origin) or a keypoint on the segment or below it. For any body with roles: role_bone_ends.
 DEFAULT_BONE_ENDS = {
     "pelvis": "chest",
     "chest": "head",
@@ -56,6 +57,28 @@ DEFAULT_BONE_ENDS = {
     "r_forearm": "r_hand",
     "r_hand": "r_hand",
 }
+
+
+# The same by roles: segment role -> ("link", role) for that role link's rest origin, or
+# ("keypoint", name). The neck role is the head link on a body without a neck link.
+ROLE_BONE_ENDS = {
+    "pelvis": ("link", "chest"),
+    "chest": ("link", "neck"),
+    "neck": ("keypoint", "head"),
+    "head": ("keypoint", "head"),
+    **{f"{s}_upper_arm": ("link", f"{s}_forearm") for s in "lr"},
+    **{f"{s}_forearm": ("link", f"{s}_hand") for s in "lr"},
+    **{f"{s}_hand": ("keypoint", f"{s}_hand") for s in "lr"},
+}
+
+
+def role_bone_ends(model: BodyModel) -> dict[str, str]:
+    """``{link: bone end}`` of the body's role links (:data:`ROLE_BONE_ENDS`, by its roles)."""
+    roles = require_roles(model, "retarget")
+    out = {}
+    for role, (kind, end) in ROLE_BONE_ENDS.items():
+        out[roles.link(role)] = roles.link(end) if kind == "link" else end
+    return out
 
 
 class SourcePose(eqx.Module):
@@ -108,15 +131,18 @@ def _segment_links(model: BodyModel) -> list[int]:
 
 
 def plan(model: BodyModel, links: tuple[str, ...],
-         bone_ends: Mapping[str, str] = DEFAULT_BONE_ENDS) -> tuple[_Group, ...]:
-    """The static retargeting plan: joint groups of every segment link, in topological order."""
+         bone_ends: Mapping[str, str] | None = None) -> tuple[_Group, ...]:
+    """The static retargeting plan: joint groups of every segment link, in topological order
+    (``bone_ends``: link -> bone end, default :func:`role_bone_ends`)."""
+    bone_ends = role_bone_ends(model) if bone_ends is None else bone_ends
     chain = model.chain
     names = chain.link_names
     for name in links:
         if name not in names:
-            raise ValueError(f"retarget: unknown body link {name!r}; links are {names}")
+            raise InputError(f"retarget: unknown body link {name!r}; links are {names}")
     if links[0] != names[0]:
-        raise ValueError(f"retarget: the first driven link must be the root {names[0]!r}, "
+        raise InputError(f"retarget: the first driven link (the pelvis role) must be the root "
+                         f"link {names[0]!r}, "
                          f"got {links[0]!r}")
     topo = chain.topology
     origin = np.asarray(chain.joint_origin, dtype=np.float64)
@@ -147,10 +173,10 @@ def plan(model: BodyModel, links: tuple[str, ...],
                 after = after @ r
             axes.append(after.T @ axis[i] / np.linalg.norm(axis[i]))
         if moving and any(topo[i][1] != 1 for i in moving):
-            raise ValueError(f"retarget: link {names[s]!r} is moved by a prismatic joint")
+            raise InputError(f"retarget: link {names[s]!r} is moved by a prismatic joint")
         if len(axes) > 1 and not np.allclose(np.array(axes) @ np.array(axes).T,
                                              np.eye(len(axes)), atol=1e-9):
-            raise ValueError(f"retarget: the joints moving {names[s]!r} have non-orthogonal axes")
+            raise InputError(f"retarget: the joints moving {names[s]!r} have non-orthogonal axes")
         end = bone_ends.get(names[s])
         if end is None:
             bone = np.array([0.0, 0.0, 1.0])
@@ -159,15 +185,20 @@ def plan(model: BodyModel, links: tuple[str, ...],
             bone = rest[s, :3, :3].T @ (rest[e, :3, 3] - rest[s, :3, 3])
         elif end in model.keypoint_names:
             k = model.keypoint_names.index(end)
-            if kp_link[k] != s:
-                raise ValueError(f"retarget: bone end keypoint {end!r} is not on link {names[s]!r}")
-            bone = kp_off[k]
+            if kp_link[k] == s:
+                bone = kp_off[k]
+            elif s in _ancestors(topo, int(kp_link[k])):
+                e = rest[kp_link[k]]
+                bone = rest[s, :3, :3].T @ (e[:3, :3] @ kp_off[k] + e[:3, 3] - rest[s, :3, 3])
+            else:
+                raise InputError(f"retarget: bone end keypoint {end!r} is not on link "
+                                 f"{names[s]!r} or below it")
         else:
-            raise ValueError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
+            raise InputError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
                              "descendant link nor a keypoint")
         norm = np.linalg.norm(bone)
         if norm < 1e-9:
-            raise ValueError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
+            raise InputError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
         groups.append(_Group(
             link=s,
             parent=max((p for p in segs if p in _ancestors(topo, s)), default=-1),
@@ -337,9 +368,10 @@ def pad_frames(x: Array, n: int) -> Array:
 
 
 def retarget(model: BodyModel, source: SourcePose,
-             bone_ends: Mapping[str, str] = DEFAULT_BONE_ENDS) -> Retargeted:
+             bone_ends: Mapping[str, str] | None = None) -> Retargeted:
     """Joint angles ``q`` (n_frames, n_dof) of ``model`` reproducing ``source`` (see module doc).
 
+    ``bone_ends`` maps link names to bone ends (default: :func:`role_bone_ends` of the body).
     Segments of the model that the source does not drive keep their joints at 0. The result
     follows the dtype of ``source.root_pos``; jitted and vmapped over frames, with the frames
     padded to :func:`frame_bucket` so that clips of similar length share one compilation.
@@ -348,7 +380,7 @@ def retarget(model: BodyModel, source: SourcePose,
     if source.delta.shape[1] != n_seg or source.rest_dir.shape[0] != n_seg:
         raise ValueError(f"retarget: SourcePose has {n_seg} links but delta/rest_dir hold "
                          f"{source.delta.shape[1]}/{source.rest_dir.shape[0]} segments")
-    groups = plan(model, source.links, bone_ends)
+    groups = plan(model, source.links, role_bone_ends(model) if bone_ends is None else bone_ends)
     chain = model.chain
     n = source.root_pos.shape[0]
     nb = frame_bucket(n)

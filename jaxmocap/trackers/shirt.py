@@ -56,7 +56,6 @@ masks computed on the host per frame), ``run_scan`` runs a whole sequence under
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -96,6 +95,14 @@ from jaxmocap.ik import view_anchors as _view_anchors
 from jaxmocap.posedb._sample import canonical_camera, pose_in_camera
 from jaxmocap.posedb._search import PoseDB, estimate_pose
 from jaxmocap.render import TINY_SIZE, render_uv, resample_ids, tiny_hits, window_from_mask
+
+# IK covariances trained the paper's way (§5.2 step 4: the covariance of each term over
+# ground-truth sequences) on the TRAIN clips dance_a + walk + kick pooled, default body and
+# garment, 320x240 webcams (``benchmarks/experiments/wang_accuracy.py full`` writes it; numbers
+# in docs/results/shirt.md). The held-out clips were not used. Other bodies: by role.
+from jaxmocap.trackers.shirt_covariances import TRAINED_COV_FILE as TRAINED_COV_FILE
+from jaxmocap.trackers.shirt_covariances import covariances_for_body as covariances_for_body
+from jaxmocap.trackers.shirt_covariances import trained_covariances as trained_covariances
 
 # Not in the paper: crop side relative to the histogram search's scale s' (the shirt's
 # extent is about 2 s' with the arms out) and the working size of the resampled crop.
@@ -757,26 +764,6 @@ def initial_white_balance(
             for f, lab in zip(frames, labels, strict=True)
         ]
     )
-
-
-# IK covariances trained the paper's way (§5.2 step 4: the covariance of each term over
-# ground-truth sequences) on the TRAIN clips dance_a + walk + kick pooled, default body and
-# garment, 320x240 webcams (``benchmarks/experiments/wang_accuracy.py full`` writes it; numbers
-# in docs/results/shirt.md). The held-out clips were not used.
-TRAINED_COV_FILE = Path(__file__).with_name("shirt_ik_cov.npz")
-
-
-def trained_covariances(n_dof: int | None = None) -> IKCovariances:
-    """The bundled trained IK covariances (:data:`TRAINED_COV_FILE`), "saved with the model".
-
-    ``n_dof``: the body's DOF count, checked against the file (a clear error otherwise)."""
-    cov = IKCovariances.load(TRAINED_COV_FILE)
-    if n_dof is not None and cov.blend.shape[-1] != n_dof:
-        raise ValueError(
-            f"{TRAINED_COV_FILE}: trained for a {cov.blend.shape[-1]}-DOF body, "
-            f"this body has {n_dof} DOFs; train covariances for it (ik.estimate_covariances)"
-        )
-    return cov
 
 
 def setup_for_sequence(

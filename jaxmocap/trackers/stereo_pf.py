@@ -74,7 +74,14 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray, UInt8
 
 from jaxmocap import blobs as bloblib
 from jaxmocap import pf
-from jaxmocap.body import BodyModel, default_body, keypoint_index, keypoints, stereo_dofs
+from jaxmocap.body import (
+    BodyModel,
+    default_body,
+    keypoint_index,
+    keypoints,
+    require_roles,
+    stereo_dofs,
+)
 from jaxmocap.body.chain import ROOT_DOFS, so3_exp
 from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
@@ -152,7 +159,7 @@ FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in 
 SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
 
 
-SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint, hand keypoint)
+SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint role, hand keypoint)
 
 
 def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
@@ -217,23 +224,24 @@ class SwivelProposal(eqx.Module):
 
 
 def _swivel_arms(model: BodyModel, dofs: np.ndarray):
-    """The arms whose 3 shoulder DOFs are filtered, as (positions of the x, y, z shoulder
-    DOFs in the filtered state, parent link of the shoulder, the shoulder's last link, hand
-    keypoint name); raises if the joints are not the x-y-z links :class:`SwivelProposal`
-    decomposes."""
+    """The arms whose shoulder DOFs (joint roles ``l_shoulder``/``r_shoulder``) are filtered,
+    as (positions of the x, y, z shoulder DOFs in the filtered state, parent link of the
+    shoulder, the shoulder's last link, hand keypoint name); raises one line if a filtered
+    shoulder is not the three x, y, z revolute links :class:`SwivelProposal` decomposes."""
     chain, out = model.chain, []
+    roles = require_roles(model, "stereo_pf.make_params: swivel_fraction")
     topo = chain.topology
     pos = {int(d): i for i, d in enumerate(dofs)}
     for joint, hand in SWIVEL_ARMS:
-        names = [f"{joint}_{ax}" for ax in "xyz"]
-        if not all(n in chain.dof_names for n in names):
-            continue
+        names = roles.dofs(joint)
         idx = [chain.dof_names.index(n) for n in names]
-        if not all(i in pos for i in idx):
-            continue
+        if not any(i in pos for i in idx):
+            continue  # this shoulder is not filtered: nothing to swivel
         links = [next(k for k, (_, _, d) in enumerate(topo) if d == i) for i in idx]
         ok = (
-            topo[links[1]][0] == links[0]
+            len(idx) == 3
+            and all(i in pos for i in idx)
+            and topo[links[1]][0] == links[0]
             and topo[links[2]][0] == links[1]
             and np.allclose(np.asarray(chain.joint_axis)[links], np.eye(3))
             and np.allclose(np.asarray(chain.joint_origin)[links, :3, :3], np.eye(3))
@@ -241,8 +249,9 @@ def _swivel_arms(model: BodyModel, dofs: np.ndarray):
         )
         if not ok:
             raise InputError(
-                f"stereo_pf.make_params: swivel_fraction: the joint {joint!r} is not three "
-                "x, y, z revolute links with identity origin rotations"
+                f"stereo_pf.make_params: swivel_fraction > 0 needs the {joint} joint "
+                f"{names} of {roles.source} to be three filtered x, y, z revolute links with "
+                "identity origin rotations; give swivel_fraction=0 for this body"
             )
         out.append((tuple(pos[i] for i in idx), topo[links[0]][0], links[2], hand))
     return tuple(out)

@@ -1,0 +1,689 @@
+"""Roles, not names: which links, joints and geoms of a body play which part.
+
+Everything downstream (keypoints, the 14-DOF subset, retargeting, mirroring, the contour model,
+the swivel jumps, the garment) asks the body's :class:`BodyRoles`, never a link name. Roles come
+from a small JSON file beside the model, ``<model stem>.roles.json`` (format in
+docs/USER_GUIDE.md, "Your body"), or are inferred from common naming conventions; whatever
+cannot be found is one :class:`~jaxmocap.errors.InputError` naming the model file, the missing
+roles and the roles file to write.
+
+**Link roles** (:data:`LINK_ROLES`): ``pelvis chest neck head`` and per side (``l_``/``r_``)
+``upper_arm forearm hand``. ``neck`` is optional (a body whose head link carries the neck).
+Name inference splits link names into words (``_ - . :`` and camelCase: ``mixamorig:LeftArm``
+-> ``left arm``), takes the side from a leading/trailing ``l``/``left``/``r``/``right`` word and
+matches the rest against :data:`PART_WORDS` (first synonym wins: ``LeftArm`` is the upper arm
+even when ``LeftShoulder`` exists). ``chest`` not named -> the deepest common ancestor of the two
+upper arms; ``pelvis`` not named -> the root link.
+
+**Joint roles** (:data:`JOINT_ROLES`) are the DOFs on the chain path between two role links:
+``spine`` (pelvis -> chest), ``neck`` (chest -> head), ``l_shoulder`` (chest -> upper arm),
+``l_elbow`` (upper arm -> forearm), ``l_wrist`` (forearm -> hand), and the same on the right.
+
+**Geometry roles**: the contour shapes of the limbs (the geoms of each arm link) and of the
+torso (the chest link's geoms, without capsules/cylinders lying across the body -- a shoulder
+bar); the skin geoms (every geom on the neck/head link and the hands and below them).
+
+**Mirror pairs**: every joint DOF with its left/right partner and the sign of the reflection
+``y -> -y`` (``M Rot(a, t) M = Rot(M a, -t)``: sign -1 when the partner's rest axis is ``+M a``,
++1 when it is ``-M a``, 0 when the axes are not mirror images). The arm joints pair by role
+(shoulder with shoulder, in chain order); other DOFs pair by geometry (the joint whose rest
+centre is the mirror image and whose axis is mirrored); a DOF on the mid-plane pairs with itself.
+Pairs in the roles file override both.
+
+**Keypoints** (the 12 :data:`~jaxmocap.body.model.KEYPOINT_NAMES`, which are role names):
+``pelvis`` the pelvis link's origin; ``neck``, the shoulders, elbows and wrists the joint
+centres of the neck (else head), upper-arm, forearm and hand links (the origin of the last
+moving joint frame of the link); ``chest`` 3/4 of the way from the chest link's joint centre
+to the midpoint of the two shoulder centres; ``head`` and the hands the centre of the largest
+geom of the head / hand link (offsets rounded to 1 um). The roles file may override any
+keypoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .chain import FIXED, ROOT_DOFS, KinematicChain
+from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, Geometry
+
+SIDES = ("l", "r")
+LIMB_PARTS = ("upper_arm", "forearm", "hand")
+LINK_ROLES = ("pelvis", "chest", "neck", "head") + tuple(
+    f"{s}_{p}" for s in SIDES for p in LIMB_PARTS
+)
+OPTIONAL_LINK_ROLES = ("neck",)
+# joint role -> (parent role link, child role link); "neck" ends at the head link.
+JOINT_ROLES = {
+    "spine": ("pelvis", "chest"),
+    "neck": ("chest", "head"),
+    **{f"{s}_shoulder": ("chest", f"{s}_upper_arm") for s in SIDES},
+    **{f"{s}_elbow": (f"{s}_upper_arm", f"{s}_forearm") for s in SIDES},
+    **{f"{s}_wrist": (f"{s}_forearm", f"{s}_hand") for s in SIDES},
+}
+CONTOUR_LIMBS = ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm")  # + "torso"
+# Synonyms per part, in priority order (matched against the words of a link name joined by
+# "_" or by nothing: "upper_arm", "upperarm").
+PART_WORDS = {
+    "upper_arm": ("upper_arm", "upperarm", "up_arm", "uparm", "humerus", "arm", "shldr",
+                  "shoulder"),
+    "forearm": ("forearm", "fore_arm", "lower_arm", "lowerarm", "low_arm", "lowarm", "radius",
+                "ulna", "elbow"),
+    "hand": ("hand", "palm", "wrist"),
+    "head": ("head", "skull"),
+    "neck": ("neck",),
+    "chest": ("chest", "thorax", "upper_body", "upperbody", "torso", "upper_chest", "spine"),
+    "pelvis": ("pelvis", "hips", "hip", "root", "base"),
+}  # fmt: skip
+CHEST_KEYPOINT_FRACTION = 0.75  # chest keypoint: 3/4 of the way up to the shoulder line
+CROSSWISE_COS = math.cos(math.radians(45.0))  # a capsule this close to the body's y axis
+
+
+@dataclasses.dataclass(frozen=True)
+class BodyRoles:
+    """The roles of one body (hashable: a static field of :class:`~jaxmocap.body.BodyModel`).
+
+    ``links``: (role, link name) for every role present; ``joints``: (joint role, DOF names in
+    chain order); ``limb_geoms``: (limb role, geom names) for :data:`CONTOUR_LIMBS`;
+    ``torso_geoms``, ``skin_geoms``: geom names; ``mirror``: (dof, partner dof, sign) for every
+    joint DOF that has a partner; ``keypoints``: (name, link, (x, y, z) offset in the link
+    frame) for the 12 keypoints; ``source``: the roles file, or the model file + "(inferred)".
+    """
+
+    links: tuple[tuple[str, str], ...]
+    joints: tuple[tuple[str, tuple[str, ...]], ...]
+    limb_geoms: tuple[tuple[str, tuple[str, ...]], ...]
+    torso_geoms: tuple[str, ...]
+    skin_geoms: tuple[str, ...]
+    mirror: tuple[tuple[str, str, float], ...]
+    keypoints: tuple[tuple[str, str, tuple[float, float, float]], ...]
+    # where the roles came from (messages only: not compared, hashed or printed by repr, so
+    # that caches keyed by the model do not depend on where the file lies)
+    source: str = dataclasses.field(default="", compare=False, repr=False)
+
+    def link(self, role: str) -> str:
+        """The link playing ``role`` (``neck`` falls back to the head link)."""
+        d = dict(self.links)
+        if role == "neck" and role not in d:
+            role = "head"
+        if role not in d:
+            raise InputError(f"{self.source}: the body has no {role!r} link role")
+        return d[role]
+
+    def dofs(self, joint: str) -> tuple[str, ...]:
+        """DOF names of the joint role ``joint`` (see :data:`JOINT_ROLES`), chain order."""
+        d = dict(self.joints)
+        if joint not in d:
+            raise InputError(f"{self.source}: unknown joint role {joint!r}; roles: {tuple(d)}")
+        return d[joint]
+
+    def limb(self, role: str) -> tuple[str, ...]:
+        """Geom names of the contour limb ``role`` (``torso`` or one of CONTOUR_LIMBS)."""
+        if role == "torso":
+            return self.torso_geoms
+        return dict(self.limb_geoms)[role]
+
+    def keypoint_table(self) -> dict[str, tuple[str, tuple[float, float, float]]]:
+        """``{keypoint: (link, offset)}`` as :func:`~jaxmocap.body.make_body_model` takes it."""
+        return {k: (link, off) for k, link, off in self.keypoints}
+
+
+def require_roles(model, what: str) -> BodyRoles:
+    """``model.roles``, or one line saying ``what`` needs them."""
+    roles = getattr(model, "roles", None)
+    if roles is None:
+        raise InputError(
+            f"{what}: the body model has no roles (build it with jaxmocap.body.load_body, or "
+            "pass roles=infer_roles(...) to make_body_model)"
+        )
+    return roles
+
+
+# ----------------------------------------------------------------------------- names
+def name_words(name: str) -> list[str]:
+    """Lower-case words of a link name: ``mixamorig:LeftForeArm`` -> ``[left, fore, arm]``."""
+    name = name.split(":")[-1]
+    name = re.sub(r"([a-z0-9])([A-Z])", r"\1_\2", name)
+    name = re.sub(r"([A-Z]+)([A-Z][a-z])", r"\1_\2", name)
+    name = re.sub(r"([A-Za-z])([0-9])", r"\1_\2", name)
+    return [w for w in re.split(r"[^A-Za-z0-9]+", name.lower()) if w]
+
+
+def classify_link(name: str) -> tuple[str | None, str | None, int]:
+    """(side ``l``/``r``/None, part, synonym rank) of a link name; part None if unmatched."""
+    words = name_words(name)
+    side = None
+    if len(words) > 1 and words[0] in ("l", "left", "r", "right"):
+        side, words = words[0][0], words[1:]
+    elif len(words) > 1 and words[-1] in ("l", "left", "r", "right"):
+        side, words = words[-1][0], words[:-1]
+    for candidate in ("_".join(words), "".join(words)):
+        for part, syn in PART_WORDS.items():
+            if candidate in syn:
+                return side, part, syn.index(candidate)
+    return side, None, 0
+
+
+def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
+                     ) -> tuple[dict[str, str], dict[str, list[str]]]:
+    """(``{role: link}`` from the link names and the tree, ``{role: [tied links]}`` for the
+    roles several links claim equally); see the module docstring. Possibly partial."""
+    best: dict[str, list[tuple[int, str]]] = {}
+    for link in chain.link_names:
+        side, part, rank = classify_link(link)
+        if part is None or (part in LIMB_PARTS) != (side is not None):
+            continue  # an arm part needs a side, a trunk part must not have one
+        best.setdefault(f"{side}_{part}" if side else part, []).append((rank, link))
+    out, ties = {}, {}
+    for role, cands in best.items():
+        top = min(r for r, _ in cands)
+        links = [name for r, name in cands if r == top]
+        if len(links) == 1:
+            out[role] = links[0]
+        else:
+            ties[role] = links
+    arms = _deepest_ancestor_of_arms(chain, out, chain.link_names, geometry)
+    if arms:  # structure first: the arms hang from the chest (mixamo's "Spine" is the waist)
+        out["chest"] = arms
+        ties.pop("chest", None)
+    if "pelvis" in ties and chain.link_names[0] in ties["pelvis"]:
+        out["pelvis"] = chain.link_names[0]
+        del ties["pelvis"]
+    if "pelvis" not in out and "pelvis" not in ties:
+        out["pelvis"] = chain.link_names[0]
+    return out, ties
+
+
+def _ancestors(chain: KinematicChain, i: int) -> list[int]:
+    """``i`` and its ancestors, from ``i`` up to the root."""
+    out = [i]
+    while chain.topology[out[-1]][0] >= 0:
+        out.append(chain.topology[out[-1]][0])
+    return out
+
+
+def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
+                              geometry: Geometry | None = None) -> str | None:
+    """The deepest of ``candidates`` that is an ancestor of both upper arms (if known) and,
+    with ``geometry``, carries a geom."""
+    if "l_upper_arm" not in found or "r_upper_arm" not in found:
+        return None
+    names = chain.link_names
+    common = set(_ancestors(chain, names.index(found["l_upper_arm"])))
+    common &= set(_ancestors(chain, names.index(found["r_upper_arm"])))
+    common -= {names.index(found["l_upper_arm"]), names.index(found["r_upper_arm"])}
+    if geometry is not None:
+        common &= set(np.asarray(geometry.link).tolist())
+    ok = [names.index(c) for c in candidates if names.index(c) in common]
+    return names[max(ok)] if ok else None  # topological order: the largest index is deepest
+
+
+# ----------------------------------------------------------------------------- geometry
+def rest_transforms(chain: KinematicChain) -> np.ndarray:
+    """World transforms (float64) of all links at q = 0 with the root at the origin."""
+    origin = np.asarray(chain.joint_origin, np.float64)
+    out = []
+    for i, (p, _, _) in enumerate(chain.topology):
+        out.append(origin[i] if p < 0 else out[p] @ origin[i])
+    return np.stack(out)
+
+
+def joint_centre(chain: KinematicChain, link: int, rest: np.ndarray | None = None) -> np.ndarray:
+    """The centre of the joint that moves ``link``, in ``link``'s frame (m): ``link``'s origin
+    when its own joint moves it; when it hangs by a fixed offset from a single-child link that
+    a joint moves (an MJCF joint anchor, flattened by :mod:`jaxmocap.body.mjcf`), that link's
+    origin."""
+    rest = rest_transforms(chain) if rest is None else rest
+    topo = chain.topology
+    p = topo[link][0]
+    if topo[link][1] == FIXED and p >= 0 and topo[p][1] != FIXED:
+        if sum(1 for q, _, _ in topo if q == p) == 1:
+            return np.linalg.solve(rest[link], rest[p])[:3, 3]
+    return np.zeros(3)
+
+
+def geom_support(kind: int, size: np.ndarray, rot: np.ndarray, u: np.ndarray) -> float:
+    """Half-extent (m) of a geom along the unit direction ``u`` (given in the frame in which
+    ``rot`` is the geom's rotation): exact support functions of the five solids."""
+    v = rot.T @ u
+    a, b, c = size
+    if kind == SPHERE:
+        return float(a)
+    if kind == CAPSULE:
+        return float(abs(v[2]) * b + a)
+    if kind == CYLINDER:
+        return float(abs(v[2]) * b + a * math.sqrt(max(0.0, 1.0 - v[2] ** 2)))
+    if kind == BOX:
+        return float(np.abs(v) @ size)
+    if kind == ELLIPSOID:
+        return float(np.linalg.norm(v * size))
+    raise ValueError(f"geom kind {kind} unknown")
+
+
+def geom_volume(kind: int, size: np.ndarray) -> float:
+    """Volume (m^3) of a geom (to pick the largest geom of a link)."""
+    a, b, c = size
+    if kind == SPHERE:
+        return 4 / 3 * math.pi * a**3
+    if kind == CAPSULE:
+        return math.pi * a * a * (2 * b) + 4 / 3 * math.pi * a**3
+    if kind == CYLINDER:
+        return math.pi * a * a * 2 * b
+    if kind == BOX:
+        return 8 * a * b * c
+    return 4 / 3 * math.pi * a * b * c
+
+
+def _geoms_of(geometry: Geometry, link: int) -> list[int]:
+    return [g for g, li in enumerate(np.asarray(geometry.link).tolist()) if li == link]
+
+
+def _subtree(chain: KinematicChain, link: int) -> set[int]:
+    out = {link}
+    for i, (p, _, _) in enumerate(chain.topology):
+        if p in out:
+            out.add(i)
+    return out
+
+
+def is_crosswise(geometry: Geometry, g: int) -> bool:
+    """A capsule/cylinder whose axis lies within 45 degrees of its link's y axis (a bar
+    across the shoulders: not part of the torso's contour)."""
+    kind = int(np.asarray(geometry.kind)[g])
+    if kind not in (CAPSULE, CYLINDER):
+        return False
+    z = np.asarray(geometry.pose, np.float64)[g, :3, 2]
+    return bool(abs(z[1]) > CROSSWISE_COS)
+
+
+_NEXT_ROLE = {"l_upper_arm": "l_forearm", "l_forearm": "l_hand", "r_upper_arm": "r_forearm",
+              "r_forearm": "r_hand", "torso": "neck"}
+
+
+def limb_axis(model, role: str) -> np.ndarray:
+    """Unit bone direction (link frame, rest) of a contour limb role (:data:`CONTOUR_LIMBS` or
+    ``torso``): from the link's joint centre to the next role link's joint centre (the torso:
+    from the chest's joint to the neck's)."""
+    roles = require_roles(model, f"the {role} bone")
+    chain = model.chain
+    rest = rest_transforms(chain)
+    own = chain.link_names.index(roles.link("chest" if role == "torso" else role))
+    nxt = chain.link_names.index(roles.link(_NEXT_ROLE[role]))
+    a = joint_centre(chain, own, rest)
+    b = np.linalg.solve(rest[own], rest[nxt] @ np.append(joint_centre(chain, nxt, rest), 1.0))
+    u = b[:3] - a
+    n = np.linalg.norm(u)
+    if n < 1e-9:
+        raise InputError(f"{roles.source}: the {role} has no length (its joint centre and the "
+                         f"{_NEXT_ROLE[role]}'s coincide)")
+    return u / n
+
+
+# ----------------------------------------------------------------------------- derivation
+def _path_dofs(chain: KinematicChain, parent: int, child: int, where: str, what: str) -> tuple:
+    anc = _ancestors(chain, child)
+    if parent not in anc:
+        raise InputError(
+            f"{where}: role link {chain.link_names[child]!r} ({what}) does not hang below "
+            f"{chain.link_names[parent]!r}; fix the links in the roles file"
+        )
+    path = anc[: anc.index(parent)][::-1]
+    topo = chain.topology
+    return tuple(chain.dof_names[topo[i][2]] for i in path if topo[i][1] != FIXED)
+
+
+def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
+                  explicit: Sequence[Sequence[str]] = ()) -> tuple[tuple[str, str, float], ...]:
+    """(dof, partner, sign) for every joint DOF with a partner (module docstring)."""
+    rest = rest_transforms(chain)
+    names = chain.dof_names
+    centre, axis = {}, {}
+    for link, (_, t, d) in enumerate(chain.topology):
+        if t != FIXED:
+            centre[d] = rest[link, :3, 3]
+            a = rest[link, :3, :3] @ np.asarray(chain.joint_axis[link], np.float64)
+            axis[d] = a / np.linalg.norm(a)
+    m = np.array([1.0, -1.0, 1.0])
+    partner: dict[int, int] = {}
+    for a_name, b_name in explicit:
+        i, j = names.index(a_name), names.index(b_name)
+        partner[i], partner[j] = j, i
+    for part in ("shoulder", "elbow", "wrist"):
+        left, right = joints.get(f"l_{part}", ()), joints.get(f"r_{part}", ())
+        if len(left) == len(right):
+            for a_name, b_name in zip(left, right, strict=True):
+                i, j = names.index(a_name), names.index(b_name)
+                if i not in partner and j not in partner:
+                    partner[i], partner[j] = j, i
+    scale = max(1e-3, float(np.abs(rest[:, :3, 3]).max()))
+    tol = 1e-6 * scale
+    for i in range(ROOT_DOFS, len(names)):
+        if i in partner:
+            continue
+        if abs(centre[i][1]) < tol and abs(abs((m * axis[i]) @ axis[i]) - 1.0) < 1e-6:
+            partner[i] = i
+            continue
+        cands = [j for j in range(ROOT_DOFS, len(names)) if j not in partner and j != i
+                 and np.allclose(m * centre[i], centre[j], atol=tol)
+                 and abs(abs((m * axis[i]) @ axis[j]) - 1.0) < 1e-6]
+        if len(cands) == 1:
+            partner[i], partner[cands[0]] = cands[0], i
+    out = []
+    for i in range(ROOT_DOFS, len(names)):
+        if i not in partner:
+            continue
+        j = partner[i]
+        c = (m * axis[i]) @ axis[j]
+        sign = -1.0 if c > 1 - 1e-6 else 1.0 if c < -1 + 1e-6 else 0.0
+        out.append((names[i], names[j], sign))
+    return tuple(out)
+
+
+def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str],
+               where: str) -> dict[str, tuple[str, tuple[float, float, float]]]:
+    rest = rest_transforms(chain)
+    idx = {r: chain.link_names.index(n) for r, n in links.items()}
+    neck = links.get("neck", links["head"])
+
+    def centre(role):
+        return tuple(float(v) for v in joint_centre(chain, idx[role], rest))
+
+    def largest_geom(role):
+        gs = _geoms_of(geometry, idx[role])
+        if not gs:
+            raise InputError(
+                f"{where}: the {role} link {links[role]!r} has no geometry to place the "
+                f"{role!r} keypoint; give it in the roles file (\"keypoints\")"
+            )
+        kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
+        g = max(gs, key=lambda g: geom_volume(int(kind[g]), size[g]))
+        return tuple(float(v) for v in np.asarray(geometry.pose, np.float64)[g, :3, 3])
+
+    c = idx["chest"]
+    start = joint_centre(chain, c, rest)
+    shoulders = []
+    for s in SIDES:
+        u = idx[f"{s}_upper_arm"]
+        p = rest[u] @ np.append(joint_centre(chain, u, rest), 1.0)
+        shoulders.append(np.linalg.solve(rest[c], p)[:3])
+    mid = 0.5 * (shoulders[0] + shoulders[1])
+    chest = start + CHEST_KEYPOINT_FRACTION * (mid - start)
+    kp = {
+        "pelvis": (links["pelvis"], (0.0, 0.0, 0.0)),
+        "chest": (links["chest"], tuple(float(v) for v in chest)),
+        "neck": (neck, tuple(float(v) for v in joint_centre(
+            chain, chain.link_names.index(neck), rest))),
+        "head": (links["head"], largest_geom("head")),
+    }
+    for s in SIDES:
+        kp[f"{s}_shoulder"] = (links[f"{s}_upper_arm"], centre(f"{s}_upper_arm"))
+    for s in SIDES:
+        kp[f"{s}_elbow"] = (links[f"{s}_forearm"], centre(f"{s}_forearm"))
+    for s in SIDES:
+        kp[f"{s}_wrist"] = (links[f"{s}_hand"], centre(f"{s}_hand"))
+    for s in SIDES:
+        kp[f"{s}_hand"] = (links[f"{s}_hand"], largest_geom(f"{s}_hand"))
+    from .model import KEYPOINT_NAMES
+
+    # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
+    return {k: (kp[k][0], tuple(round(float(v), 6) + 0.0 for v in kp[k][1]))
+            for k in KEYPOINT_NAMES}
+
+
+def derive_roles(
+    chain: KinematicChain,
+    geometry: Geometry,
+    links: Mapping[str, str],
+    *,
+    source: str,
+    torso_geoms: Sequence[str] | None = None,
+    limb_geoms: Mapping[str, Sequence[str]] | None = None,
+    skin_geoms: Sequence[str] | None = None,
+    mirror: Sequence[Sequence[str]] = (),
+    keypoints: Mapping[str, Sequence] | None = None,
+) -> BodyRoles:
+    """Complete :class:`BodyRoles` from the link roles (module docstring): joint DOFs, geoms,
+    mirror pairs and keypoints, each taken from the arguments where given."""
+    where = source
+    missing = [r for r in LINK_ROLES if r not in links and r not in OPTIONAL_LINK_ROLES]
+    if missing:
+        raise InputError(f"{where}: missing link roles {missing}")
+    names = chain.link_names
+    bad = {r: n for r, n in links.items() if n not in names}
+    if bad:
+        raise InputError(f"{where}: roles name unknown links {bad}; links are {names}")
+    idx = {r: names.index(n) for r, n in links.items()}
+    joints = {}
+    for joint, (a, b) in JOINT_ROLES.items():
+        joints[joint] = _path_dofs(chain, idx[a], idx[b], where, b)
+    gnames = geometry.names
+
+    def check(geoms, what):
+        unknown = [g for g in geoms if g not in gnames]
+        if unknown:
+            raise InputError(f"{where}: {what} names unknown geoms {unknown}; geoms: {gnames}")
+        return tuple(geoms)
+
+    if skin_geoms is None:
+        skin_links = _subtree(chain, idx.get("neck", idx["head"])) | _subtree(
+            chain, idx["l_hand"]) | _subtree(chain, idx["r_hand"])
+        skin = tuple(gnames[g] for g, li in enumerate(np.asarray(geometry.link).tolist())
+                     if li in skin_links)
+    else:
+        skin = check(skin_geoms, "skin_geoms")
+    if torso_geoms is None:
+        torso = tuple(gnames[g] for g in _geoms_of(geometry, idx["chest"])
+                      if not is_crosswise(geometry, g) and gnames[g] not in skin)
+    else:
+        torso = check(torso_geoms, "torso_geoms")
+    limb_geoms = dict(limb_geoms or {})
+    limbs = []
+    for role in CONTOUR_LIMBS:
+        if role in limb_geoms:
+            limbs.append((role, check(limb_geoms[role], f"limb_geoms[{role!r}]")))
+        else:
+            limbs.append((role, tuple(gnames[g] for g in _geoms_of(geometry, idx[role])
+                                      if gnames[g] not in skin)))
+    for a_name, b_name in mirror:
+        for n in (a_name, b_name):
+            if n not in chain.dof_names:
+                raise InputError(f"{where}: mirror names unknown joint {n!r}; joints: "
+                                 f"{chain.dof_names[ROOT_DOFS:]}")
+    kp = _keypoints(chain, geometry, links, where) if keypoints is None or len(keypoints) < 12 \
+        else {}
+    for k, (link, off) in (keypoints or {}).items():
+        if link not in names:
+            raise InputError(f"{where}: keypoint {k!r} names unknown link {link!r}")
+        off = tuple(float(v) for v in off)
+        if len(off) != 3:
+            raise InputError(f"{where}: keypoint {k!r}: expected [link, [x, y, z]]")
+        kp[k] = (link, off)
+    return BodyRoles(
+        links=tuple((r, links[r]) for r in LINK_ROLES if r in links),
+        joints=tuple(joints.items()),
+        limb_geoms=tuple(limbs),
+        torso_geoms=torso,
+        skin_geoms=skin,
+        mirror=_mirror_pairs(chain, joints, mirror),
+        keypoints=tuple((k, link, off) for k, (link, off) in kp.items()),
+        source=source,
+    )
+
+
+def infer_roles(chain: KinematicChain, geometry: Geometry, model_file: str | os.PathLike = "",
+                overrides: Mapping | None = None) -> BodyRoles:
+    """Roles inferred from the names (module docstring), completed by ``overrides`` (the parsed
+    roles file). Missing roles: one :class:`InputError` naming ``model_file``, the roles and
+    the roles file to write."""
+    overrides = dict(overrides or {})
+    links, ties = infer_link_roles(chain, geometry)
+    links.update(overrides.get("links", {}))
+    missing = [r for r in LINK_ROLES if r not in links and r not in OPTIONAL_LINK_ROLES]
+    roles_file = roles_path(model_file) if model_file else "<model>.roles.json"
+    if missing:
+        tied = {r: ties[r] for r in missing if r in ties}
+        raise InputError(
+            f"{model_file or 'body model'}: cannot tell which links play the roles {missing} "
+            f"from the link names" + (f" (ambiguous: {tied})" if tied else "")
+            + f"; write {roles_file} (see docs/USER_GUIDE.md, 'Your body')"
+        )
+    source = str(overrides.get("_source") or f"{model_file} (roles inferred)")
+    return derive_roles(
+        chain, geometry, links, source=source,
+        torso_geoms=overrides.get("torso_geoms"), limb_geoms=overrides.get("limb_geoms"),
+        skin_geoms=overrides.get("skin_geoms"), mirror=overrides.get("mirror", ()),
+        keypoints=overrides.get("keypoints"),
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- roles file
+def roles_path(model_file: str | os.PathLike) -> Path:
+    """``<dir>/<stem>.roles.json`` beside a model file."""
+    p = Path(model_file)
+    return p.with_name(p.stem + ".roles.json")
+
+
+_ROLE_FILE_KEYS = ("version", "links", "torso_geoms", "limb_geoms", "skin_geoms", "mirror",
+                   "keypoints")
+
+
+def read_roles_file(path: str | os.PathLike) -> dict:
+    """The validated contents of a roles file (format in docs/USER_GUIDE.md)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: roles file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object with 'links' etc.")
+    unknown = [k for k in data if k not in _ROLE_FILE_KEYS]
+    if unknown:
+        raise InputError(f"{path}: unknown fields {unknown}; expected {list(_ROLE_FILE_KEYS)}")
+    links = data.get("links", {})
+    if not isinstance(links, dict) or not all(isinstance(v, str) for v in links.values()):
+        raise InputError(f"{path}: 'links' must map role names to link names")
+    bad = [r for r in links if r not in LINK_ROLES]
+    if bad:
+        raise InputError(f"{path}: 'links' has unknown roles {bad}; roles: {list(LINK_ROLES)}")
+    for key in ("torso_geoms", "skin_geoms"):
+        v = data.get(key)
+        if v is not None and not (isinstance(v, list) and all(isinstance(s, str) for s in v)):
+            raise InputError(f"{path}: {key!r} must be a list of geom names")
+    limbs = data.get("limb_geoms")
+    if limbs is not None and not (isinstance(limbs, dict) and set(limbs) <= set(CONTOUR_LIMBS)
+                                  and all(isinstance(v, list) for v in limbs.values())):
+        raise InputError(f"{path}: 'limb_geoms' must map {list(CONTOUR_LIMBS)} to geom lists")
+    mirror = data.get("mirror", [])
+    if not (isinstance(mirror, list) and all(
+            isinstance(p, list) and len(p) == 2 and all(isinstance(s, str) for s in p)
+            for p in mirror)):
+        raise InputError(f"{path}: 'mirror' must be a list of [left joint, right joint] pairs")
+    kps = data.get("keypoints")
+    if kps is not None:
+        from .model import KEYPOINT_NAMES
+
+        ok = isinstance(kps, dict) and all(
+            k in KEYPOINT_NAMES and isinstance(v, list) and len(v) == 2 and isinstance(v[0], str)
+            and isinstance(v[1], list) and len(v[1]) == 3 for k, v in kps.items())
+        if not ok:
+            raise InputError(f"{path}: 'keypoints' must map keypoint names {KEYPOINT_NAMES} to "
+                             "[link, [x, y, z]]")
+    data = dict(data)
+    data["mirror"] = [tuple(p) for p in mirror]
+    data["_source"] = str(path)
+    return data
+
+
+def roles_to_json(roles: BodyRoles) -> dict:
+    """A roles file that reproduces ``roles`` exactly (links, geoms, pairs and keypoints)."""
+    pairs = {(a, b) for a, b, _ in roles.mirror}
+    return {
+        "version": 1,
+        "links": dict(roles.links),
+        "torso_geoms": list(roles.torso_geoms),
+        "limb_geoms": {r: list(g) for r, g in roles.limb_geoms},
+        "skin_geoms": list(roles.skin_geoms),
+        "mirror": [[a, b] for a, b, _ in roles.mirror if (b, a) not in pairs or a <= b],
+        "keypoints": {k: [link, list(off)] for k, link, off in roles.keypoints},
+    }
+
+
+# ----------------------------------------------------------------------------- loading
+MODEL_SUFFIXES = {".urdf": "urdf", ".xml": "mjcf", ".mjcf": "mjcf"}
+
+
+def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | None = None):
+    """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
+    roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
+    beside the model if it exists, else inferred from the names) and the 12 keypoints placed
+    from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
+    named like one of the 12 places that keypoint). Bad files and missing roles: one
+    :class:`InputError`."""
+    from .mjcf import load_mjcf
+    from .model import make_body_model
+    from .urdf import load_urdf
+
+    path = Path(path)
+    kind = MODEL_SUFFIXES.get(path.suffix.lower())
+    if kind is None:
+        raise InputError(f"{path}: a body model must be a URDF (.urdf) or MJCF (.xml, .mjcf) file")
+    if not path.is_file():
+        raise InputError(f"{path}: body model file not found")
+    try:
+        model = load_urdf(path) if kind == "urdf" else load_mjcf(path)
+    except InputError:
+        raise
+    except (ValueError, RuntimeError, KeyError) as e:
+        msg = " ".join(str(e).split())
+        raise InputError(msg if str(path) in msg else f"{path}: {msg}") from None
+    from .model import KEYPOINT_NAMES
+
+    # MJCF <site> markers (load_mjcf's keypoints): a site named like one of the 12 keypoints
+    # places it (under the roles file's keypoints), the others are kept as extra keypoints
+    links = np.asarray(model.keypoint_link).tolist()
+    offsets = np.asarray(model.keypoint_offset, np.float64)
+    sites = {k: (model.chain.link_names[links[i]], tuple(float(v) for v in offsets[i]))
+             for i, k in enumerate(model.keypoint_names)}
+    if not isinstance(roles, BodyRoles):
+        file = Path(roles) if roles is not None else roles_path(path)
+        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else {}
+        named = {k: v for k, v in sites.items() if k in KEYPOINT_NAMES}
+        if named:
+            overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
+        roles = infer_roles(model.chain, model.geometry, path, overrides)
+    table = roles.keypoint_table()
+    table.update({k: v for k, v in sites.items() if k not in table})
+    return make_body_model(model.chain, model.geometry, table, roles=roles)
+
+
+def body_digest(model) -> str:
+    """A short stable hash (16 hex digits) of a body: chain, geometry, keypoints and roles.
+
+    Arrays are hashed as float32 (the same whether JAX runs in x64 or not); pose databases and
+    IK covariances are keyed by it."""
+    import hashlib
+
+    h = hashlib.sha256()
+    chain, geo = model.chain, model.geometry
+    for a in (chain.joint_origin, chain.joint_axis, chain.lower, chain.upper, geo.pose, geo.size,
+              geo.rgba, model.keypoint_offset):
+        h.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
+    for a in (chain.parents, chain.joint_type, chain.dof_index, geo.link, geo.kind,
+              model.keypoint_link):
+        h.update(np.ascontiguousarray(np.asarray(a, np.int64)).tobytes())
+    names = (chain.link_names, chain.dof_names, geo.names, model.keypoint_names)
+    h.update(json.dumps(names).encode())
+    roles = model.roles
+    if roles is not None:
+        h.update(json.dumps(roles_to_json(roles), sort_keys=True).encode())
+    return h.hexdigest()[:16]

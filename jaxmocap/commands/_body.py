@@ -1,0 +1,51 @@
+"""``--body`` and ``--garment``: the user's body model and shirt, shared by the commands.
+
+``--body FILE`` is a URDF (``.urdf``) or MJCF (``.xml``/``.mjcf``) file; its roles come from
+``<stem>.roles.json`` beside it or are inferred from the names
+(:func:`jaxmocap.body.load_body`). ``--garment FILE`` is a ``garment.json``
+(:func:`jaxmocap.garment.load_garment`); without it the paper's 20-patch shirt is laid out on
+the body by its roles (:func:`jaxmocap.garment.default_garment`), which refuses, in one line,
+a body where that layout does not fit. Both default to the bundled body and shirt. Every
+problem is one :class:`~jaxmocap.errors.InputError` (exit code 2) before any work.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from jaxmocap.body import BodyModel, default_body, load_body
+from jaxmocap.garment import Garment, default_garment, load_garment
+
+BODY_HELP = ("your body model: a URDF (.urdf) or MJCF (.xml) file, its roles in "
+             "<stem>.roles.json beside it or inferred from its link names (default: the bundled "
+             "generic upper body)")  # fmt: skip
+GARMENT_HELP = ("your shirt: a garment.json (patches -> geoms, colours in your colour model's "
+                "order; default: the paper's 20-patch, 10-colour shirt laid out on the body)")
+
+
+def add_body_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+                  garment: bool = True) -> None:
+    """Add ``--body`` (and ``--garment``) to a command's parser."""
+    parser.add_argument("--body", metavar="URDF_OR_MJCF", help=BODY_HELP)
+    if garment:
+        parser.add_argument("--garment", metavar="GARMENT_JSON", help=GARMENT_HELP)
+
+
+def body_from_args(args: argparse.Namespace) -> BodyModel:
+    """The body of ``--body`` (the bundled body without it)."""
+    path = getattr(args, "body", None)
+    return load_body(path) if path else default_body()
+
+
+def garment_from_args(args: argparse.Namespace, model: BodyModel, colors=None) -> Garment:
+    """The shirt of ``--garment`` on ``model`` (the paper's shirt laid out by roles without
+    it). ``colors``: a colour model whose colour order the garment's ids must follow."""
+    path = getattr(args, "garment", None)
+    if path:
+        return load_garment(path, model, colors)
+    return default_garment(model)
+
+
+def inputs_of(args: argparse.Namespace) -> list[str]:
+    """The body/garment files a command reads (for the outputs-never-touch-inputs check)."""
+    return [p for p in (getattr(args, "body", None), getattr(args, "garment", None)) if p]
