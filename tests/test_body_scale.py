@@ -129,17 +129,24 @@ def test_mjcf_round_trip_and_mujoco(scaled, tmp_path, rng, naming):
 
 
 def test_scaled_garment_keeps_patch_proportions(scaled, rng):
-    """A surface point of the thorax keeps its patch when body and garment scale together."""
+    """A surface point keeps its patch when body and garment scale together; the stretched
+    shirt is the one the roles lay out on the scaled body (default_garment of it)."""
     g0 = default_garment(default_body())
-    g1 = scale_garment(default_garment(scaled.model), scaled.geom_scale)
-    k = default_body().geometry.names.index("thorax")
-    u = rng.normal(size=(500, 3))
+    g1 = scale_garment(g0, scaled.geom_scale)
+    g2 = default_garment(scaled.model)
+    u = rng.normal(size=(400, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    p0 = u * np.asarray(default_body().geometry.size[k])
-    p1 = u * np.asarray(scaled.model.geometry.size[k])  # the same material point, scaled
-    geom = jnp.full((500,), k)
-    np.testing.assert_array_equal(patch_at(g0, geom, jnp.asarray(p0)),
-                                  patch_at(g1, geom, jnp.asarray(p1)))
+    for k in np.unique(np.asarray(g0.patch_geom)):
+        r, h, c = np.asarray(default_body().geometry.size[k])
+        kind = int(default_body().geometry.kind[k])
+        extent = (r, r, h + r) if kind in (CAPSULE, CYLINDER) else (r, h, c)
+        p0 = u * np.asarray(extent)  # points spread over the geom's bounding box
+        p1 = p0 * scaled.geom_scale[k]  # the same material points, scaled
+        geom = jnp.full((400,), int(k))
+        want = np.asarray(patch_at(g0, geom, jnp.asarray(p0)))
+        np.testing.assert_array_equal(patch_at(g1, geom, jnp.asarray(p1)), want)
+        same = np.asarray(patch_at(g2, geom, jnp.asarray(p1))) == want
+        assert same.mean() > 0.99, (default_body().geometry.names[k], same.mean())
 
 
 def test_cli_writes_loadable_body(tmp_path, capsys):

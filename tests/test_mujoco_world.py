@@ -116,11 +116,26 @@ def test_dataset_round_trip(world_seq, tmp_path):
     for k in ("q", "keypoints", "patch_ids", "visible", "body_pixels"):
         np.testing.assert_array_equal(seq.groundtruth[k], world_seq.groundtruth[k])
     assert list(seq.groundtruth["dof_names"][6:9]) == ["Spine_x", "Spine_y", "Spine_z"]
-    assert (folder / "body.urdf").is_file() and (folder / "body.xml").is_file()
+    # the subject's body and shirt as files: roles inferred from the mixamo names, the
+    # garment.json loads against the URDF body with the world's patches
+    from jaxmocap.body import keypoints, load_body
+    from jaxmocap.garment import load_garment
+
+    for body_file in ("body.urdf", "body.xml"):
+        body = load_body(folder / body_file)
+        g = load_garment(folder / "garment.json", body)
+        assert g.patch_names == world_seq.garment.patch_names
+        np.testing.assert_array_equal(
+            [body.geometry.names[i] for i in np.asarray(g.patch_geom)],
+            [world_seq.body.geometry.names[i] for i in np.asarray(world_seq.garment.patch_geom)])
+        np.testing.assert_allclose(g.patch_planes, world_seq.garment.patch_planes, atol=1e-12)
+        # the keypoints the roles place on the file's body are the ground truth's
+        kp = np.asarray(keypoints(body, jnp.asarray(seq.groundtruth["q"][1])))
+        names = list(seq.groundtruth["keypoint_names"])
+        np.testing.assert_allclose(kp[[body.keypoint_names.index(n) for n in names]],
+                                   seq.groundtruth["keypoints"][1], atol=1e-6)
     assert (folder / "cam0.mp4").is_file()
     # the keypoints are the scaled body's FK of q
-    from jaxmocap.body import keypoints
-
     sb, _ = world_body(world_seq.spec)
     np.testing.assert_allclose(seq.groundtruth["keypoints"][1],
                                keypoints(sb.model, jnp.asarray(seq.groundtruth["q"][1])),

@@ -193,8 +193,33 @@ def scale_body(model: BodyModel | None = None, **measurements: float | None) -> 
                         size=jnp.asarray(size, dt), rgba=geom.rgba, names=geom.names)
     scaled = BodyModel(chain=new_chain, geometry=new_geom, keypoint_link=model.keypoint_link,
                        keypoint_offset=jnp.asarray(kp_off, model.keypoint_offset.dtype),
-                       keypoint_names=model.keypoint_names)
+                       keypoint_names=model.keypoint_names,
+                       roles=_roles_with(model, keypoint_offset=kp_off))
     return ScaledBody(scaled, f, s_h, geom_scale)
+
+
+def _roles_with(model: BodyModel, name=None, keypoint_offset=None):
+    """``model.roles`` with link / DOF / geom names mapped by ``name`` and the keypoint
+    offsets replaced (None if the model has no roles)."""
+    import dataclasses
+
+    roles = getattr(model, "roles", None)
+    if roles is None:
+        return None
+    f = name or (lambda s: s)
+    kp = roles.keypoints
+    if keypoint_offset is not None:
+        off = {k: tuple(float(v) for v in keypoint_offset[i])
+               for i, k in enumerate(model.keypoint_names)}
+        kp = tuple((k, link, off.get(k, o)) for k, link, o in kp)
+    return dataclasses.replace(
+        roles, links=tuple((r, f(n)) for r, n in roles.links),
+        joints=tuple((r, tuple(f(d) for d in ds)) for r, ds in roles.joints),
+        limb_geoms=tuple((r, tuple(f(g) for g in gs)) for r, gs in roles.limb_geoms),
+        torso_geoms=tuple(f(g) for g in roles.torso_geoms),
+        skin_geoms=tuple(f(g) for g in roles.skin_geoms),
+        mirror=tuple((f(a), f(b), sg) for a, b, sg in roles.mirror),
+        keypoints=tuple((k, f(link), o) for k, link, o in kp), source=roles.source)
 
 
 def _chain_with(chain: KinematicChain, *, joint_origin=None, link_names=None, dof_names=None
@@ -289,10 +314,11 @@ def rename_body(model: BodyModel, naming: str | Callable[[str], str] | Mapping[s
             raise ValueError(f"rename_body: two {what}s would share a name: {names}")
     new_geom = Geometry(link=geom.link, kind=geom.kind, pose=geom.pose, size=geom.size,
                         rgba=geom.rgba, names=geoms)
+    dof = lambda s: s if s.startswith("root_") else fn(s)
     return BodyModel(chain=_chain_with(chain, link_names=links, dof_names=dofs),
                      geometry=new_geom, keypoint_link=model.keypoint_link,
                      keypoint_offset=model.keypoint_offset,
-                     keypoint_names=model.keypoint_names)
+                     keypoint_names=model.keypoint_names, roles=_roles_with(model, dof))
 
 
 def swap_capsules(model: BodyModel, kind: str) -> BodyModel:
@@ -318,4 +344,4 @@ def swap_capsules(model: BodyModel, kind: str) -> BodyModel:
                         size=jnp.asarray(size, g.size.dtype), rgba=g.rgba, names=g.names)
     return BodyModel(chain=model.chain, geometry=new_geom, keypoint_link=model.keypoint_link,
                      keypoint_offset=model.keypoint_offset,
-                     keypoint_names=model.keypoint_names)
+                     keypoint_names=model.keypoint_names, roles=model.roles)

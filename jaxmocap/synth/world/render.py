@@ -77,6 +77,7 @@ class WorldSequence(NamedTuple):
     groundtruth: dict[str, np.ndarray]
     spec: WorldSpec
     body: object  # BodyModel as the world names it
+    garment: object  # the shirt on that body (geom indices shared with it)
     seconds: float  # total, set-up (retargeting, tessellation, MuJoCo compile) included
     render_seconds: float  # the frame loop only (MuJoCo renders, noise, JPEG)
 
@@ -231,8 +232,8 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
         "times": np.arange(n) / spec.fps,
         "lamp_levels": levels,
     }
-    return WorldSequence(frames, cams, names, gt, spec, shown, _time.perf_counter() - t0,
-                         t_loop)
+    return WorldSequence(frames, cams, names, gt, spec, shown, garment,
+                         _time.perf_counter() - t0, t_loop)
 
 
 def scene_config(spec: WorldSpec, n_frames: int):
@@ -257,9 +258,11 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
                 png: bool = False, sheet: bool = False) -> Path:
     """Write ``seq`` as a dataset folder (the layout of :func:`jaxmocap.synth.write_dataset`,
     read by :func:`jaxmocap.synth.load_dataset`), atomically, plus ``body.urdf`` and
-    ``body.xml`` (the subject's body as the world names it) and, in ``scene.json``,
+    ``body.xml`` (the subject's body as the world names it), ``garment.json`` (its shirt on
+    that body, :func:`jaxmocap.garment.save_garment`) and, in ``scene.json``,
     ``render.renderer = "mujoco"`` and ``world`` (the :class:`WorldSpec`)."""
     from jaxmocap.body.write import write_mjcf, write_urdf
+    from jaxmocap.garment import save_garment
     from jaxmocap.synth.dataset import _check_target, write_dataset
     from jaxmocap.synth.sequence import Sequence
 
@@ -281,6 +284,7 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
         (inner / "scene.json").write_text(json.dumps(doc, indent=2) + "\n")
         write_urdf(seq.body, inner / "body.urdf")
         write_mjcf(seq.body, inner / "body.xml")
+        save_garment(inner / "garment.json", seq.garment, seq.body)
         _check_target(folder)
         if folder.is_dir():
             folder.rmdir()
