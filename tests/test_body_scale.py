@@ -157,3 +157,14 @@ def test_cli_writes_loadable_body(tmp_path, capsys):
     back = load_mjcf(out)
     assert "left_upper_arm" in back.chain.link_names
     assert BOX in np.asarray(back.geometry.kind)
+    # the names follow a convention the roles infer: the 12 keypoints land where the scaled
+    # body's are
+    from jaxmocap.body import load_body
+
+    body = load_body(out)
+    sb = scale_body(height=1.62, upper_arm=0.28)
+    q = jnp.zeros(body.n_dof)
+    kp = np.asarray(keypoints(body, q))
+    np.testing.assert_allclose(
+        kp[[body.keypoint_names.index(n) for n in sb.model.keypoint_names]],
+        keypoints(sb.model, q), atol=1e-9)
