@@ -23,6 +23,8 @@ SUBCOMMANDS = (
     "jaxmocap.commands.colors",
     "jaxmocap.commands.track",
     "jaxmocap.commands.evaluate",
+    "jaxmocap.commands.body",
+    "jaxmocap.synth.world.cli",
 )
 
 

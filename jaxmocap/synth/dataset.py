@@ -294,6 +294,9 @@ def add_parser(sub) -> None:
     a("--no-video", action="store_true", help="do not write the mp4 videos (needs --png)")
     a("--quiet", action="store_true", help="no progress bar")
     a("--contact-sheet", action="store_true", help="also write contact_sheet.png (8 frames)")
+    from jaxmocap.synth.world.cli import add_world_options
+
+    add_world_options(p)
     p.set_defaults(func=run)
 
 
@@ -321,6 +324,16 @@ def config_from_args(args: argparse.Namespace) -> SceneConfig:
 def run(args: argparse.Namespace) -> int:
     import time
 
+    if getattr(args, "renderer", "jax") == "mujoco":
+        from jaxmocap.synth.world.cli import run_mujoco
+
+        return run_mujoco(args)
+    world_only = [o for o in ("world", "body_height", "shoulder_width", "upper_arm", "forearm",
+                              "naming", "limbs", "layout", "lamps", "dim", "yaw", "spin",
+                              "jpeg", "camera_height", "fov", "fill")
+                  if getattr(args, o, None) is not None]
+    if world_only:
+        raise DatasetError(f"--{world_only[0].replace('_', '-')}: needs --renderer mujoco")
     if args.no_video and not args.png:
         raise DatasetError("--no-video needs --png (otherwise no frames would be written)")
     config = config_from_args(args)
