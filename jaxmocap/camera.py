@@ -609,14 +609,9 @@ def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], lis
     """
     path = Path(path)
     dtype = jnp.result_type(float) if dtype is None else dtype
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise CameraFileError(f"{path}: cannot read: {e.strerror}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise CameraFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    from jaxmocap.io.preflight import read_json
+
+    data = read_json(path, "a cameras.json of `jaxmocap calibrate`", CameraFileError)
     if not isinstance(data, dict):
         raise CameraFileError(f"{path}: expected a JSON object with 'version' and 'cameras'")
     if data.get("version") != CAMERAS_JSON_VERSION:

@@ -423,7 +423,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
 
     if args.db:
         try:
-            db = load_database(args.db)
+            db = load_database(args.db, model=default_body())
         except FileNotFoundError:
             raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
                              "build-db --out FILE.npz`)") from None
