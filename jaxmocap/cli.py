@@ -17,9 +17,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import importlib
+import os
 import signal
 import sys
+import threading
 
 from jaxmocap.errors import InputError
 
@@ -52,8 +55,26 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _on_sigterm(signum, frame):
-    raise Terminated
+def _in_finaliser(frame) -> bool:
+    """Whether ``frame`` runs a garbage-collector callback or a ``__del__``: Python prints an
+    exception raised there as "Exception ignored" (a traceback) and drops it."""
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    for _ in range(8):
+        if frame is None:
+            return False
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _on_signal(signum, frame):
+    """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in ordinary code: a signal that
+    lands in a finaliser is sent again a moment later instead of being lost."""
+    if _in_finaliser(frame):
+        threading.Timer(0.02, os.kill, (os.getpid(), signum)).start()
+        return
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,31 +91,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
-        parser = build_parser()
-        args = parser.parse_args(argv)
-    except KeyboardInterrupt:  # Ctrl-C while the libraries import
-        print("jaxmocap: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    from jaxmocap._config import enable_compilation_cache
-
-    enable_compilation_cache()
-    previous = None
+    previous = {}
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, _on_signal)
+    command = "jaxmocap"
     try:
+        args = build_parser().parse_args(argv)
+        command = f"jaxmocap {args.command}"
+        from jaxmocap._config import enable_compilation_cache
+
+        enable_compilation_cache()
         return int(args.func(args) or 0)
     except (InputError, OSError) as err:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f"jaxmocap {args.command}: error: {msg}", file=sys.stderr)
+        print(f"{command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
         what = "terminated" if isinstance(err, Terminated) else "interrupted"
-        print(f"jaxmocap {args.command}: {what}; nothing written", file=sys.stderr)
+        print(f"{command}: {what}; nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

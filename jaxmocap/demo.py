@@ -50,7 +50,9 @@ def add_parser(sub) -> None:
         description=__doc__.split("\n\n")[0],
     )
     p.add_argument("--out", default="jaxmocap-demo", help="output folder (default: %(default)s)")
-    p.add_argument("--frames", type=int, default=DEMO_FRAMES,
+    from jaxmocap.io.preflight import int_range
+
+    p.add_argument("--frames", type=int_range(2), default=DEMO_FRAMES,
                    help="number of frames to render and track (default: %(default)s)")
     p.set_defaults(func=run)
 

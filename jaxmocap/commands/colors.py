@@ -53,6 +53,7 @@ MIN_SCRIBBLE_PIXELS = 20  # labelled pixels a colour needs (cf. color.whitebalan
 MIN_COLORS_FOR_W = 3  # a 3x3 W is determined by >= 3 colours (fewer: only the prior decides)
 MAX_GAIN = 10.0  # per-channel gain bound of a usable W (a 10x darker channel is already noise)
 MAX_MIXING = 1.0  # off-diagonal Frobenius norm / diagonal norm bound of a usable W
+MAX_CONDITION = 1e6  # a W this ill-conditioned is singular in float32
 
 EPILOG = """examples:
   # colour model from scribbled photos of the shirt (label k = colour k, 0 = none)
@@ -152,7 +153,7 @@ def white_balance_problem(W: np.ndarray) -> str | None:
     changes each channel's gain; strong mixing means wrong labels or a wrong file)."""
     W = np.asarray(W, np.float64)
     d = np.diag(W)
-    if not np.all(np.isfinite(W)) or abs(np.linalg.det(W)) < 1e-9 * max(np.abs(W).max(), 1e-300)**3:
+    if not np.all(np.isfinite(W)) or not np.any(W) or np.linalg.cond(W) > MAX_CONDITION:
         return "expected an invertible 3x3 matrix (this one is singular: nothing would be " \
                "classified)"
     if np.any(d <= 0) or np.any(d < 1 / MAX_GAIN) or np.any(d > MAX_GAIN):
@@ -284,6 +285,9 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from jaxmocap.io.video import quiet_ffmpeg
+
+    quiet_ffmpeg()  # OpenCV's own lines about a corrupt image: we report it in one line
     default = "white_balance.json" if args.white_balance else "colors.json"
     out = check_output_file(args.out or default)
     check_outputs([out], [*args.images, *args.masks, args.colors])

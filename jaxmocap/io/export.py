@@ -225,11 +225,9 @@ def write_exports(files: AtomicFiles, folder: str | os.PathLike, model: BodyMode
 
 
 def _load_npz(path: Path) -> PoseTrack:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise PoseFileError(f"{path}: not a readable .npz file ({e})") from None
+    from jaxmocap.io.preflight import read_npz
+
+    data = read_npz(path, "a pose .npz (keypoints, keypoint_names)", error=PoseFileError)
     if "keypoints" not in data:
         raise PoseFileError(f"{path}: field 'keypoints' missing (expected (T, n_keypoints, 3))")
     kp = np.asarray(data["keypoints"], np.float64)

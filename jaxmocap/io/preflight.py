@@ -53,11 +53,11 @@ def _same(a: Path, b: Path) -> bool:
 
 
 def check_outputs(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | os.PathLike | None],
-                  option: str = "--out") -> None:
-    """Refuse (:class:`OutputPathError`, one line) an output that is an input, lies inside an
-    input that is a folder, or is a folder holding an input. ``outputs`` are the files and
-    folders the command would write; ``inputs`` every file or folder it reads (None skipped).
-    """
+                  option: str = "--out", replaced_folders: bool = False) -> None:
+    """Refuse (:class:`OutputPathError`, one line) an output that is an input or lies inside an
+    input that is a folder; with ``replaced_folders`` (output folders replaced as a whole) also
+    an output folder holding an input. ``outputs`` are the files and folders the command would
+    write; ``inputs`` every file or folder it reads (None skipped)."""
     ins = [Path(i) for i in inputs if i is not None and str(i) != ""]
     for o in outputs:
         o = Path(o)
@@ -70,7 +70,7 @@ def check_outputs(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | o
             if i.is_dir() and ri in ro.parents:
                 raise OutputPathError(f"{option} {o}: lies inside the input folder {i}, which "
                                       "this command reads: choose an output outside it")
-            if o.is_dir() and ro in ri.parents:
+            if replaced_folders and o.is_dir() and ro in ri.parents:
                 raise OutputPathError(f"{option} {o}: holds the input {i}; it would be "
                                       "replaced: choose another output folder")
 
@@ -109,9 +109,9 @@ def read_json(path: str | os.PathLike, what: str,
         text = path.read_bytes().decode("utf-8")
         return json.loads(text)
     except FileNotFoundError:
-        raise error(f"{path}: no such file (expected {what})") from None
+        raise error(f"{path}: cannot read: no such file (expected {what})") from None
     except IsADirectoryError:
-        raise error(f"{path}: is a folder (expected {what})") from None
+        raise error(f"{path}: cannot read: is a folder (expected {what})") from None
     except OSError as e:
         raise error(f"{path}: cannot read: {e.strerror} (expected {what})") from None
     except UnicodeDecodeError:
@@ -138,8 +138,8 @@ def read_npz(path: str | os.PathLike, what: str, keys: Sequence[str] | None = No
         raise error(f"{path}: is a folder (expected {what})")
     if not path.exists():
         raise error(f"{path}: no such file (expected {what})")
-    try:
-        with np.load(path, allow_pickle=False) as z:
+    try:  # our own handle: np.load leaks it when the archive is bad
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ValueError("a single .npy array, not an .npz archive")
             names = list(z.files) if keys is None else list(keys)
