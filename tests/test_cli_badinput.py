@@ -325,6 +325,39 @@ def test_damaged_and_mismatched_frames(kit, capsys, monkeypatch):
             k / "cameras.json", k / "data/cam0", k / "data/cam1", "--out", k / "res2")
 
 
+def _video(path: Path, n: int, damage: bool = False) -> None:
+    rng = np.random.default_rng(0)
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (W, H))
+    for t in range(n):
+        img = np.full((H, W, 3), 40 * (t % 5), np.uint8)
+        img[8:28, 8 + t:28 + t] = rng.integers(0, 255, (20, 20, 3), np.uint8)
+        w.write(img)
+    w.release()
+    if damage:  # flip bytes in the middle of the stream: the decoder conceals, and says so
+        b = bytearray(path.read_bytes())
+        for i in range(len(b) // 2, len(b) // 2 + 200, 3):
+            b[i] ^= 0xFF
+        path.write_bytes(bytes(b))
+
+
+def test_video_frames_the_decoder_reported_damaged_are_unreadable(kit, capsys, monkeypatch):
+    k = kit
+    _video(k / "a.mp4", 20)
+    _video(k / "b.mp4", 20, damage=True)
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
+    rc, out, err = _cli(capsys, "track", "--cameras", k / "cameras.json", k / "a.mp4",
+                        k / "b.mp4", "--out", k / "res", "--quiet", "--formats", "npz")
+    assert rc == 1 and len(err) == 1, err
+    assert "b.mp4: frame" in err[0] and "damaged (decoder: " in err[0]
+    with np.load(k / "res/poses.npz") as z:
+        bad = np.flatnonzero(~z["valid"])
+        assert 1 <= len(bad) <= 3 and z["valid"].sum() >= 17
+    assert f"frames unreadable (frames {bad[0]}" in err[0]
+    rc, out, err = _cli(capsys, "track", "--cameras", k / "cameras.json", k / "a.mp4",
+                        k / "a.mp4", "--out", k / "res2", "--quiet", "--formats", "npz")
+    assert rc == 0 and err == []  # an intact video: no frame flagged
+
+
 class _Fixed:
     diagnostic_names = ()
 
