@@ -48,11 +48,20 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, delivered as an interrupt so that it takes the Ctrl-C path."""
 
 
+class ArgumentError(UsageError):
+    """An argument argparse rejects (unknown option, a value out of its range)."""
+
+    def __init__(self, prog: str, message: str):
+        super().__init__(f"{message} (see {prog} --help)")
+        self.prog = prog
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with its usage errors on one line (the full usage is in ``--help``)."""
+    """argparse whose usage errors are :class:`ArgumentError` (one line, exit code 2, returned
+    by :func:`main`; the full usage is in ``--help``)."""
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        raise ArgumentError(self.prog, message)
 
 
 def _in_finaliser(frame) -> bool:
@@ -105,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (InputError, OSError) as err:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f"{command}: error: {msg}", file=sys.stderr)
+        prog = err.prog if isinstance(err, ArgumentError) else command
+        print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
         what = "terminated" if isinstance(err, Terminated) else "interrupted"

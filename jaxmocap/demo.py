@@ -123,45 +123,42 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     return seq, np.asarray(est.q, np.float64), cold, warm_ms, float(jnp.mean(obs.valid))
 
 
-def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names) -> None:
+def _overlay(files, path: Path, frames, cam, kp_est, kp_true, windows, names) -> None:
     import cv2
 
     from jaxmocap.camera import project
-    from jaxmocap.io.atomic import AtomicFiles
 
     idx = {n: i for i, n in enumerate(names)}
     est = np.asarray(project(cam, np.nan_to_num(kp_est)))
     true = np.asarray(project(cam, kp_true))
     h, w = frames.shape[1:3]
     scale = 2
-    with AtomicFiles() as out:
-        tmp = out.path(path)
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), 10.0,
-                                 (w * scale, h * scale))
-        for t in range(frames.shape[0]):
-            img = cv2.resize(cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR), (w * scale, h * scale),
-                             interpolation=cv2.INTER_NEAREST)
-            x0, y0, s, _ = windows[t] * scale
-            cv2.rectangle(img, (int(x0), int(y0)), (int(x0 + s), int(y0 + s)), (255, 255, 255), 1)
-            for pts, colour in ((true[t], (0, 200, 0)), (est[t], (0, 0, 255))):
-                for a, b in BONES:
-                    pa, pb = pts[idx[a]] * scale, pts[idx[b]] * scale
-                    if np.all(np.isfinite([*pa, *pb])):
-                        cv2.line(img, tuple(int(v) for v in pa), tuple(int(v) for v in pb),
-                                 colour, 2, cv2.LINE_AA)
-            cv2.putText(img, f"frame {t}  green: truth  red: jaxmocap", (6, 16),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
-            writer.write(img)
-        writer.release()
+    tmp = files.path(path)
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), 10.0,
+                             (w * scale, h * scale))
+    for t in range(frames.shape[0]):
+        img = cv2.resize(cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR), (w * scale, h * scale),
+                         interpolation=cv2.INTER_NEAREST)
+        x0, y0, s, _ = windows[t] * scale
+        cv2.rectangle(img, (int(x0), int(y0)), (int(x0 + s), int(y0 + s)), (255, 255, 255), 1)
+        for pts, colour in ((true[t], (0, 200, 0)), (est[t], (0, 0, 255))):
+            for a, b in BONES:
+                pa, pb = pts[idx[a]] * scale, pts[idx[b]] * scale
+                if np.all(np.isfinite([*pa, *pb])):
+                    cv2.line(img, tuple(int(v) for v in pa), tuple(int(v) for v in pb),
+                             colour, 2, cv2.LINE_AA)
+        cv2.putText(img, f"frame {t}  green: truth  red: jaxmocap", (6, 16),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        writer.write(img)
+    writer.release()
 
 
-def _plot(path: Path, times, kp_est, kp_true, names) -> None:
+def _plot(files, path: Path, times, kp_est, kp_true, names) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxmocap.io.atomic import AtomicFiles
 
     joints = ("r_wrist", "l_wrist", "r_elbow")
     fig, axes = plt.subplots(len(joints), 3, figsize=(11, 7), sharex=True)
@@ -177,8 +174,7 @@ def _plot(path: Path, times, kp_est, kp_true, names) -> None:
     axes[0, 0].legend(loc="best", fontsize=8)
     fig.suptitle("Estimated vs true joint positions (world, Z up)")
     fig.tight_layout()
-    with AtomicFiles() as out:
-        fig.savefig(out.path(path), dpi=90, format="png")
+    fig.savefig(files.path(path), dpi=90, format="png")
     plt.close(fig)
 
 
@@ -255,13 +251,13 @@ def run(args: argparse.Namespace) -> int:
                       "filter_ms_per_frame": pf_ms, "first_run_s": pf_cold},
     }
     out.mkdir(parents=True, exist_ok=True)
-    with AtomicFiles() as files:
+    with AtomicFiles(out) as files:  # one group: an interrupt leaves nothing half-written
         write_exports(files, out, model, track, stem="shirt")
         write_exports(files, out, model, pf_track, stem="pf")
         files.path(out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    _overlay(out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
-             kp_true, res.window[:, 0], names)
-    _plot(out / "traces.png", track.times, track.keypoints, kp_true, names)
+        _overlay(files, out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
+                 kp_true, res.window[:, 0], names)
+        _plot(files, out / "traces.png", track.times, track.keypoints, kp_true, names)
     print(f"  wrote {out}/: shirt.* and pf.* (bvh csv trc npz), overlay.mp4, traces.png, "
           "summary.json")
     return 0

@@ -259,7 +259,8 @@ def test_read_npz_and_database_loader(kit):
     (["calibrate", "--board", "7x5", "--square", "-1"], "argument --square: must be a positive"),
     (["calibrate", "--board", "7x5", "--square", "0.1", "--every", "0"], "--every: must be >= 1"),
     (["colors", "--n-colors", "0"], "argument --n-colors: must be between 1 and 255"),
-    (["build-db", "--size", "0"], "argument --size: must be >= 1"),
+    (["build-db", "--size", "0"], "--size/--seed: "),
+    (["track", "--nope"], "unrecognized arguments: --nope (see jaxmocap --help)"),
     (["demo", "--frames", "1"], "argument --frames: must be >= 2"),
 ])
 def test_option_ranges(kit, capsys, argv, match):

@@ -387,10 +387,10 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
                     break
     except KeyboardInterrupt as err:  # e.g. a live capture ended with Ctrl-C
-        if not started:
-            raise  # set-up or compilation: nothing tracked, nothing written
-        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
         n = min(len(qs), len(valid), len(rows))  # a frame half-appended is dropped
+        if not any(r[1] for r in rows[:n]):
+            raise  # set-up or compiling the first step: nothing tracked, nothing written
+        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
         del qs[n:], valid[n:], rows[n:]
     finally:
         if writer is not None:

@@ -224,11 +224,9 @@ def load_or_build(
 
 
 def add_parser(sub) -> None:
-    from ..io.preflight import int_range
-
     p = sub.add_parser("build-db", help="build (or find in the cache) the pose database "
                        "of Wang et al. §5.2")
-    p.add_argument("--size", type=int_range(1), default=DEFAULT_SIZE,
+    p.add_argument("--size", type=int, default=DEFAULT_SIZE,
                    help="number of poses (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default: %(default)s)")
     p.add_argument("--out", default=None,
