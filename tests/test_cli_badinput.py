@@ -24,6 +24,7 @@ from jaxmocap.color import ColorModel, save_color_model
 from jaxmocap.commands import track as track_cmd
 from jaxmocap.commands.colors import save_white_balance
 from jaxmocap.errors import InputError
+from jaxmocap.garment import default_garment
 from jaxmocap.io.atomic import STAGING, AtomicFiles, sweep_temporaries
 from jaxmocap.io.preflight import read_npz
 
@@ -70,9 +71,12 @@ def kit(tmp_path):
             d.mkdir(parents=True)
             for t in range(T):
                 cv2.imwrite(str(d / f"{t:02d}.png"), rng.integers(0, 255, (H, W, 3), np.uint8))
-    means = np.array([[200.0, 30, 30], [30, 200, 30], [30, 30, 200]])
-    cov = jnp.asarray(np.stack([np.eye(3) * 50] * 3))
+    n = default_garment(default_body()).n_colours  # one colour per shirt colour
+    means = np.random.default_rng(2).uniform(20, 235, (n, 3))
+    cov = jnp.asarray(np.stack([np.eye(3) * 50] * n))
     save_color_model(tmp_path / "colors.json", ColorModel(mean=jnp.asarray(means), cov=cov))
+    save_color_model(tmp_path / "colors3.json", ColorModel(mean=jnp.asarray(means[:3]),
+                                                           cov=cov[:3]))
     save_white_balance(tmp_path / "white_balance.json", {"cam0": np.eye(3), "cam1": np.eye(3)})
     model = default_body()
     k = len(model.keypoint_names)
@@ -225,6 +229,15 @@ def test_bad_files_one_line(kit, capsys):
             "--masks", k / "labels.png", "--out", k / "c.json")
     refused(capsys, k, "bad.png: not a readable label image", "colors", "--images",
             k / "data/cam0/00.png", "--masks", k / "bad.png", "--out", k / "c.json")
+    # a binary scene file, a folder as a pose file, one input for two cameras, a colour model
+    # of another shirt (refused before the default database would be built)
+    refused(capsys, k, "binary.bin: not a text file", "synth", k / "ds", "--scene", binary)
+    refused(capsys, k, "data/cam0: is a folder; expected a pose file", "eval", k / "data/cam0",
+            k / "data")
+    refused(capsys, k, "given for two cameras (0 and 1)", "track", k / "data/cam0",
+            k / "data/cam0/../cam0", "--cameras", k / "cameras.json", "--out", k / "res")
+    refused(capsys, k, "the colour model has 3 colours, the shirt has", *base, "--cameras",
+            k / "cameras.json", "--colors", k / "colors3.json")
     # videos: missing, empty, not a video
     refused(capsys, k, "nope.mp4: no such video file", "track", k / "data/cam0", k / "nope.mp4",
             "--cameras", k / "cameras.json", "--out", k / "res")
@@ -354,8 +367,9 @@ def test_video_frames_the_decoder_reported_damaged_are_unreadable(kit, capsys, m
         bad = np.flatnonzero(~z["valid"])
         assert 1 <= len(bad) <= 3 and z["valid"].sum() >= 17
     assert f"frames unreadable (frames {bad[0]}" in err[0]
+    _video(k / "c.mp4", 20)
     rc, out, err = _cli(capsys, "track", "--cameras", k / "cameras.json", k / "a.mp4",
-                        k / "a.mp4", "--out", k / "res2", "--quiet", "--formats", "npz")
+                        k / "c.mp4", "--out", k / "res2", "--quiet", "--formats", "npz")
     assert rc == 0 and err == []  # an intact video: no frame flagged
 
 

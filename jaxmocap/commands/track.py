@@ -406,6 +406,12 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     if not args.colors:
         raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
     color = load_color_model(args.colors)
+    from jaxmocap.garment import default_garment
+
+    n_shirt = default_garment(default_body()).n_colours
+    if color.n_colors != n_shirt:  # before the database, which may have to be built first
+        raise InputError(f"{args.colors}: the colour model has {color.n_colors} colours, the "
+                         f"shirt has {n_shirt}; fit one colour per shirt colour")
     W0 = None
     if args.white_balance:
         from jaxmocap.commands.colors import load_white_balance
@@ -535,6 +541,11 @@ def run(args: argparse.Namespace) -> int:
     check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
     stale = check_stale(out, names_out, args.overwrite)
     cams, names = load_cameras(args.cameras)
+    real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]
+    dup = next((i for i, r in enumerate(real) if real.index(r) != i), None)
+    if dup is not None:
+        raise InputError(f"{args.inputs[dup]}: given for two cameras ({real.index(real[dup])} "
+                         f"and {dup}); give each camera its own video, frame folder or index")
     if len(args.inputs) != len(cams):
         raise InputError(f"{len(args.inputs)} inputs given for the {len(cams)} cameras of "
                          f"{args.cameras} ({', '.join(names)}); give one input per camera, in "

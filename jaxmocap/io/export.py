@@ -300,6 +300,8 @@ def load_track(path: str | os.PathLike) -> PoseTrack:
     ``keypoints`` + ``keypoint_names`` (e.g. a synthetic dataset's ``groundtruth.npz``).
     Raises :class:`PoseFileError` naming the file and field."""
     path = Path(path)
+    if path.is_dir():
+        raise PoseFileError(f"{path}: is a folder; expected a pose file (.npz or .csv)")
     if not path.is_file():
         raise PoseFileError(f"{path}: no such file")
     suffix = path.suffix.lower()

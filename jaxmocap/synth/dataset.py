@@ -289,13 +289,10 @@ def config_from_args(args: argparse.Namespace) -> SceneConfig:
     """The SceneConfig of the command line (over a ``--scene`` file when given)."""
     base: dict = {}
     if args.scene:
+        from jaxmocap.io.preflight import read_json
+
         path = Path(args.scene)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise DatasetError(f"{path}: no such scene file") from None
-        except json.JSONDecodeError as e:
-            raise DatasetError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+        doc = read_json(path, "a scene.json of `jaxmocap synth`", DatasetError)
         if not isinstance(doc, dict) or not isinstance(doc.get("scene"), dict):
             raise DatasetError(f"{path}: field 'scene': expected an object of settings")
         base = dict(doc["scene"])
