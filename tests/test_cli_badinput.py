@@ -198,7 +198,7 @@ def test_bad_files_one_line(kit, capsys):
     np.savez(k / "db.npz", maps=maps, poses=np.zeros((4, model.n_dof), np.float32),
              meta=np.array(json.dumps(meta)))
     (k / "trunc.npz").write_bytes((k / "db.npz").read_bytes()[:300])
-    refused(capsys, k, "trunc.npz: cannot read: truncated or not an .npz archive",
+    refused(capsys, k, "trunc.npz: cannot read: truncated or damaged .npz archive",
             *track_db, k / "trunc.npz")
     refused(capsys, k, "binary.bin: cannot read", *track_db, binary)
     np.savez(k / "nokey.npz", maps=maps, poses=np.zeros((4, model.n_dof), np.float32),

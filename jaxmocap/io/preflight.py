@@ -128,34 +128,42 @@ _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib
 
 
 def read_npz(path: str | os.PathLike, what: str, keys: Sequence[str] | None = None,
-             error: type[InputError] = InputError,
-             convert: Callable[[str, np.ndarray], Any] | None = None) -> dict[str, np.ndarray]:
+             error: type[InputError] = InputError) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` at ``path`` (or only ``keys``, which must all be present),
     read fully (``np.load`` is lazy: a truncated member fails only when read) without pickles;
     any failure is one ``error`` line naming the file and ``what`` it should be."""
     path = Path(path)
     if path.is_dir():
-        raise error(f"{path}: is a folder (expected {what})")
+        raise error(f"{path}: cannot read: is a folder (expected {what})")
     if not path.exists():
-        raise error(f"{path}: no such file (expected {what})")
+        raise error(f"{path}: cannot read: no such file (expected {what})")
     try:  # our own handle: np.load leaks it when the archive is bad
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise ValueError("a single .npy array, not an .npz archive")
-            names = list(z.files) if keys is None else list(keys)
-            missing = [k for k in names if k not in z.files]
-            if missing:
-                raise error(f"{path}: field {missing[0]!r} missing (has {sorted(z.files)}; "
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+            fh.seek(0)
+            if not magic:
+                raise error(f"{path}: cannot read: empty file (0 bytes; expected {what})")
+            if magic != b"PK\x03\x04":
+                raise error(f"{path}: cannot read: not an .npz archive (a zip of .npy arrays; "
                             f"expected {what})")
-            return {k: np.asarray(z[k]) for k in names}
+            z = np.load(fh, allow_pickle=False)
+            with z:
+                return _read_members(path, z, keys, what, error)
     except InputError:
         raise
     except _NPZ_ERRORS as e:
         why = str(e).splitlines()[0] if str(e) else type(e).__name__
-        if isinstance(e, (EOFError, zipfile.BadZipFile, zlib.error)) or path.stat().st_size == 0:
-            why = f"truncated or not an .npz archive ({why})" if path.stat().st_size else \
-                "empty file (0 bytes)"
-        raise error(f"{path}: cannot read: {why} (expected {what})") from None
+        raise error(f"{path}: cannot read: truncated or damaged .npz archive ({why}; expected "
+                    f"{what})") from None
+
+
+def _read_members(path: Path, z, keys, what: str, error) -> dict[str, np.ndarray]:
+    names = list(z.files) if keys is None else list(keys)
+    missing = [k for k in names if k not in z.files]
+    if missing:
+        raise error(f"{path}: field {missing[0]!r} missing (has {sorted(z.files)}; "
+                    f"expected {what})")
+    return {k: np.asarray(z[k]) for k in names}
 
 
 # ----------------------------------------------------------------------------- options
