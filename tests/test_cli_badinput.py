@@ -54,7 +54,7 @@ def refused(capsys, kit, match, *argv):
     assert len(err) == 1, err
     assert match in err[0], err[0]
     assert _snapshot(kit) == before
-    assert time.perf_counter() - t0 < 20.0  # before any work (no compile, no tracking)
+    assert time.perf_counter() - t0 < 60.0  # before any work (tracking would take minutes)
     return err[0]
 
 

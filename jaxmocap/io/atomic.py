@@ -60,7 +60,8 @@ def _probe_writable(folder: Path, purpose: str) -> None:
     """Create and remove a file in ``folder``: the only reliable test (permission bits lie for
     root, read-only mounts and ACLs)."""
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".jaxmocap-probe.", dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=f".jaxmocap-probe.jxm{os.getpid()}-", suffix=".tmp",
+                                   dir=folder)  # named like a temporary: swept if left
     except OSError as e:
         raise OutputPathError(f"{folder}: folder is not writable ({e.strerror}); {purpose}") \
             from None
