@@ -205,7 +205,7 @@ def test_bad_files_one_line(kit, capsys):
              meta=np.array(json.dumps({"key": "x", "dof_names": meta["dof_names"]})))
     refused(capsys, k, "field 'meta.n_colours' missing", *track_db, k / "nokey.npz")
     np.savez(k / "nomaps.npz", poses=np.zeros((4, model.n_dof)), meta=np.array("{}"))
-    refused(capsys, k, "field 'maps' missing", *track_db, k / "nomaps.npz")
+    refused(capsys, k, "missing field 'maps'", *track_db, k / "nomaps.npz")
     other = dict(meta, dof_names=[f"d{i}" for i in range(model.n_dof - 3)])
     np.savez(k / "other.npz", maps=maps, poses=np.zeros((4, model.n_dof - 3), np.float32),
              meta=np.array(json.dumps(other)))
@@ -251,7 +251,7 @@ def test_bad_files_one_line(kit, capsys):
 def test_read_npz_and_database_loader(kit):
     from jaxmocap.posedb import DatabaseError, load_database
 
-    with pytest.raises(InputError, match="field 'x' missing"):
+    with pytest.raises(InputError, match="missing field 'x'"):
         read_npz(kit / "poses.npz", "a test file", ("x",))
     with pytest.raises(FileNotFoundError):
         load_database(kit / "nothing.npz")

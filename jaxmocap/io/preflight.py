@@ -161,7 +161,7 @@ def _read_members(path: Path, z, keys, what: str, error) -> dict[str, np.ndarray
     names = list(z.files) if keys is None else list(keys)
     missing = [k for k in names if k not in z.files]
     if missing:
-        raise error(f"{path}: field {missing[0]!r} missing (has {sorted(z.files)}; "
+        raise error(f"{path}: missing field {missing[0]!r} (has {sorted(z.files)}; "
                     f"expected {what})")
     return {k: np.asarray(z[k]) for k in names}
 
