@@ -705,26 +705,22 @@ def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], lis
     """
     path = Path(path)
     dtype = jnp.result_type(float) if dtype is None else dtype
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise CameraFileError(f"{path}: cannot read: {e.strerror}") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError:
-        raise CameraFileError(f"{path}: not a text file; expected cameras.json (JSON)") from None
     if path.suffix.lower() == ".toml":
         import tomllib
 
         try:
-            data = tomllib.loads(text)
+            data = tomllib.loads(path.read_bytes().decode("utf-8"))
+        except OSError as e:
+            raise CameraFileError(f"{path}: cannot read: {e.strerror}") from None
+        except UnicodeDecodeError:
+            raise CameraFileError(f"{path}: not a text file; expected a calibration TOML") \
+                from None
         except tomllib.TOMLDecodeError as e:
             raise CameraFileError(f"{path}: not valid TOML: {e}") from None
     else:
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise CameraFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+        from jaxmocap.io.preflight import read_json
+
+        data = read_json(path, "a cameras.json of `jaxmocap calibrate`", CameraFileError)
     cams, names = [], []
     for i, entry in enumerate(_camera_entries(path, data)):
         name, cam = _parse_camera(path, i, entry, dtype)

@@ -51,7 +51,9 @@ def add_parser(sub) -> None:
         description=__doc__.split("\n\n")[0],
     )
     p.add_argument("--out", default="jaxmocap-demo", help="output folder (default: %(default)s)")
-    p.add_argument("--frames", type=int, default=DEMO_FRAMES,
+    from jaxmocap.io.preflight import int_range
+
+    p.add_argument("--frames", type=int_range(2), default=DEMO_FRAMES,
                    help="number of frames to render and track (default: %(default)s)")
     p.set_defaults(func=run)
 
@@ -122,11 +124,11 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     return seq, np.asarray(est.q, np.float64), cold, warm_ms, float(jnp.mean(obs.valid))
 
 
-def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names, fps: float) -> None:
+def _overlay(files, path: Path, frames, cam, kp_est, kp_true, windows, names,
+             fps: float) -> None:
     import cv2
 
     from jaxmocap.camera import project
-    from jaxmocap.io.atomic import AtomicFiles
     from jaxmocap.io.video import VideoWriter
 
     idx = {n: i for i, n in enumerate(names)}
@@ -134,7 +136,7 @@ def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names, fps: floa
     true = np.asarray(project(cam, kp_true))
     h, w = frames.shape[1:3]
     scale = 2
-    with AtomicFiles() as out, VideoWriter(out.path(path), fps, w * scale, h * scale) as writer:
+    with VideoWriter(files.path(path), fps, w * scale, h * scale) as writer:
         for t in range(frames.shape[0]):
             img = cv2.resize(cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR), (w * scale, h * scale),
                              interpolation=cv2.INTER_NEAREST)
@@ -151,13 +153,12 @@ def _overlay(path: Path, frames, cam, kp_est, kp_true, windows, names, fps: floa
             writer.write(img[..., ::-1])
 
 
-def _plot(path: Path, times, kp_est, kp_true, names) -> None:
+def _plot(files, path: Path, times, kp_est, kp_true, names) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxmocap.io.atomic import AtomicFiles
 
     joints = ("r_wrist", "l_wrist", "r_elbow")
     fig, axes = plt.subplots(len(joints), 3, figsize=(11, 7), sharex=True)
@@ -173,8 +174,7 @@ def _plot(path: Path, times, kp_est, kp_true, names) -> None:
     axes[0, 0].legend(loc="best", fontsize=8)
     fig.suptitle("Estimated vs true joint positions (world, Z up)")
     fig.tight_layout()
-    with AtomicFiles() as out:
-        fig.savefig(out.path(path), dpi=90, format="png")
+    fig.savefig(files.path(path), dpi=90, format="png")
     plt.close(fig)
 
 
@@ -251,13 +251,13 @@ def run(args: argparse.Namespace) -> int:
                       "filter_ms_per_frame": pf_ms, "first_run_s": pf_cold},
     }
     out.mkdir(parents=True, exist_ok=True)
-    with AtomicFiles() as files:
+    with AtomicFiles(out) as files:  # one group: an interrupt leaves nothing half-written
         write_exports(files, out, model, track, stem="shirt")
         write_exports(files, out, model, pf_track, stem="pf")
         files.path(out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    _overlay(out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
-             kp_true, res.window[:, 0], names, fps)
-    _plot(out / "traces.png", track.times, track.keypoints, kp_true, names)
+        _overlay(files, out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
+                 kp_true, res.window[:, 0], names, fps)
+        _plot(files, out / "traces.png", track.times, track.keypoints, kp_true, names)
     print(f"  wrote {out}/: shirt.* and pf.* (bvh trc c3d csv npz), overlay.mp4, traces.png, "
           "summary.json")
     return 0

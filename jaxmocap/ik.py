@@ -308,26 +308,25 @@ class IKCovariances(eqx.Module):
     @classmethod
     def load(cls, path: str | os.PathLike) -> IKCovariances:
         """Read covariances written by :meth:`save`; checks shapes and positive definiteness."""
+        from jaxmocap.io.preflight import read_npz
+
         path = Path(path)
-        try:
-            data = np.load(path)
-        except (OSError, ValueError) as e:
-            raise CovarianceFileError(f"{path}: cannot read IK covariances ({e})") from None
-        with data:
-            fields = {}
-            for key in ("centroid", "blend", "prior", "version"):
-                if key not in data.files:
-                    raise CovarianceFileError(f"{path}: missing field {key!r} (have {data.files})")
-                fields[key] = np.asarray(data[key])
-        if int(fields["version"]) != COV_FILE_VERSION:
+        fields = read_npz(path, "IK covariances .npz (IKCovariances.save)",
+                          ("centroid", "blend", "prior", "version"), CovarianceFileError)
+        if fields["version"].shape != () or int(fields["version"]) != COV_FILE_VERSION:
             raise CovarianceFileError(
-                f"{path}: field 'version' is {int(fields['version'])}, expected {COV_FILE_VERSION}"
+                f"{path}: field 'version' is {fields['version']!r}, expected {COV_FILE_VERSION}"
             )
         for key in ("centroid", "blend", "prior"):
             a = fields[key]
-            ok = np.all(np.isfinite(a)) and (
-                np.all(a > 0) if a.ndim == 1 else np.all(np.linalg.eigvalsh(a) > 0)
-            )
+            try:
+                ok = np.issubdtype(a.dtype, np.floating) and np.all(np.isfinite(a)) and (
+                    np.all(a > 0) if a.ndim == 1 else
+                    a.ndim >= 2 and a.shape[-1] == a.shape[-2]
+                    and np.all(np.linalg.eigvalsh(a) > 0)
+                )
+            except np.linalg.LinAlgError:
+                ok = False
             if not ok:
                 raise CovarianceFileError(
                     f"{path}: field {key!r} is not a positive definite covariance"

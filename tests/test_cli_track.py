@@ -74,7 +74,8 @@ def test_outputs(rig, capsys):
     assert rc == 0 and err == [], err
     assert tracker.started == 1 and tracker.steps == T
     assert sorted(os.listdir(out)) == ["diagnostics.csv", "overlay.mp4", "poses.bvh",
-                                       "poses.c3d", "poses.csv", "poses.npz", "poses.trc"]
+                                       "poses.c3d", "poses.csv", "poses.npz", "poses.trc",
+                                       "run.json"]
     model = tracker.body
     with np.load(out / "poses.npz") as z:
         np.testing.assert_array_equal(z["valid"], [True, False, True])
@@ -117,7 +118,7 @@ def test_damaged_frame_is_reported_and_skipped(rig, capsys):
     assert err[0].startswith("jaxmocap track: warning: 1 of 3 frames unreadable (frames 1)")
     assert "001.png empty or not decodable" in err[0]
     assert tracker.steps == 2  # the unreadable instant is not stepped (its 2nd step: invalid)
-    assert sorted(os.listdir(out)) == ["diagnostics.csv", "poses.csv", "poses.npz"]
+    assert sorted(os.listdir(out)) == ["diagnostics.csv", "poses.csv", "poses.npz", "run.json"]
     with np.load(out / "poses.npz") as z:
         np.testing.assert_array_equal(z["valid"], [True, False, False])
         assert np.isnan(z["q"][1:]).all() and np.isfinite(z["q"][0]).all()

@@ -103,3 +103,26 @@ def test_written_files_get_ordinary_permissions(tmp_path):
         os.umask(mask)
     assert (a.stat().st_mode & 0o777) == 0o644
     assert ((tmp_path / "b.csv").stat().st_mode & 0o777) == 0o644
+
+
+def test_sweep_removes_only_dead_processes_temporaries(tmp_path):
+    """A killed run's temporaries (named with its pid) are swept; a live run's are kept."""
+    import subprocess
+    import sys
+
+    from jaxmocap.io.atomic import staging_dir, sweep_temporaries
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    pid = int(dead.stdout)
+    (tmp_path / f".poses.jxm{pid}-abc.tmp.bvh").write_text("half")
+    (tmp_path / f".ds.jxm{pid}-q1.tmp").mkdir()
+    mine = tmp_path / f".poses.jxm{os.getpid()}-xyz.tmp.csv"
+    mine.write_text("in progress")
+    (tmp_path / "poses.bvh").write_text("a result")
+    removed = sweep_temporaries(tmp_path)
+    assert sorted(p.name for p in removed) == sorted([f".ds.jxm{pid}-q1.tmp",
+                                                      f".poses.jxm{pid}-abc.tmp.bvh"])
+    assert sorted(os.listdir(tmp_path)) == sorted([mine.name, "poses.bvh"])
+    out = tmp_path / "out"
+    assert staging_dir(out) == tmp_path / ".jaxmocap-staging" and out.is_dir()

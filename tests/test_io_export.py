@@ -215,5 +215,5 @@ def test_load_errors(tmp_path):
     with pytest.raises(PoseFileError, match="field 'keypoints' has shape"):
         load_track(tmp_path / "k.npz")
     (tmp_path / "c.npz").write_bytes(b"not a zip")
-    with pytest.raises(PoseFileError, match="not a readable .npz"):
+    with pytest.raises(PoseFileError, match="c.npz: cannot read: not an .npz archive"):
         load_track(tmp_path / "c.npz")

@@ -135,6 +135,15 @@ def _matrix(path, where: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def _check_mean(path, where: str, mean: np.ndarray) -> np.ndarray:
+    """A colour mean lies in the image range: outside it the white balance fit (which maps
+    observed colours onto the means) gets negative or huge gains."""
+    if np.any(mean < 0) or np.any(mean > 255):
+        raise _fail(path, where, f"expected RGB values in 0..255, got "
+                    f"({', '.join(f'{v:g}' for v in mean)})")
+    return mean
+
+
 def _check_cov(path, where: str, cov: np.ndarray) -> None:
     scale = max(float(np.abs(cov).max()), 1e-300)
     if np.abs(cov - cov.T).max() > 1e-6 * scale:
@@ -145,22 +154,21 @@ def _check_cov(path, where: str, cov: np.ndarray) -> None:
 
 
 def validate_color_model(model: ColorModel, source: str = "ColorModel") -> None:
-    """Raise :class:`ColorModelError` unless means are finite and covariances SPD."""
+    """Raise :class:`ColorModelError` unless means are finite RGB (0..255) and covariances
+    SPD."""
     mean, cov = np.asarray(model.mean), np.asarray(model.cov)
     for k in range(mean.shape[0]):
-        _matrix(source, f"colors[{k}].mean", mean[k], (3,))
+        _check_mean(source, f"colors[{k}].mean", _matrix(source, f"colors[{k}].mean", mean[k],
+                                                        (3,)))
         _check_cov(source, f"colors[{k}].cov", _matrix(source, f"colors[{k}].cov", cov[k], (3, 3)))
 
 
 def load_color_model(path: str | os.PathLike) -> ColorModel:
     """Read and validate ``colors.json`` (schema in the module docstring)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as e:
-        raise ColorModelError(f"{path}: cannot read: {e.strerror}") from None
-    except json.JSONDecodeError as e:
-        raise ColorModelError(f"{path}: not valid JSON: {e.msg} at line {e.lineno}") from None
+    from jaxmocap.io.preflight import read_json
+
+    data = read_json(path, "a colors.json of `jaxmocap colors`", ColorModelError)
     if not isinstance(data, dict):
         raise _fail(path, "top level", "expected a JSON object")
     if data.get("format") != FORMAT:
@@ -179,7 +187,8 @@ def load_color_model(path: str | os.PathLike) -> ColorModel:
         for key in ("mean", "cov"):
             if key not in c:
                 raise _fail(path, f"colors[{k}].{key}", "missing")
-        means.append(_matrix(path, f"colors[{k}].mean", c["mean"], (3,)))
+        means.append(_check_mean(path, f"colors[{k}].mean",
+                                 _matrix(path, f"colors[{k}].mean", c["mean"], (3,))))
         cov = _matrix(path, f"colors[{k}].cov", c["cov"], (3, 3))
         _check_cov(path, f"colors[{k}].cov", cov)
         covs.append(0.5 * (cov + cov.T))

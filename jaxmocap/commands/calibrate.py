@@ -36,6 +36,7 @@ from jaxmocap.calibration import (
 from jaxmocap.camera import Camera, project, save_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
+from jaxmocap.io.preflight import check_outputs, int_range, positive_float
 from jaxmocap.io.video import VideoError, open_source, quiet_ffmpeg
 
 __all__ = ["BundleResult", "add_parser", "bundle_adjust", "parse_board", "run"]
@@ -416,18 +417,19 @@ def add_parser(sub) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS",
                    help="checkerboard: inner corners, e.g. 9x6; ChArUco: squares, e.g. 7x5 "
                    "(required)")
-    p.add_argument("--square", type=float, required=True, metavar="METRES",
+    p.add_argument("--square", type=positive_float, required=True, metavar="METRES",
                    help="side of one square in metres, e.g. 0.025 (required)")
     p.add_argument("--charuco", metavar="DICT",
                    help="the board is a ChArUco board with markers of this OpenCV dictionary "
                    "(e.g. DICT_4X4_50); partly visible boards still count")
-    p.add_argument("--marker", type=float, metavar="METRES",
+    p.add_argument("--marker", type=positive_float, metavar="METRES",
                    help="ChArUco marker side in metres (with --charuco)")
     p.add_argument("--out", default="cameras.json", help="output file (default: %(default)s)")
     p.add_argument("--names", nargs="+", help="camera names (default: cam0 cam1 ...)")
-    p.add_argument("--every", type=int, default=1, metavar="N",
+    p.add_argument("--every", type=int_range(1), default=1, metavar="N",
                    help="use every N-th frame of videos/folders (default: %(default)s)")
-    p.add_argument("--min-views", type=int, default=MIN_VIEWS,
+    p.add_argument("--min-views", type=int_range(MIN_VIEWS, why="Zhang's method needs views of "
+                                                 "the board at >= 3 angles"), default=MIN_VIEWS,
                    help="views of the board each camera needs (default: %(default)s)")
     p.add_argument("--world", choices=("camera0", "board"), default="camera0",
                    help="world frame: the first camera's, or the board's in the first view "
@@ -442,6 +444,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
     out = check_output_file(args.out)
+    check_outputs([out], [s for s in args.inputs if Path(s).exists()])
     cams, names, rep = _calibrate(args)
     for n, rms, used in zip(names, rep["opencv_rms"], rep["views_used"], strict=True):
         print(f"{n}: board found in {used} of {rep['n_views']} views, OpenCV RMS reprojection "

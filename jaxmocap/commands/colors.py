@@ -32,6 +32,7 @@ from jaxmocap.color import (
 )
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file, write_text
+from jaxmocap.io.preflight import check_outputs, int_range
 
 __all__ = [
     "MIN_COLORS_FOR_W",
@@ -43,12 +44,16 @@ __all__ = [
     "read_rgb",
     "run",
     "save_white_balance",
+    "white_balance_problem",
 ]
 
 WB_FORMAT = "jaxmocap.white_balance"
 WB_VERSION = 1
 MIN_SCRIBBLE_PIXELS = 20  # labelled pixels a colour needs (cf. color.whitebalance.MIN_PIXELS)
 MIN_COLORS_FOR_W = 3  # a 3x3 W is determined by >= 3 colours (fewer: only the prior decides)
+MAX_GAIN = 10.0  # per-channel gain bound of a usable W (a 10x darker channel is already noise)
+MAX_MIXING = 1.0  # off-diagonal Frobenius norm / diagonal norm bound of a usable W
+MAX_CONDITION = 1e6  # a W this ill-conditioned is singular in float32
 
 EPILOG = """examples:
   # colour model from scribbled photos of the shirt (label k = colour k, 0 = none)
@@ -69,7 +74,10 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such image file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    except cv2.error:
+        img = None
     if img is None or img.size == 0:
         raise InputError(f"{path}: not a readable image (empty or corrupt)")
     return np.ascontiguousarray(img[..., ::-1])
@@ -80,7 +88,10 @@ def read_label_mask(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such label mask file")
-    lab = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        lab = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        lab = None
     if lab is None or lab.size == 0:
         raise InputError(f"{path}: not a readable label image (empty or corrupt)")
     if lab.dtype not in (np.uint8, np.uint16):
@@ -134,6 +145,27 @@ def _check_labels(masks: list[str], labels: list[np.ndarray], n_colors: int,
     return counts[1:]
 
 
+def white_balance_problem(W: np.ndarray) -> str | None:
+    """What makes ``W`` unusable as a white balance, or None. ``W`` maps a camera's colours
+    onto the model's (Wang §5.1): it must be invertible (a singular W sends every pixel to one
+    line and nothing is classified) and near a diagonal scale — positive per-channel gains in
+    [1/MAX_GAIN, MAX_GAIN] and off-diagonal mixing at most MAX_MIXING of the diagonal (a light
+    changes each channel's gain; strong mixing means wrong labels or a wrong file)."""
+    W = np.asarray(W, np.float64)
+    d = np.diag(W)
+    if not np.all(np.isfinite(W)) or not np.any(W) or np.linalg.cond(W) > MAX_CONDITION:
+        return "expected an invertible 3x3 matrix (this one is singular: nothing would be " \
+               "classified)"
+    if np.any(d <= 0) or np.any(d < 1 / MAX_GAIN) or np.any(d > MAX_GAIN):
+        return (f"expected positive per-channel gains in {1 / MAX_GAIN:g}..{MAX_GAIN:g} on the "
+                f"diagonal, got ({', '.join(f'{v:.3g}' for v in d)})")
+    mixing = float(np.linalg.norm(W - np.diag(d)) / np.linalg.norm(d))
+    if mixing > MAX_MIXING:
+        return (f"expected a near-diagonal scale: off-diagonal mixing is {mixing:.2f} of the "
+                f"diagonal (at most {MAX_MIXING:g})")
+    return None
+
+
 def save_white_balance(path: str | os.PathLike, W: dict[str, np.ndarray]) -> Path:
     """Write ``white_balance.json`` (module docstring) atomically."""
     doc = {"format": WB_FORMAT, "version": WB_VERSION,
@@ -143,13 +175,11 @@ def save_white_balance(path: str | os.PathLike, W: dict[str, np.ndarray]) -> Pat
 
 def load_white_balance(path: str | os.PathLike, names: list[str]) -> np.ndarray:
     """The (n_cams, 3, 3) W0 of the cameras ``names`` from ``white_balance.json``."""
+    from jaxmocap.io.preflight import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except OSError as e:
-        raise WhiteBalanceFileError(f"{path}: cannot read: {e.strerror}") from None
-    except json.JSONDecodeError as e:
-        raise WhiteBalanceFileError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    doc = read_json(path, "a white_balance.json of `jaxmocap colors --white-balance`",
+                    WhiteBalanceFileError)
     if not isinstance(doc, dict) or doc.get("format") != WB_FORMAT:
         raise WhiteBalanceFileError(f"{path}: field 'format': expected {WB_FORMAT!r}")
     if doc.get("version") != WB_VERSION:
@@ -170,6 +200,9 @@ def load_white_balance(path: str | os.PathLike, names: list[str]) -> np.ndarray:
         if w.shape != (3, 3) or not np.all(np.isfinite(w)):
             raise WhiteBalanceFileError(f"{path}: field 'cameras.{n}': expected a finite 3x3 "
                                         "matrix")
+        problem = white_balance_problem(w)
+        if problem:
+            raise WhiteBalanceFileError(f"{path}: field 'cameras.{n}': {problem}")
         out.append(w)
     return np.stack(out)
 
@@ -230,6 +263,10 @@ def _run_white_balance(args, out: Path) -> int:
                              f"pixels, need >= {MIN_COLORS_FOR_W} to determine W: scribble "
                              "more colours of the shirt in this frame")
         W[name] = np.asarray(white_balance_from_scribbles(model, [img], [lab]), np.float64)
+        problem = white_balance_problem(W[name])
+        if problem:
+            raise InputError(f"{mp}: the white balance fitted from these labels is unusable: "
+                             f"{problem}; check that label k marks colour k of {args.colors}")
         print(f"{name}: W from {usable} colours, diag ({W[name][0, 0]:.3f}, "
               f"{W[name][1, 1]:.3f}, {W[name][2, 2]:.3f})")
     save_white_balance(out, W)
@@ -254,7 +291,7 @@ def add_parser(sub) -> None:
                    "with --white-balance)")
     p.add_argument("--names", nargs="+", help="colour names (model) or camera names "
                    "(--white-balance; default cam0 cam1 ... as in cameras.json)")
-    p.add_argument("--n-colors", type=int, metavar="K",
+    p.add_argument("--n-colors", type=int_range(1, 255, "label values are 8-bit"), metavar="K",
                    help="number of colours (default: the largest label)")
     p.add_argument("--white-balance", action="store_true",
                    help="fit the initial white balance W0 per camera instead of the model")
@@ -267,8 +304,11 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from jaxmocap.io.video import quiet_ffmpeg
+
+    quiet_ffmpeg()  # OpenCV's own lines about a corrupt image: we report it in one line
     default = "white_balance.json" if args.white_balance else "colors.json"
     out = check_output_file(args.out or default)
-    if args.n_colors is not None and args.n_colors < 1:
-        raise InputError(f"--n-colors must be >= 1, got {args.n_colors}")
+    check_outputs([out], [*args.images, *args.masks, args.colors, getattr(args, "body", None),
+                          getattr(args, "garment", None)])
     return _run_white_balance(args, out) if args.white_balance else _run_model(args, out)

@@ -22,6 +22,7 @@ import numpy as np
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file, write_text
 from jaxmocap.io.export import PoseFileError, load_track
+from jaxmocap.io.preflight import check_outputs
 
 __all__ = ["add_parser", "evaluate", "run"]
 
@@ -117,6 +118,9 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = check_output_file(args.out) if args.out else None
+    if out is not None:
+        gt = Path(args.groundtruth)
+        check_outputs([out], [args.prediction, gt / "groundtruth.npz" if gt.is_dir() else gt])
     res = evaluate(args.prediction, args.groundtruth)
     print(format_table(res))
     if out is not None:

@@ -15,7 +15,16 @@ Two adapters implement it: :class:`ShirtFrameTracker` (Wang et al. 2011,
 :mod:`jaxmocap.trackers.shirt`) and :class:`StereoPFFrameTracker` (Azad et al. 2007,
 :mod:`jaxmocap.trackers.stereo_pf`). Frames that cannot be read are not stepped: their row
 is NaN (``valid`` 0) in every output and the command reports them in one line (exit code 1).
-All outputs are written to temporaries and renamed into place only at the end, together.
+All outputs are written to temporaries (outside ``--out``, :func:`jaxmocap.io.atomic.staging_dir`)
+and renamed into place only at the end, together, with ``run.json`` saying whether the run was
+complete. Everything that can be refused is refused before the first frame is read: outputs
+that would touch an input, an ``--out`` holding an earlier run's results (unless
+``--overwrite``: the earlier set is then replaced as a whole), cameras the tracker cannot use.
+
+**Interrupts.** Ctrl-C (or SIGTERM) while frames are being tracked ends the loop; the frames
+tracked so far are written as a complete result marked partial (``run.json`` ``complete``
+false, ``poses.npz`` ``complete`` False, the printed line) and the exit code is 130. An
+interrupt before the first frame was tracked (set-up, compilation) writes nothing (exit 130).
 """
 
 from __future__ import annotations
@@ -23,7 +32,9 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import json
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,6 +50,7 @@ from jaxmocap.camera import Camera, load_cameras, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
+from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
 
 __all__ = [
@@ -60,6 +72,11 @@ BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
          ("l_wrist", "l_hand"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"),
          ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
 OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
+# The particle filter's compile time grows with the particle count (XLA folds constants of
+# that size): 10,000,000 compiles for minutes; 100x the paper's 1000 is the bound.
+MAX_PARTICLES = 100_000
+MIN_BASELINE_M = 1e-3  # stereo: camera centres closer than this triangulate nothing
+EXIT_INTERRUPTED = 130
 
 EPILOG = """examples:
   # the colour shirt, two recorded cameras
@@ -72,10 +89,19 @@ EPILOG = """examples:
       --max-frames 300 --show
 
 outputs in --out: poses.bvh poses.trc poses.c3d poses.csv poses.npz (see --formats),
-diagnostics.csv, overlay.mp4 (--overlay: H.264 at the capture's frame rate).
-Exit codes: 0 done, 1 done but some frames were unreadable (reported), 2 bad input (nothing
-written).
+diagnostics.csv, run.json, overlay.mp4 (--overlay: H.264 at the capture's frame rate). An
+--out holding an earlier run's results is refused unless --overwrite (the earlier set is then
+replaced as a whole). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
+2 bad input (nothing written), 130 interrupted (Ctrl-C or SIGTERM: the frames tracked so far,
+marked partial in run.json and poses.npz; nothing if interrupted before the first frame).
 """
+
+
+def result_names() -> set[str]:
+    """The files a run may leave in ``--out`` (its result set; with ``eval.json``, which
+    `jaxmocap eval` writes there from those poses)."""
+    return {f"poses.{f}" for f in FORMATS} | {"diagnostics.csv", "run.json", "overlay.mp4",
+                                              "eval.json"}
 
 
 class FrameResult(NamedTuple):
@@ -234,8 +260,9 @@ class StereoPFFrameTracker:
         if len(cams) != 2:
             raise InputError(f"--method pf needs exactly 2 cameras (a stereo pair), "
                              f"cameras.json has {len(cams)}")
-        if n_particles < 10:
-            raise InputError(f"--particles must be >= 10, got {n_particles}")
+        if not 10 <= n_particles <= MAX_PARTICLES:
+            raise InputError(f"--particles must be between 10 and {MAX_PARTICLES:,}, got "
+                             f"{n_particles}")
         self._pf, self._blobs = stereo_pf, blobs
         segment = None
         if skin == "synth":
@@ -305,16 +332,31 @@ def _diagnostics_csv(names: Sequence[str], rows: list[tuple[int, bool, bool, dic
     return buf.getvalue()
 
 
+class Tracked(NamedTuple):
+    """What :func:`track_frames` produced: q (T, n_dof) (NaN rows where not tracked), valid
+    (T,), the diagnostics rows, and the interrupt that ended the loop early (None: it ran to
+    the end of the input or ``--max-frames``; else "SIGINT" or "SIGTERM")."""
+
+    q: np.ndarray
+    valid: np.ndarray
+    rows: list
+    interrupted: str | None
+
+
 def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, out: Path,
                  fps: float, overlay: bool = False, show: bool = False,
-                 progress: bool = True) -> tuple[np.ndarray, np.ndarray, list]:
+                 progress: bool = True) -> Tracked:
     """Drive ``tracker`` over ``reader``; the overlay video (if asked) goes into ``files``.
-    Returns q (T, n_dof) (NaN rows where not tracked), valid (T,), diagnostics rows."""
+    A Ctrl-C / SIGTERM during the loop ends it (``interrupted``), keeping every frame
+    completed before it; one before any frame was stepped propagates (nothing to keep)."""
     from tqdm import tqdm
+
+    from jaxmocap.cli import Terminated
 
     n_dof = tracker.body.n_dof
     qs, valid, rows = [], [], []
     writer, started, size = None, False, None
+    interrupted = None
     try:
         for t, frames in tqdm(reader, total=reader.n_frames, disable=not progress,
                               desc="tracking", unit="frame"):
@@ -345,12 +387,16 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 cv2.imshow("jaxmocap track", view[..., ::-1])
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
                     break
-    except KeyboardInterrupt:  # a live capture is ended with Ctrl-C: keep what was tracked
-        print("interrupted: writing the frames tracked so far", file=sys.stderr)
+    except KeyboardInterrupt as err:  # e.g. a live capture ended with Ctrl-C
+        n = min(len(qs), len(valid), len(rows))  # a frame half-appended is dropped
+        if not any(r[1] for r in rows[:n]):
+            raise  # set-up or compiling the first step: nothing tracked, nothing written
+        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
+        del qs[n:], valid[n:], rows[n:]
     finally:
         if writer is not None:
             writer.close()
-    return np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows
+    return Tracked(np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows, interrupted)
 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
@@ -368,6 +414,9 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
         raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
     color = load_color_model(args.colors)
     garment = garment_from_args(args, body, color if args.garment else None)
+    if color.n_colors != garment.n_colours:  # before the database, which may be built first
+        raise InputError(f"{args.colors}: the colour model has {color.n_colors} colours, the "
+                         f"shirt has {garment.n_colours}; fit one colour per shirt colour")
     W0 = None
     if args.white_balance:
         from jaxmocap.commands.colors import load_white_balance
@@ -392,7 +441,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     if args.db:
         try:
             check_database_for(args.db, database_meta(args.db), body, garment)
-            db = load_database(args.db)
+            db = load_database(args.db, model=body)
         except FileNotFoundError:
             raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
                              "build-db --out FILE.npz`)") from None
@@ -426,10 +475,12 @@ def add_parser(sub) -> None:
                    help="also write overlay.mp4 (skeleton, classified colours for shirt)")
     p.add_argument("--show", action="store_true",
                    help="show the current pose in a window (needs a display)")
-    p.add_argument("--max-frames", type=int, metavar="N",
+    p.add_argument("--max-frames", type=int_range(1), metavar="N",
                    help="stop after N frames (needed to end a live capture without Ctrl-C)")
-    p.add_argument("--fps", type=float,
+    p.add_argument("--fps", type=positive_float,
                    help=f"frame rate of the outputs (default: the video's, else {DEFAULT_FPS:g})")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in --out (as a whole set)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     from jaxmocap.commands._body import add_body_args
 
@@ -446,17 +497,52 @@ def add_parser(sub) -> None:
     g.add_argument("--ik-cov", metavar="COV_NPZ",
                    help="IK covariances (.npz, jaxmocap.ik.IKCovariances.save); default: the "
                    "bundled trained ones (jaxmocap.trackers.shirt.trained_covariances)")
-    g.add_argument("--work-size", type=int, metavar="PX",
+    g.add_argument("--work-size", type=int_range(16, 1024, "pixels"), metavar="PX",
                    help="side of the resampled crop the shirt is classified in (default: "
                    "the tracker's, 128)")
     g = p.add_argument_group("particle filter (--method pf)")
-    g.add_argument("--particles", type=int, default=1000,
-                   help="number of particles (default: %(default)s, Azad §V)")
+    g.add_argument("--particles", type=int_range(10, MAX_PARTICLES, "compile time grows with "
+                                                 "the count"), default=1000,
+                   help=f"number of particles, 10..{MAX_PARTICLES:,} (default: %(default)s, "
+                   "Azad §V)")
     g.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     g.add_argument("--skin", choices=("default", "synth"), default="default",
                    help="skin colour interval: default, or synth for jaxmocap synth scenes "
                    "(default: %(default)s)")
     p.set_defaults(func=run)
+
+
+def _inputs(args) -> list:
+    """Every file or folder the command reads (camera indices are not paths)."""
+    srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
+    return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
+            getattr(args, "body", None), getattr(args, "garment", None)]
+
+
+def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> None:
+    """The stereo particle filter's needs: one image size (its blob and edge maps are stacked
+    per camera) and two distinct centres (the baseline triangulates the head and hands)."""
+    sizes = {(int(c.width), int(c.height)) for c in cams}
+    if len(sizes) > 1:
+        listing = ", ".join(f"{n} {int(c.width)}x{int(c.height)}"
+                            for n, c in zip(names, cams, strict=True))
+        raise InputError(f"{path}: --method pf needs cameras of one image size, got {listing}")
+    if len(cams) == 2:
+        centres = [-np.asarray(c.R, np.float64).T @ np.asarray(c.t, np.float64) for c in cams]
+        base = float(np.linalg.norm(centres[0] - centres[1]))
+        if not base >= MIN_BASELINE_M:
+            raise InputError(f"{path}: cameras {names[0]!r} and {names[1]!r} are {base:.2g} m "
+                             f"apart: a stereo pair needs distinct centres (>= "
+                             f"{MIN_BASELINE_M * 1e3:g} mm baseline) to triangulate")
+
+
+def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) -> str:
+    doc = {"format": "jaxmocap.track_run", "version": 1,
+           "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
+           "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
+           "frames_readable": reader.n_read, "frames_in_input": n_frames,
+           "method": args.method, "inputs": [str(i) for i in args.inputs]}
+    return json.dumps(doc, indent=2) + "\n"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -467,13 +553,21 @@ def run(args: argparse.Namespace) -> int:
     if unknown or not formats:
         raise InputError(f"--formats {args.formats!r}: expected a comma-separated subset of "
                          f"{','.join(FORMATS)}")
-    if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
-        raise InputError(f"--fps must be a positive number, got {args.fps}")
+    names_out = result_names()
+    check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
+    stale = check_stale(out, names_out, args.overwrite)
     cams, names = load_cameras(args.cameras)
+    real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]
+    dup = next((i for i, r in enumerate(real) if real.index(r) != i), None)
+    if dup is not None:
+        raise InputError(f"{args.inputs[dup]}: given for two cameras ({real.index(real[dup])} "
+                         f"and {dup}); give each camera its own video, frame folder or index")
     if len(args.inputs) != len(cams):
         raise InputError(f"{len(args.inputs)} inputs given for the {len(cams)} cameras of "
                          f"{args.cameras} ({', '.join(names)}); give one input per camera, in "
                          "that order")
+    if args.method == "pf":
+        check_stereo_cameras(cams, names, args.cameras)
     if args.show and not _has_display():
         raise InputError("--show needs a display and OpenCV with GUI support (no DISPLAY, or "
                          "opencv-python-headless); run without --show (use --overlay to get "
@@ -482,19 +576,40 @@ def run(args: argparse.Namespace) -> int:
                     args.max_frames) as reader:
         fps = args.fps or reader.fps or DEFAULT_FPS
         tracker = _make_tracker(args, cams, names)
-        with AtomicFiles() as files:
-            q, valid, rows = track_frames(tracker, reader, files, out, fps, args.overlay,
-                                          args.show, progress=not args.quiet)
+        with AtomicFiles(out) as files:
+            files.replace_set(stale)
+            tracked = track_frames(tracker, reader, files, out, fps, args.overlay,
+                                   args.show, progress=not args.quiet)
             if reader.n_read == 0:
                 raise InputError(f"no readable frames in the inputs: {reader.problems()}")
-            track = pose_track(tracker.body, q, valid, fps)
-            write_exports(files, out, tracker.body, track, formats)
-            files.path(out / "diagnostics.csv").write_text(
-                _diagnostics_csv(tracker.diagnostic_names, rows))
-            targets = files.targets
+            # a second Ctrl-C must not leave the set half renamed: the writing is short
+            handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+            try:
+                track = pose_track(tracker.body, tracked.q, tracked.valid, fps)
+                write_exports(files, out, tracker.body, track, formats,
+                              complete=np.asarray(tracked.interrupted is None),
+                              frames_in_input=np.asarray(-1 if reader.n_frames is None
+                                                         else reader.n_frames, np.int64))
+                files.path(out / "diagnostics.csv").write_text(
+                    _diagnostics_csv(tracker.diagnostic_names, tracked.rows))
+                files.path(out / "run.json").write_text(
+                    _run_json(args, tracked, reader, reader.n_frames))
+                targets = files.targets
+                files.commit()  # while SIGINT is ignored
+            finally:
+                signal.signal(signal.SIGINT, handler)
         problems = reader.problems()
-    print(f"tracked {int(valid.sum())} of {len(valid)} frames ({reader.n_read} readable) -> "
-          + ", ".join(str(p) for p in targets))
+    valid = tracked.valid
+    summary = (f"tracked {int(valid.sum())} of {len(valid)} frames ({reader.n_read} readable) -> "
+               + ", ".join(str(p) for p in targets))
+    if tracked.interrupted:
+        total = "" if reader.n_frames is None else f" of {reader.n_frames}"
+        print(f"PARTIAL: interrupted ({tracked.interrupted}) after {len(valid)}{total} frames; "
+              + summary)
+        print(f"jaxmocap track: interrupted; wrote the {len(valid)} frames tracked so far, "
+              "marked partial (run.json, poses.npz 'complete')", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(summary)
     if problems:
         print(f"jaxmocap track: warning: {problems}; those frames are NaN in the outputs",
               file=sys.stderr)

@@ -1,9 +1,16 @@
 """Atomic file and folder writing: a target either keeps its old content or gets the new one.
 
-Every writer puts its bytes into a temporary name **in the target's own directory** (so the
+Every writer puts its bytes into a temporary name on the target's own file system (so the
 final ``os.replace`` is a rename within one file system, atomic on POSIX and Windows) and
-renames it into place only once the content is complete; on any exception the temporary is
-removed, so a failed command leaves no half-written file behind.
+renames it into place only once the content is complete; on any exception (Ctrl-C included)
+the temporary is removed, so a failed command leaves no half-written file behind.
+
+Temporaries are named ``.<stem>.jxm<pid>-<random>.tmp<suffix>``: a process killed with
+``kill -9`` cannot remove its own, so every later creation of a temporary in the same folder
+first **sweeps** the ones whose process is gone (:func:`sweep_temporaries`). An output
+*folder* of a command (``track --out``) gets its temporaries in a hidden **staging folder
+beside it** (:func:`staging_dir`, ``<parent>/.jaxmocap-staging``) so that nothing but complete
+results ever appears inside ``--out``, even after a kill.
 
 * :func:`atomic_write` — a context manager yielding an open file (text or binary);
 * :func:`write_text` / :func:`write_bytes` — one-shot helpers;
@@ -13,13 +20,15 @@ removed, so a failed command leaves no half-written file behind.
   nothing: nothing is renamed into place unless every output was written);
 * :func:`atomic_folder` — a whole folder built beside the target and renamed into place;
 * :func:`check_output_file` / :func:`check_output_folder` — refuse, before any work, targets
-  that cannot be written (an output folder that is a file, a file that is a folder).
+  that cannot be written (an output folder that is a file, a file that is a folder, a folder
+  where no file can be created: tried, not guessed from permission bits).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -36,6 +45,8 @@ __all__ = [
     "atomic_write",
     "check_output_file",
     "check_output_folder",
+    "staging_dir",
+    "sweep_temporaries",
     "write_bytes",
     "write_text",
 ]
@@ -45,17 +56,30 @@ class OutputPathError(InputError):
     """An output path that cannot be written (a folder where a file goes, or the reverse)."""
 
 
+def _probe_writable(folder: Path, purpose: str) -> None:
+    """Create and remove a file in ``folder``: the only reliable test (permission bits lie for
+    root, read-only mounts and ACLs)."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".jaxmocap-probe.jxm{os.getpid()}-", suffix=".tmp",
+                                   dir=folder)  # named like a temporary: swept if left
+    except OSError as e:
+        raise OutputPathError(f"{folder}: folder is not writable ({e.strerror}); {purpose}") \
+            from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
 def check_output_folder(folder: str | os.PathLike) -> Path:
-    """``folder`` as a Path if it is an existing folder or can be created (no file in the way
-    on it or on any of its parents, the nearest existing one writable); raises
+    """``folder`` as a Path if it is an existing writable folder or can be created (no file in
+    the way on it or on any of its parents, the nearest existing one writable); raises
     :class:`OutputPathError` otherwise."""
     folder = Path(folder)
     existing = next((p for p in (folder, *folder.parents) if p.exists()), Path("."))
     if not existing.is_dir():
         what = "the output folder" if existing == folder else f"a parent of {folder}"
         raise OutputPathError(f"{existing}: {what} is a file; choose a folder path")
-    if existing != folder and not os.access(existing, os.W_OK | os.X_OK):
-        raise OutputPathError(f"{existing}: folder is not writable; cannot create {folder}")
+    _probe_writable(existing, "cannot write the outputs there" if existing == folder
+                    else f"cannot create {folder}")
     return folder
 
 
@@ -65,13 +89,83 @@ def check_output_file(path: str | os.PathLike) -> Path:
     path = Path(path)
     if path.is_dir():
         raise OutputPathError(f"{path}: is a folder; expected an output file name")
+    if path.name in ("", ".", ".."):
+        raise OutputPathError(f"{path}: expected an output file name")
     check_output_folder(path.parent if str(path.parent) else Path("."))
     return path
 
 
-def _temp_name(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
-                               dir=path.parent)
+_TEMP = re.compile(r"^\..*\.jxm(\d+)-[^.]+\.tmp(\.[^.]*)?$")
+STAGING = ".jaxmocap-staging"
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def sweep_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries (files or folders named by this module) in ``folder`` whose
+    process no longer runs (killed before it could clean up); returns what was removed."""
+    folder = Path(folder)
+    removed = []
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return removed
+    for p in entries:
+        m = _TEMP.match(p.name)
+        if m and not _alive(int(m.group(1))):
+            with contextlib.suppress(OSError):
+                _remove(p)
+                removed.append(p)
+    return removed
+
+
+def staging_dir(folder: str | os.PathLike) -> Path:
+    """Where the temporaries of the outputs in ``folder`` are written: the hidden staging
+    folder beside ``folder`` when it is writable and on the same file system (``os.replace``
+    must stay a rename), else ``folder`` itself. Created if missing; swept of dead
+    temporaries."""
+    folder = Path(folder)
+    parent = folder.parent if str(folder.parent) else Path(".")
+    stage = parent / STAGING
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        stage.mkdir(exist_ok=True)
+        if os.stat(stage).st_dev != os.stat(folder).st_dev:
+            raise OSError("another file system")
+        _probe_writable(stage, "")
+    except (OSError, OutputPathError):
+        stage = folder
+    sweep_temporaries(stage)
+    return stage
+
+
+def _drop_staging(stage: Path) -> None:
+    """Remove an emptied staging folder (another run may still use it: then it stays)."""
+    if stage.name == STAGING:
+        with contextlib.suppress(OSError):
+            stage.rmdir()
+
+
+def _temp_prefix(name: str) -> str:
+    return f".{name}.jxm{os.getpid()}-"
+
+
+def _temp_name(path: Path, folder: Path | None = None) -> Path:
+    """A new empty temporary file for ``path``, in ``folder`` (default: beside ``path``)."""
+    folder = path.parent if folder is None else folder
+    sweep_temporaries(folder)
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.stem), suffix=f".tmp{path.suffix}",
+                               dir=folder)
     os.close(fd)
     return Path(tmp)
 
@@ -145,22 +239,37 @@ class AtomicFiles:
     ...     np.savez(out.path("poses.npz"), q=q)
     ...     write_csv(out.path("poses.csv"), ...)
 
-    :meth:`path` checks the target and returns a temporary path beside it (same suffix). When
-    the ``with`` block ends normally every temporary is renamed onto its target; when it
-    raises, every temporary is removed and no target is touched.
+    :meth:`path` checks the target and returns a temporary path (same suffix) beside it, or,
+    with ``folder`` (a command's output folder), in :func:`staging_dir` of that folder. When
+    the ``with`` block ends normally every temporary is renamed onto its target and the
+    paths given to :meth:`replace_set` that were not written are removed (an earlier run's
+    results are replaced as a whole set); when it raises, every temporary is removed and no
+    target is touched.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, folder: str | os.PathLike | None = None) -> None:
         self._pending: list[tuple[Path, Path]] = []
+        self._folder = None if folder is None else Path(folder)
+        self._stage: Path | None = None
+        self._stale: list[Path] = []
 
     def path(self, target: str | os.PathLike) -> Path:
         target = check_output_file(target)
         if any(t == target for t, _ in self._pending):
             raise ValueError(f"AtomicFiles: {target} requested twice")
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _temp_name(target)
+        if self._folder is not None and target.parent.resolve() == self._folder.resolve():
+            if self._stage is None:
+                self._stage = staging_dir(self._folder)
+            tmp = _temp_name(target, self._stage)
+        else:
+            tmp = _temp_name(target)
         self._pending.append((target, tmp))
         return tmp
+
+    def replace_set(self, paths) -> None:
+        """On commit, also remove each of ``paths`` that this group did not write."""
+        self._stale = [Path(p) for p in paths]
 
     @property
     def targets(self) -> list[Path]:
@@ -173,10 +282,20 @@ class AtomicFiles:
         if exc_type is not None:
             self.discard()
             return
+        self.commit()
+
+    def commit(self) -> None:
+        """Rename every temporary onto its target and remove the stale set (what ``with``
+        does at its end; a second call does nothing)."""
         try:
             for target, tmp in self._pending:
                 _publish(tmp, target)
+            written = {t.resolve() for t, _ in self._pending}
+            for p in self._stale:
+                if p.resolve() not in written and (p.is_file() or p.is_symlink()):
+                    p.unlink()
         finally:
+            self._stale = []
             self.discard()
 
     def discard(self) -> None:
@@ -184,6 +303,9 @@ class AtomicFiles:
         for _, tmp in self._pending:
             _remove(tmp)
         self._pending = []
+        if self._stage is not None:
+            _drop_staging(self._stage)
+            self._stage = None
 
 
 @contextlib.contextmanager
@@ -194,7 +316,9 @@ def atomic_folder(folder: str | os.PathLike) -> Iterator[Path]:
     if folder.is_dir() and any(folder.iterdir()):
         raise OutputPathError(f"{folder}: folder exists and is not empty; choose a new folder")
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    sweep_temporaries(folder.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(folder.name), suffix=".tmp",
+                                dir=folder.parent))
     try:
         yield tmp
         if folder.is_dir():

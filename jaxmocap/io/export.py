@@ -297,11 +297,9 @@ def write_exports(files: AtomicFiles, folder: str | os.PathLike, model: BodyMode
 
 
 def _load_npz(path: Path) -> PoseTrack:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise PoseFileError(f"{path}: not a readable .npz file ({e})") from None
+    from jaxmocap.io.preflight import read_npz
+
+    data = read_npz(path, "a pose .npz (keypoints, keypoint_names)", error=PoseFileError)
     if "keypoints" not in data:
         raise PoseFileError(f"{path}: field 'keypoints' missing (expected (T, n_keypoints, 3))")
     kp = np.asarray(data["keypoints"], np.float64)
@@ -396,6 +394,8 @@ def load_track(path: str | os.PathLike) -> PoseTrack:
     ``keypoints`` + ``keypoint_names`` (e.g. a synthetic dataset's ``groundtruth.npz``).
     Raises :class:`PoseFileError` naming the file and field."""
     path = Path(path)
+    if path.is_dir():
+        raise PoseFileError(f"{path}: is a folder; expected a pose file (.npz or .csv)")
     if not path.is_file():
         raise PoseFileError(f"{path}: no such file")
     suffix = path.suffix.lower()

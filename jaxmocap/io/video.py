@@ -19,7 +19,11 @@ not open, mixed live and recorded sources, and sources with no frames.
 **Damaged input is tracked as far as it is readable.** A frame that cannot be decoded (a
 corrupt or empty image file, a frame of another size, a video that ends before the number of
 frames its header declares — a truncated file) is yielded as ``None`` for that instant and
-recorded; :meth:`SyncReader.problems` sums them up in one line for the user.
+recorded; :meth:`SyncReader.problems` sums them up in one line for the user. A video frame
+during whose decoding FFmpeg reported an error (``illegal dc vlc``, ``Error at MB``,
+``concealing errors``: the decoder returns a picture, but a damaged one) counts as unreadable
+too: FFmpeg's messages (error level, ``OPENCV_FFMPEG_LOGLEVEL=16``) are read from the process's
+stdout/stderr while a frame is decoded (:class:`_DecoderLog`), not shown to the user.
 
 **Writing** (overlay videos): :class:`VideoWriter` encodes RGB frames as **H.264 in MP4**
 (``yuv420p``, even width and height, ``+faststart``: what web browsers play) at the given
@@ -29,8 +33,11 @@ Part 2 (``mp4v``) and says so in one line.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import sys
+import tempfile
 from collections.abc import Iterator, Sequence
 from fractions import Fraction
 from pathlib import Path
@@ -58,11 +65,61 @@ class VideoError(InputError):
 
 
 def quiet_ffmpeg() -> None:
-    """Silence FFmpeg's and OpenCV's own console messages about damaged files (we report
-    damaged frames ourselves, in one line)."""
-    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
-    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    """Keep FFmpeg's and OpenCV's own console messages about damaged files off the console:
+    OpenCV's are silenced, FFmpeg's errors are read while each frame is decoded
+    (:class:`_DecoderLog`) and reported by us, in one line."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "16")  # AV_LOG_ERROR
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+class _DecoderLog:
+    """What FFmpeg prints while a call runs (OpenCV's FFmpeg log callback writes with C
+    ``printf`` to stdout, FFmpeg's own to stderr): both file descriptors are pointed at a
+    temporary file for the call. POSIX only (elsewhere nothing is captured)."""
+
+    def __init__(self) -> None:
+        self._ok = os.name == "posix"
+        self._file = tempfile.TemporaryFile() if self._ok else None
+        try:
+            self._libc = ctypes.CDLL(None) if self._ok else None
+        except OSError:
+            self._libc = None
+
+    def _flush(self) -> None:
+        for f in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                f.flush()
+        if self._libc is not None:
+            self._libc.fflush(None)
+
+    @contextlib.contextmanager
+    def capture(self) -> Iterator[list[str]]:
+        lines: list[str] = []
+        if not self._ok:
+            yield lines
+            return
+        self._flush()
+        saved = [os.dup(1), os.dup(2)]
+        try:
+            os.dup2(self._file.fileno(), 1)
+            os.dup2(self._file.fileno(), 2)
+            yield lines
+        finally:
+            self._flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            self._file.seek(0)
+            text = self._file.read().decode("utf-8", "replace")
+            self._file.seek(0)
+            self._file.truncate()
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
 
 
 class FrameSource:
@@ -108,7 +165,10 @@ class _Folder(FrameSource):
     def _load(p: Path) -> np.ndarray | None:
         if p.stat().st_size == 0:
             return None
-        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        try:
+            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        except cv2.error:
+            return None
         return None if img is None or img.size == 0 else img
 
     def read(self) -> np.ndarray | None:
@@ -129,8 +189,14 @@ class _Folder(FrameSource):
 class _Capture(FrameSource):
     def __init__(self, spec: str | int, name: str, live: bool):
         self.name = name
-        self.cap = cv2.VideoCapture(spec, cv2.CAP_ANY if live else cv2.CAP_FFMPEG)
+        self.log = _DecoderLog()
+        with self.log.capture():  # FFmpeg's complaints about a bad file: we say it in one line
+            try:
+                self.cap = cv2.VideoCapture(spec, cv2.CAP_ANY if live else cv2.CAP_FFMPEG)
+            except cv2.error:
+                self.cap = cv2.VideoCapture()
         if not self.cap.isOpened():
+            self.log.close()
             self.cap.release()
             if live:
                 raise VideoError(f"camera index {spec}: cannot be opened (no such camera, or "
@@ -145,6 +211,7 @@ class _Capture(FrameSource):
         self.n_frames = None if live else count
         if not live and count <= 0:
             self.cap.release()
+            self.log.close()
             raise VideoError(f"{name}: the video declares no frames (empty file?)")
         self._t = 0
         self.ended_at: int | None = None
@@ -156,7 +223,11 @@ class _Capture(FrameSource):
         self._t += 1
         if self.ended_at is not None:
             return None
-        ok, img = self.cap.read()
+        with self.log.capture() as damage:
+            try:
+                ok, img = self.cap.read()
+            except cv2.error:
+                ok, img = False, None
         if not ok or img is None or img.size == 0:
             if self.n_frames is None:
                 raise StopIteration  # a live camera stopped delivering
@@ -165,10 +236,15 @@ class _Capture(FrameSource):
         if img.shape[:2] != (self.height, self.width):
             self.errors.append(f"frame {self._t - 1} is {img.shape[1]}x{img.shape[0]}")
             return None
+        if damage:
+            msg = damage[0].split("] ", 1)[-1]
+            self.errors.append(f"frame {self._t - 1} damaged (decoder: {msg})")
+            return None
         return np.ascontiguousarray(img[..., ::-1])
 
     def close(self) -> None:
         self.cap.release()
+        self.log.close()
 
 
 def open_source(spec: str | os.PathLike) -> FrameSource:

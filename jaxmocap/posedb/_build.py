@@ -169,28 +169,64 @@ def build_arrays(
 
 
 def save_database(path: str | Path, maps: np.ndarray, poses: np.ndarray, meta: dict) -> Path:
-    """Write a database ``.npz`` (compressed, written to a temporary name then renamed)."""
+    """Write a database ``.npz`` (compressed) atomically (:mod:`jaxmocap.io.atomic`)."""
+    from ..io.atomic import atomic_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, maps=maps, poses=poses, meta=np.array(json.dumps(meta)))
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, maps=maps, poses=poses, meta=np.array(json.dumps(meta)))
     return path
 
 
-def load_database(path: str | Path, key: str | None = None) -> PoseDB:
-    """Load a database ``.npz`` written by :func:`save_database` (checking ``key`` if given)."""
+META_FIELDS = ("key", "n_colours", "dof_names")  # what loading needs from ``meta``
+
+
+def load_database(path: str | Path, key: str | None = None,
+                  model: BodyModel | None = None) -> PoseDB:
+    """Load a database ``.npz`` written by :func:`save_database`, checking its structure (the
+    arrays, the ``meta`` fields), ``key`` if given, and, with ``model``, that its poses are
+    of that body (DOF count and names): a database of another body is refused here, not deep
+    inside forward kinematics. Raises :class:`DatabaseError` (one line, file named);
+    ``FileNotFoundError`` if there is no file."""
+    from ..io.preflight import read_npz
+
     path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(path)
+    what = "a pose database .npz of `jaxmocap build-db` (arrays maps, poses, meta)"
+    arrays = read_npz(path, what, ("maps", "poses", "meta"), DatabaseError)
+    maps, poses = arrays["maps"], arrays["poses"]
     try:
-        with np.load(path) as f:
-            maps, poses, meta = f["maps"], f["poses"], json.loads(str(f["meta"]))
-    except FileNotFoundError:
-        raise
-    except (KeyError, ValueError, OSError) as err:
-        raise DatabaseError(f"{path}: not a pose database .npz (expected arrays maps, poses, "
-                            f"meta): {err}") from None
+        meta = json.loads(str(arrays["meta"]))
+    except (ValueError, RecursionError):
+        meta = None
+    if not isinstance(meta, dict):
+        raise DatabaseError(f"{path}: field 'meta': expected a JSON object ({what})")
+    missing = [f for f in META_FIELDS if f not in meta]
+    if missing:
+        raise DatabaseError(f"{path}: field 'meta.{missing[0]}' missing ({what})")
+    if not isinstance(meta["n_colours"], int) or not isinstance(meta["dof_names"], list):
+        raise DatabaseError(f"{path}: field 'meta': n_colours must be an integer and dof_names "
+                            "a list")
+    if poses.ndim != 2 or poses.shape[1] != len(meta["dof_names"]) \
+            or not np.issubdtype(poses.dtype, np.floating):
+        raise DatabaseError(f"{path}: field 'poses': expected float (n, {len(meta['dof_names'])}) "
+                            f"for its {len(meta['dof_names'])} meta.dof_names, got "
+                            f"{poses.dtype} {poses.shape}")
     if key is not None and meta.get("key") != key:
         raise DatabaseError(f"{path}: meta.key is {meta.get('key')!r}, expected {key!r}")
+    if model is not None:
+        names = list(model.chain.dof_names)
+        if poses.shape[1] != len(names):
+            raise DatabaseError(f"{path}: built for a body with {poses.shape[1]} DOFs, the body "
+                                f"has {len(names)}; build a database for this body "
+                                "(`jaxmocap build-db`)")
+        if [str(n) for n in meta["dof_names"]] != names:
+            bad = next(i for i, (a, b) in enumerate(zip(meta["dof_names"], names, strict=True))
+                       if a != b)
+            raise DatabaseError(f"{path}: DOF {bad} is {meta['dof_names'][bad]!r} in the "
+                                f"database, {names[bad]!r} in the body; build a database for "
+                                "this body (`jaxmocap build-db`)")
     return make_posedb(maps, poses, int(meta["n_colours"]), key=str(meta["key"]))
 
 
@@ -275,7 +311,7 @@ def load_or_build(
     key = database_key(config, model, garment)
     path = cache_path(key, cache)
     if path.exists():
-        return load_database(path, key)
+        return load_database(path, key, model)
     return build_database(config, model, garment, out=path, progress=progress)
 
 
@@ -300,6 +336,8 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..cli import UsageError
     from ..commands._body import body_from_args, garment_from_args
+    from ..io.atomic import check_output_file
+    from ..io.preflight import check_outputs
 
     try:
         config = SamplingConfig(size=args.size, seed=args.seed).validate()
@@ -311,9 +349,12 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if out.suffix != ".npz":
             raise UsageError(f"--out {args.out}: expected a path ending in .npz")
+        check_output_file(out)
+        check_outputs([out], [args.body, args.garment])
         db = build_database(config, model, garment, out=out, progress=not args.quiet)
         where = out
     else:
+        check_output_file(cache_path(database_key(config, model, garment)))
         db = load_or_build(config, model, garment, progress=not args.quiet)
         where = cache_path(db.key)
     print(f"pose database: {db.size} poses, key {db.key}, {where}")

@@ -20,8 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -76,9 +74,9 @@ def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
     if not (video or png):
         raise DatasetError("write_dataset: nothing to write; ask for video and/or png frames")
     _check_target(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
+    from jaxmocap.io.atomic import atomic_folder
+
+    with atomic_folder(folder) as tmp:
         t, n_cams, h, w, _ = seq.frames.shape
         render_info = {"dtype": dtype_name or str(seq.groundtruth["q"].dtype), "n_frames": t,
                        "cameras": list(seq.camera_names), "width": w, "height": h,
@@ -97,16 +95,6 @@ def write_dataset(seq: Sequence, folder: str | os.PathLike, video: bool = True,
                 (tmp / name).mkdir()
                 for k in range(t):
                     cv2.imwrite(str(tmp / name / f"{k:06d}.png"), seq.frames[k, c, ..., ::-1])
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700 folders
-        _check_target(folder)
-        if folder.is_dir():
-            folder.rmdir()
-        os.rename(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder
 
 
@@ -304,13 +292,10 @@ def config_from_args(args: argparse.Namespace) -> SceneConfig:
     """The SceneConfig of the command line (over a ``--scene`` file when given)."""
     base: dict = {}
     if args.scene:
+        from jaxmocap.io.preflight import read_json
+
         path = Path(args.scene)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise DatasetError(f"{path}: no such scene file") from None
-        except json.JSONDecodeError as e:
-            raise DatasetError(f"{path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+        doc = read_json(path, "a scene.json of `jaxmocap synth`", DatasetError)
         if not isinstance(doc, dict) or not isinstance(doc.get("scene"), dict):
             raise DatasetError(f"{path}: field 'scene': expected an object of settings")
         base = dict(doc["scene"])
@@ -338,6 +323,9 @@ def run(args: argparse.Namespace) -> int:
         raise DatasetError("--no-video needs --png (otherwise no frames would be written)")
     config = config_from_args(args)
     _check_target(Path(args.out))
+    from jaxmocap.io.atomic import check_output_folder
+
+    check_output_folder(args.out)
     t0 = time.perf_counter()
     seq = render_sequence(config, progress=not args.quiet)
     dt = time.perf_counter() - t0
