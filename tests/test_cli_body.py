@@ -90,26 +90,28 @@ def test_build_db_for_your_body_and_refusal(tmp_path, capsys):
 
     cv2.imwrite(str(tmp_path / "cam0" / "0.png"), np.zeros((24, 32, 3), np.uint8))
     from jaxmocap.color import ColorModel, save_color_model
+    from jaxmocap.garment import default_garment
 
-    n = garment.n_colours
-    save_color_model(tmp_path / "colors.json", ColorModel(
-        mean=jnp.asarray(garment.colours) * 200 + 20, cov=jnp.stack([jnp.eye(3) * 50.0] * n),
-        names=garment.colour_names))  # fmt: skip
+    for name, g in (("colors", garment), ("colors10", default_garment(default_body()))):
+        save_color_model(tmp_path / f"{name}.json", ColorModel(
+            mean=jnp.asarray(g.colours) * 200 + 20,
+            cov=jnp.stack([jnp.eye(3) * 50.0] * g.n_colours), names=g.colour_names))  # fmt: skip
     out = tmp_path / "out"
     base = ["track", "--cameras", str(tmp_path / "cams.json"), str(tmp_path / "cam0"),
-            "--colors", str(tmp_path / "colors.json"), "--db", str(db), "--out", str(out),
-            "--quiet"]  # fmt: skip
+            "--db", str(db), "--out", str(out), "--quiet"]  # fmt: skip
+    c3 = ["--colors", str(tmp_path / "colors.json")]
+    c10 = ["--colors", str(tmp_path / "colors10.json")]
     other = json.loads((tmp_path / "garment.json").read_text())  # same patches, other dyes
     for c in other["colours"]:
         c["rgb"] = [min(1.0, v + 0.05) for v in c["rgb"]]
     (tmp_path / "other.json").write_text(json.dumps(other))
-    for extra, what in (([], "built for another body"),
-                        (["--body", str(body_file), "--garment", str(tmp_path / "other.json")],
+    for extra, what in ((c10, f"built for a body with {body.n_dof} DOFs"),
+                        (c3 + ["--body", str(body_file), "--garment", str(tmp_path / "other.json")],
                          "built for another shirt")):  # fmt: skip
         rc = main(base + extra)
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and what in err[0] and str(db) in err[0], err
         assert not out.exists()
-    rc = main(base + ["--method", "pf", "--garment", str(tmp_path / "garment.json")])
+    rc = main(base + c3 + ["--method", "pf", "--garment", str(tmp_path / "garment.json")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and "--garment describes the colour shirt" in err[-1]

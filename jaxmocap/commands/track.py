@@ -430,18 +430,11 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             cov = IKCovariances.load(args.ik_cov)
         except ValueError as e:
             raise InputError(str(e)) from None
-    from jaxmocap.posedb import (
-        DatabaseError,
-        check_database_for,
-        database_meta,
-        load_database,
-        load_or_build,
-    )
+    from jaxmocap.posedb import DatabaseError, load_database, load_or_build
 
     if args.db:
         try:
-            check_database_for(args.db, database_meta(args.db), body, garment)
-            db = load_database(args.db, model=body)
+            db = load_database(args.db, model=body, garment=garment)
         except FileNotFoundError:
             raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
                              "build-db --out FILE.npz`)") from None

@@ -19,9 +19,8 @@ from ._build import (
     add_parser,
     build_database,
     cache_path,
-    check_database_for,
+    check_built_for,
     database_key,
-    database_meta,
     load_database,
     load_or_build,
     render_maps,
@@ -65,8 +64,8 @@ from ._search import (
 )
 
 __all__ = [
-    "CODE_VERSION", "add_parser", "build_database", "cache_path", "check_database_for",
-    "database_key", "database_meta",
+    "CODE_VERSION", "add_parser", "build_database", "cache_path", "check_built_for",
+    "database_key",
     "load_database", "load_or_build", "render_maps", "run", "save_database",
     "CANON_DISTANCE", "DEFAULT_SIZE", "Mirror", "SamplingConfig", "SamplingError",
     "canonical_camera", "mirror_pose", "mirror_table", "pose_in_camera", "sample_poses",

@@ -182,12 +182,13 @@ META_FIELDS = ("key", "n_colours", "dof_names")  # what loading needs from ``met
 
 
 def load_database(path: str | Path, key: str | None = None,
-                  model: BodyModel | None = None) -> PoseDB:
+                  model: BodyModel | None = None, garment: Garment | None = None) -> PoseDB:
     """Load a database ``.npz`` written by :func:`save_database`, checking its structure (the
     arrays, the ``meta`` fields), ``key`` if given, and, with ``model``, that its poses are
     of that body (DOF count and names): a database of another body is refused here, not deep
-    inside forward kinematics. Raises :class:`DatabaseError` (one line, file named);
-    ``FileNotFoundError`` if there is no file."""
+    inside forward kinematics. With ``model`` and ``garment`` it must also have been built for
+    exactly them (the digests its ``meta`` records, :func:`check_built_for`). Raises
+    :class:`DatabaseError` (one line, file named); ``FileNotFoundError`` if there is no file."""
     from ..io.preflight import read_npz
 
     path = Path(path)
@@ -227,6 +228,8 @@ def load_database(path: str | Path, key: str | None = None,
             raise DatabaseError(f"{path}: DOF {bad} is {meta['dof_names'][bad]!r} in the "
                                 f"database, {names[bad]!r} in the body; build a database for "
                                 "this body (`jaxmocap build-db`)")
+        if garment is not None:
+            check_built_for(path, meta, model, garment)
     return make_posedb(maps, poses, int(meta["n_colours"]), key=str(meta["key"]))
 
 
@@ -239,20 +242,7 @@ def _meta(key: str, config: SamplingConfig, model: BodyModel, garment: Garment) 
             "garment_digest": garment_digest(garment)}
 
 
-def database_meta(path: str | Path) -> dict:
-    """The ``meta`` record of a database file (one :class:`DatabaseError` line if unreadable)."""
-    path = Path(path)
-    try:
-        with np.load(path) as f:
-            return json.loads(str(f["meta"]))
-    except FileNotFoundError:
-        raise
-    except (KeyError, ValueError, OSError, EOFError) as err:
-        raise DatabaseError(f"{path}: not a pose database .npz (expected arrays maps, poses, "
-                            f"meta): {err}") from None
-
-
-def check_database_for(path: str | Path, meta: dict, model: BodyModel, garment: Garment) -> None:
+def check_built_for(path: str | Path, meta: dict, model: BodyModel, garment: Garment) -> None:
     """Refuse, in one line, a database built for another body or shirt than ``model`` and
     ``garment`` (the digests recorded in its ``meta`` at build time)."""
     from ..body import body_digest
