@@ -360,12 +360,17 @@ def test_grad_wrt_log_covariances_matches_finite_differences(scene, frame, rng):
     theta = jnp.log(jnp.concatenate([jnp.array([1.5, 2.5]), rng.uniform(0.01, 0.05, 2 * n)]))
     g = jax.jit(jax.grad(loss))(theta)
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 1e-6
-    h = 1e-3  # central differences: O(h^2) ~ 1e-6 relative; smaller h meets solver noise
+    # central differences: with h = 1e-2 the O(h^2) error stays < 1e-4 relative (the loss is
+    # smooth in the log-variances) while the loss differences (down to ~1e-6) stand far above
+    # the solver's convergence noise (~1e-10 of the loss); h = 1e-3 met that noise on the
+    # small-derivative directions (0.4% off with optimistix 0.1)
+    h = 1e-2
     dirs = [np.eye(theta.size)[k] for k in (0, 1, 2 + 15, 2 + n + 15)] + list(
         rng.normal(size=(2, theta.size))
     )
+    loss_jit = jax.jit(loss)  # one compiled solve on both sides (eager calls differ ~1e-7)
     for d in dirs:
-        fd = (loss(theta + h * d) - loss(theta - h * d)) / (2 * h)
+        fd = (loss_jit(theta + h * d) - loss_jit(theta - h * d)) / (2 * h)
         an = float(g @ d)
         assert abs(an - fd) <= 1e-3 * abs(fd) + 1e-10, (an, fd)
 
