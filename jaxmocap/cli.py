@@ -23,6 +23,7 @@ SUBCOMMANDS = (
     "jaxmocap.commands.colors",
     "jaxmocap.commands.track",
     "jaxmocap.commands.evaluate",
+    "jaxmocap.experiment",
 )
 
 
