@@ -3,7 +3,7 @@
 A dataset folder of sequences (``jaxmocap synth`` folders) and a configuration file (named
 tracker configurations: method, body, garment, options, seeds; :mod:`.config`) give cells
 ``(sequence, configuration, seed)``; each is tracked once (:mod:`.cell`), its poses,
-diagnostics and metrics written to ``OUT/cells/`` (:mod:`.run`, resumable), and the summary
+diagnostics and metrics written to ``OUT/cells/`` (:mod:`.runner`, resumable), and the summary
 compares the configurations per sequence and overall (``summary.md/json/png``,
 :mod:`.summary`). Cells run in-process (``--workers 0``), on a local Dask cluster of
 single-threaded processes (``--workers N``, the default one per core) or on an existing
@@ -30,8 +30,8 @@ summary.md, summary.json, summary.png. Running again resumes: finished cells are
 
 
 def run_experiment(*args, **kwargs):
-    """:func:`jaxmocap.experiment.run.run_experiment` (imported lazily)."""
-    from jaxmocap.experiment.run import run_experiment as _run
+    """:func:`jaxmocap.experiment.runner.run_experiment` (imported lazily)."""
+    from jaxmocap.experiment.runner import run_experiment as _run
 
     return _run(*args, **kwargs)
 
