@@ -50,8 +50,8 @@ def dataset(tmp_path_factory) -> Path:
     for clip in CLIPS:
         assert main(["synth", str(root / clip), "--clip", clip, "--preset", "stereo",
                      "--garment", "single", "--background", "plain", "--frames", "3",
-                     "--width", "64", "--height", "48", "--png", "--no-video", "--no-colour-ids", "--quiet",
-                     "--seed", "0"]) == 0
+                     "--width", "64", "--height", "48", "--png", "--no-video",
+                     "--no-colour-ids", "--quiet", "--seed", "0"]) == 0
     return root
 
 

@@ -335,8 +335,8 @@ def test_per_clip_gradients_on_dask_workers_sum_to_the_in_process_loss(arm, ik_p
 
     _, theta, vg_all = ik_problem
     setup = arm[3]
-    clips = [make_observations(arm, np.random.default_rng(s), n_windows=1 + s, missing=0.3)
-             for s in (2, 3)]
+    clips = [make_observations(arm, np.random.default_rng(s), n_windows=1, missing=0.3)
+             for s in (2, 3)]  # stacked: the shapes of ik_problem's (compiled) observations
     stacked = jax.tree.map(lambda *a: jnp.concatenate(a), *clips)
     value, grad = vg_all(theta, setup, stacked)
     local_value, local_grad = clip_value_and_grad(setup, clips)(theta)

@@ -117,10 +117,12 @@ def run_on_cluster(specs: list[dict], fn: Callable[[dict], dict],
             futures[f.key] = (f, spec)
         for fut in as_completed([f for f, _ in futures.values()]):
             spec = futures[fut.key][1]
-            if fut.status == "finished":
-                accept(spec, fut.result())
+            try:  # waits again if the result was lost with a worker that died meanwhile
+                res = fut.result()
+            except Exception as e:  # raised in the cell (after the retries), KilledWorker
+                accept(spec, err=_one_line(e))
             else:
-                accept(spec, err=_one_line(fut.exception()))
+                accept(spec, res)
             fut.release()
     finally:
         client.close()
