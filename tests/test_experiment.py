@@ -144,17 +144,33 @@ def test_resume_skips_finished_cells_and_reruns_a_changed_config(sequential, dat
     CALLS.clear()
     run_experiment(dataset, cfg, sequential, workers=0, progress=False, cell_fn=counting_cell)
     assert len(CALLS) == 2
+    # a configuration that fails in every cell: reported in the summary, the run goes on
+    cfg.write_text(cfg.read_text() + "\n[[config]]\nname = 'broken'\nmethod = 'pf'\n"
+                   "[config.options]\nguided_fraction = 2.0\n")
+    assert main(["experiment", str(dataset), str(cfg), "--out", str(sequential),
+                 "--workers", "0", "--quiet"]) == 1
+    doc = json.loads((sequential / "summary.json").read_text())
+    assert doc["run"]["failed"] == 2 and doc["run"]["reused"] == 4
+    errors = [c["error"] for c in doc["cells"] if "error" in c]
+    assert len(errors) == 2 and all("guided_fraction: expected in [0, 1]" in e for e in errors)
+    assert "## Failed cells" in (sequential / "summary.md").read_text()
+    assert not any(p.name.endswith("__broken__0") for p in (sequential / "cells").iterdir())
+    write_config(sequential.parent)
 
 
-def test_local_cluster_equals_sequential_and_retries_a_killed_worker(sequential, dataset,
-                                                                     tmp_path):
+def test_dask_cluster_equals_sequential_and_retries_a_killed_worker(sequential, dataset,
+                                                                    tmp_path):
+    from jaxmocap.experiment.cluster import local_cluster
+
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     out = tmp_path / "dask"
-    # the workers get this process's XLA flags so that they read its compilation cache
+    # the workers get this process's XLA flags so that they read its compilation cache; the
+    # experiment reaches them through the scheduler's address, as --scheduler does
     env = {"XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
-    res = run_experiment(dataset, sequential.parent / "configs.toml", out, workers=2,
-                         progress=False, cell_fn=crash_once_cell, retries=0,
-                         cluster_kwargs={"env": env})
+    with local_cluster(2, env=env) as cluster:
+        res = run_experiment(dataset, sequential.parent / "configs.toml", out,
+                             scheduler=cluster.scheduler_address, progress=False,
+                             cell_fn=crash_once_cell, retries=0)
     crashed = list(dataset.parent.glob("crashed-*"))
     assert [p.name for p in crashed] == [f"crashed-{CLIPS[0]}__pf-b__1"]
     assert res["run"]["computed"] == 4 and res["run"]["failed"] == 0

@@ -14,7 +14,12 @@ B. ``tune``: the IK loss and gradient over ``N_CLIPS`` clips (bundled body, the 
    process, and one task per clip on 2 Dask workers; median of ``REPEATS`` evaluations after
    a warm-up.
 
-    python benchmarks/experiments/experiment_speed.py [A|B|AB]
+C. threads: one cell of A (default tracker, first sequence) in a fresh process with this
+   environment and with the workers' (:data:`jaxmocap.experiment.cluster.WORKER_ENV`): wall
+   time, CPU time (user + system) and the process's thread count at the end. CPU time above
+   the wall time means the process kept more than one core busy.
+
+    python benchmarks/experiments/experiment_speed.py [A|B|C|ABC]
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("JAXMOCAP_SPEED_DATA", "/tmp/jaxmocap_experiment_speed"))
 CLIPS = ("humanoid3d_punch", "humanoid3d_dance_b", "walker/turn_left0", "humanoid3d_walk")
-FRAMES = 20
+FRAMES = int(os.environ.get("JAXMOCAP_SPEED_FRAMES", "80"))
 CONFIG = """
 [[config]]
 name = "default"
@@ -62,7 +67,7 @@ def cli(*args: str) -> float:
 
 
 def part_a() -> dict:
-    data = DATA / "stereo"
+    data = DATA / f"stereo{FRAMES}"
     for clip in CLIPS:
         folder = data / clip.replace("/", "_")
         if not folder.exists():
@@ -71,10 +76,10 @@ def part_a() -> dict:
                 "--noise", "0.01", "--seed", "0", "--no-colour-ids", "--quiet")
     cfg = DATA / "speed.toml"
     cfg.write_text(CONFIG)
-    res = {"sequences": list(CLIPS), "frames": FRAMES, "configs": ["default", "azad"],
-           "particles": 1000}
+    res = {"sequences": list(CLIPS), "frames": FRAMES, "size": [320, 240],
+           "configs": ["default", "azad"], "particles": 1000}
     for mode, workers in (("sequential", "0"), ("workers2", "2")):
-        warm = DATA / f"warm_{mode}"
+        warm = DATA / f"warm_{mode}_{FRAMES}"
         if not warm.exists():
             cli("experiment", str(data), str(cfg), "--out", str(warm), "--workers", workers,
                 "--quiet")
@@ -173,14 +178,47 @@ def part_b() -> dict:
     return res
 
 
-def main(parts: str = "AB") -> None:
+CELL_SCRIPT = """
+import json, os, resource, sys, time
+t0 = time.perf_counter()
+from jaxmocap.experiment.config import load_config
+from jaxmocap.experiment.cell import compute_cell
+cfg = load_config(sys.argv[1]).configs[0].to_dict()
+out = compute_cell({"folder": sys.argv[2], "config": cfg, "seed": 0, "x64": False})
+r = resource.getrusage(resource.RUSAGE_SELF)
+print(json.dumps({"wall_s": time.perf_counter() - t0, "cpu_s": r.ru_utime + r.ru_stime,
+                  "threads": len(os.listdir("/proc/self/task")),
+                  "ms_per_frame": 1e3 * float(out["times"][1])}))
+"""
+
+
+def part_c() -> dict:
+    from jaxmocap.experiment.cluster import worker_env
+
+    folder = DATA / f"stereo{FRAMES}" / CLIPS[0]
+    res = {"uptime_before": uptime()}
+    for name, env in (("default", {}), ("worker_env", worker_env())):
+        for k in ("XLA_FLAGS", "OMP_NUM_THREADS"):  # start from this shell's settings
+            env.setdefault(k, os.environ.get(k, ""))
+        p = subprocess.run([sys.executable, "-c", CELL_SCRIPT, str(DATA / "speed.toml"),
+                            str(folder)], capture_output=True, text=True, check=True,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT), **env))
+        res[name] = json.loads(p.stdout.strip().splitlines()[-1])
+    res["uptime_after"] = uptime()
+    print(json.dumps(res))
+    return res
+
+
+def main(parts: str = "ABC") -> None:
     res = json.loads(OUT.read_text()) if OUT.exists() else {}
     if "A" in parts:
         res["experiment"] = part_a()
     if "B" in parts:
         res["tune"] = part_b()
+    if "C" in parts:
+        res["threads"] = part_c()
     OUT.write_text(json.dumps(res, indent=1) + "\n")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "AB")
+    main(sys.argv[1] if len(sys.argv) > 1 else "ABC")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
 from jaxmocap.experiment.config import ExperimentError, load_config
 
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"jaxmocap experiment: {st['cells']} cells ({st['computed']} computed, "
           f"{st['reused']} reused, {st['failed']} failed) in {st['wall_s']:.1f} s -> "
           f"{args.out}/summary.md")
-    for line in open(os.path.join(args.out, "summary.md")).read().splitlines()[4:]:
+    for line in Path(args.out, "summary.md").read_text().splitlines()[4:]:
         if line.startswith("|"):
             print(line)
     return 1 if st["failed"] else 0
