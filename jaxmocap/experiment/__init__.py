@@ -21,7 +21,7 @@ from jaxmocap.experiment.config import ExperimentError, load_config
 __all__ = ["ExperimentError", "add_parser", "load_config", "run", "run_experiment"]
 
 EPILOG = """examples:
-  jaxmocap experiment data/ benchmarks/experiments/ablations.toml --out results/ablations
+  jaxmocap experiment data/azad benchmarks/experiments/azad_accuracy.toml --out results/azad
   jaxmocap experiment world/ configs.toml --split world/split.json --subset dev --workers 2
   jaxmocap experiment data/ configs.toml --scheduler tcp://10.0.0.5:8786 --out results/x
 
