@@ -36,6 +36,7 @@ SUBCOMMANDS = (
     "jaxmocap.commands.evaluate",
     "jaxmocap.commands.body",
     "jaxmocap.synth.world.cli",
+    "jaxmocap.experiment",
 )
 
 

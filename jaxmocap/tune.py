@@ -318,17 +318,29 @@ def _window_loss(cov, setup, c, v, qb, qg, jitter_weight) -> tuple[Array, Array]
     return total, n
 
 
+def ik_loss_parts(
+    theta: IKTheta, setup: IKSetup, obs: IKObservations, jitter_weight: float = 0.0
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """``(sum of the per-frame errors, number of valid frames)`` over ``obs``'s windows:
+    :func:`ik_loss` is their ratio. Both add over disjoint sets of windows (clips), and the
+    count does not depend on ``theta`` (validity is the measured centroids'), so the loss and
+    its gradient over many clips are ``sum_c total_c / sum_c n_c`` and ``sum_c grad total_c /
+    sum_c n_c`` -- what :mod:`jaxmocap.experiment.tune_dask` computes per clip on workers."""
+    cov = ik_covariances(theta)
+    total, n = jax.vmap(lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight))(
+        obs.centroids, obs.visible, obs.q_b, obs.q_gt
+    )
+    return jnp.sum(total), jnp.sum(n)
+
+
 def ik_loss(
     theta: IKTheta, setup: IKSetup, obs: IKObservations, jitter_weight: float = 0.0
 ) -> Float[Array, ""]:
     """Mean per-joint position error (m) of the IK track over all windows' valid frames
     (+ ``jitter_weight`` x mean error of the joints' frame-to-frame displacement), as a
     function of the unconstrained covariances. Windows are vmapped."""
-    cov = ik_covariances(theta)
-    total, n = jax.vmap(lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight))(
-        obs.centroids, obs.visible, obs.q_b, obs.q_gt
-    )
-    return jnp.sum(total) / jnp.maximum(jnp.sum(n), 1.0)
+    total, n = ik_loss_parts(theta, setup, obs, jitter_weight)
+    return total / jnp.maximum(n, 1.0)
 
 
 def ik_closed_form(setup: IKSetup, obs: IKObservations) -> IKCovariances:

@@ -10,6 +10,11 @@ one layer per frame). Writes
 ``docs/results/stereo_pf_accuracy.json`` and ``docs/images/stereo_pf_accuracy.png``.
 
     python benchmarks/experiments/azad_accuracy.py [n_frames] [keys]
+
+The same table runs through ``jaxmocap experiment`` with ``azad_accuracy.toml`` (the dataset
+commands are in its header); this script remains for what the command does not do: one image
+line + blob tracker per clip shared by all rows (the command observes per cell), and the
+per-frame error plot ``docs/images/stereo_pf_accuracy.png``.
 """
 
 import json

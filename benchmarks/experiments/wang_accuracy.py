@@ -23,6 +23,14 @@ Writes ``docs/results/shirt_accuracy.json``, ``docs/images/shirt_fig9.png``,
 ``docs/images/shirt_fig10.png``.
 
     python benchmarks/experiments/wang_accuracy.py [small|full]
+
+Step 2 (the held-out variants) runs through ``jaxmocap experiment`` with
+``wang_accuracy.toml`` (the dataset commands are in its header; the command sets each
+sequence up with :func:`jaxmocap.trackers.shirt.setup_for_sequence`'s colour model, fitted on
+that sequence's camera, where this script fits one on a training sequence). This script
+remains for what the command does not do: training the covariances (step 1, writes
+``jaxmocap/trackers/shirt_ik_cov.npz``), the Fig. 10 shoulder traces and the recovery count
+(step 3).
 """
 
 from __future__ import annotations

@@ -1,0 +1,329 @@
+"""One cell of an experiment: a tracker configuration and a seed on one sequence.
+
+:func:`compute_cell` runs on a worker (or in-process): it loads the sequence, sets the tracker
+up the way a user sets up a capture session, tracks every frame and returns the raw poses,
+validity flags, per-frame diagnostics and timings. :func:`cell_metrics` turns them into the
+metrics (in the driver, which writes the cell's folder):
+
+* per-joint error (cm) through :func:`jaxmocap.commands.evaluate.evaluate` (the frames the
+  tracker reported valid) on the method's evaluated joints (the shirt: what its patches observe,
+  ``jaxmocap.demo.EVAL_JOINTS``; the stereo filter: Azad's shoulders, elbows and hands,
+  ``jaxmocap.demo.PF_JOINTS``);
+* the mean error over *all* frames of the raw estimate (what the accuracy scripts report: the
+  shirt tracker holds its last pose on an invalid frame), the share of frames whose reported
+  pose is within ``good_cm`` of the truth;
+* validity against the ground truth (issues 17/18): of the frames more than ``bad_cm`` off,
+  the share flagged invalid (recall) and of the frames flagged invalid the share more than
+  ``good_cm`` off (precision); of the frames less than ``good_cm`` off, the share flagged
+  valid;
+* time per frame (median of the steady-state frames; the first, with compilation, apart).
+
+Every number except the timings is a deterministic function of the inputs and the seed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxmocap.errors import InputError
+
+SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
+                "neck", "chest")  # = jaxmocap.demo.EVAL_JOINTS (not imported: demo is heavy)
+PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
+ISOTROPIC_COV = (2.0, 0.3, 0.5)  # px, blend std, prior std (setup_for_sequence's default)
+SCRIBBLE_FRAMES = 3  # colors = "scribbles": frames of the capture the user scribbles on
+
+
+def eval_joints(cfg: dict) -> tuple[str, ...]:
+    if cfg.get("joints"):
+        return tuple(cfg["joints"])
+    return SHIRT_JOINTS if cfg["method"] == "shirt" else PF_JOINTS
+
+
+def _sequence_file(cfg: dict, key: str, folder) -> str | None:
+    """The body / garment file of a configuration for the sequence in ``folder``."""
+    from jaxmocap.experiment.config import SEQUENCE, ExperimentError
+
+    value = cfg.get(key)
+    if value != SEQUENCE:
+        return value
+    if folder is None:
+        raise ExperimentError(f"{key} = {SEQUENCE!r} needs the sequence's folder")
+    p = Path(folder) / ("body.urdf" if key == "body" else "garment.json")
+    if not p.is_file():
+        raise ExperimentError(f"{folder}: no {p.name} in the sequence folder "
+                              f"(configuration {cfg['name']!r}: {key} = {SEQUENCE!r})")
+    return str(p)
+
+
+def _body(cfg: dict, folder=None):
+    from jaxmocap.body import default_body, load_body
+
+    path = _sequence_file(cfg, "body", folder)
+    return default_body() if path is None else load_body(path)
+
+
+def _garment(cfg: dict, body, folder=None):
+    from jaxmocap.garment import default_garment, load_garment
+
+    path = _sequence_file(cfg, "garment", folder)
+    return default_garment(body) if path is None else load_garment(path, body)
+
+
+def _scribbled_color_model(seq, garment, n_frames: int = SCRIBBLE_FRAMES):
+    """The colour model a user makes from scribbles on the capture (``jaxmocap colors``): the
+    first frames of every camera, each pixel of the ground-truth colour ids eroded by
+    ``shirt.scribbles`` (no pixel near a patch border) labelled with its colour."""
+    from jaxmocap.color import fit_color_model
+    from jaxmocap.trackers import shirt
+
+    images, labels = [], []
+    for t in range(min(n_frames, seq.frames.shape[0])):
+        for c in range(seq.frames.shape[1]):
+            images.append(np.asarray(seq.frames[t, c]))
+            labels.append(shirt.scribbles(np.asarray(seq.groundtruth["colour_ids"][t, c])))
+    return fit_color_model(images, labels, garment.n_colours, garment.colour_names)
+
+
+# ----------------------------------------------------------------------------- the trackers
+
+
+def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.camera import stack_cameras
+    from jaxmocap.ik import IKCovariances, anchors_from_garment
+    from jaxmocap.posedb import SamplingConfig, load_database, load_or_build
+    from jaxmocap.trackers import shirt
+
+    opts = dict(cfg["options"])
+    body = _body(cfg, folder)
+    garment = _garment(cfg, body, folder)
+    if "db" in opts:
+        db = load_database(opts.pop("db"))
+    else:
+        size = opts.pop("db_size", None)
+        db = load_or_build(None if size is None else SamplingConfig(size=size), body, garment,
+                           progress=False)
+    cov_opt = opts.pop("covariances", "trained")
+    if cov_opt == "trained":  # the bundled ones, transferred by role to another body
+        cov, _ = shirt.covariances_for_body(body)
+    elif cov_opt == "isotropic":
+        cov = IKCovariances.isotropic(*ISOTROPIC_COV, body.n_dof)
+    else:
+        cov = IKCovariances.load(cov_opt)
+    names = list(seq.camera_names)
+    if opts.get("colors") == "scribbles":
+        opts.pop("colors")
+        color = _scribbled_color_model(seq, garment)
+    elif "colors" in opts:
+        from jaxmocap.color import load_color_model
+
+        color = load_color_model(opts.pop("colors"))
+    else:  # the session set-up of shirt.setup_for_sequence (§5.1), the seed on its renders
+        q_model = np.asarray(db.poses[:5], np.float64).copy()
+        q_model[:, :3] = np.asarray(seq.groundtruth["q"][0, :3])
+        color = shirt.fit_color_model_from_renders(body, garment, q_model, seq.cameras[0],
+                                                   seed=seed)
+    if "white_balance" in opts:
+        from jaxmocap.commands.colors import load_white_balance
+
+        W0 = load_white_balance(opts.pop("white_balance"), names)
+    else:
+        labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
+        W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
+    background = opts.pop("background", False)
+    cams = stack_cameras(list(seq.cameras))
+    params = shirt.make_params(color, body, garment, cams, anchors_from_garment(body, garment),
+                               cov, db, **opts)
+    dt = cams.K.dtype
+    state = shirt.init(params, jnp.asarray(W0, dt), jnp.zeros(body.n_dof, dt))
+    subs = None
+    if background:
+        from jaxmocap.color import BackgroundSubtractor
+
+        subs = [BackgroundSubtractor() for _ in names]
+    qs, valid, times, rows = [], [], [], []
+    for t in range(seq.frames.shape[0]):
+        t0 = time.perf_counter()
+        masks = None
+        if subs is not None:
+            masks = np.stack([s.apply(seq.frames[t, i]) for i, s in enumerate(subs)])
+        state, out = shirt.step(params, state, seq.frames[t], masks)
+        out = jax.device_get(out)
+        times.append(time.perf_counter() - t0)
+        qs.append(np.asarray(out.q, np.float64))
+        valid.append(bool(out.valid))
+        d = {"agreement": float(out.agreement), "patches": float(np.sum(out.visible))}
+        for c, n in enumerate(names):
+            d[f"fraction_{n}"] = float(out.fraction[c])
+            d[f"reference_used_{n}"] = float(out.used_reference[c])
+            d[f"reference_added_{n}"] = float(out.added_reference[c])
+        rows.append(d)
+    return {"q": np.stack(qs), "valid": np.asarray(valid), "times": np.asarray(times),
+            "diagnostics": rows, "body": body}
+
+
+def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap import blobs as bloblib
+    from jaxmocap.segment import HSVInterval, SegmentParams
+    from jaxmocap.trackers import stereo_pf as sp
+
+    if len(seq.cameras) != 2:
+        raise InputError(f"method 'pf' needs a stereo pair; the sequence has "
+                         f"{len(seq.cameras)} cameras")
+    opts = dict(cfg["options"])
+    body = _body(cfg, folder)
+    kw = dict(sp.AZAD_FILTER) if opts.pop("azad", False) else {}
+    if "particles" in opts:
+        opts["n_particles"] = opts.pop("particles")
+    skin = opts.pop("skin", "synth")
+    blob = sp.BLOB_PARAMS if opts.pop("blob_params", "tracker") == "tracker" \
+        else bloblib.BlobParams()
+    lag = int(opts.pop("smooth_lag", 0))
+    for k in ("step_betas", "init_betas"):
+        if k in opts:
+            opts[k] = tuple(opts[k])
+    kw.update(opts)
+    segment = None
+    if skin == "synth":
+        segment = SegmentParams(skin=HSVInterval(*(jnp.asarray(v) for v in sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(list(seq.cameras), model=body, segment=segment, **kw)
+    t0 = time.perf_counter()
+    obs = sp.observe_sequence(params, seq.frames, blob)  # host image line + blob tracker
+    observe_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sp.observe_sequence(params, seq.frames, blob)  # again, warm: the steady-state time
+    observe_s = time.perf_counter() - t0
+    t_init = sp.anchor_frame(obs)  # offline: initialise on the first frame with a head
+    key = jax.random.key(seed)
+
+    def filt():
+        state, _ = sp.init(params, key, jax.tree.map(lambda a: a[t_init], obs))
+        _, est = sp.run(params, state, obs, lag)
+        return jax.block_until_ready(est)
+
+    t0 = time.perf_counter()
+    est = filt()
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    filt()  # again, compiled: the steady-state filter time
+    warm = time.perf_counter() - t0
+    est = jax.device_get(est)
+    n = seq.frames.shape[0]
+    q = np.asarray(est.q, np.float64)
+    valid = np.isfinite(q).all(axis=1)
+    if getattr(est, "valid", None) is not None:  # a filter that reports its own validity
+        valid = valid & np.asarray(est.valid, bool)
+    ov = np.asarray(obs.valid)
+    rows = [{"ess": float(est.ess[t]), "best_loglik": float(est.best_loglik[t]),
+             "degenerate": float(est.degenerate[t]), "blobs": float(ov[t].sum())}
+            for t in range(n)]
+    per_frame = (observe_s + warm) / n
+    return {"q": q, "valid": valid, "times": np.full(n, per_frame), "diagnostics": rows,
+            "body": body, "first_run_s": observe_first + first, "init_frame": t_init}
+
+
+def compute_cell(spec: dict) -> dict:
+    """Track one cell (``spec``: ``folder``, ``config`` (a :meth:`TrackerConfig.to_dict`),
+    ``seed``, ``x64``). Returns ``q`` (T, n_dof) raw estimates, ``valid`` (T,), ``times``
+    (T,) seconds per frame, ``diagnostics`` (T dicts), ``wall_s`` and the method's extras."""
+    import jax
+
+    from jaxmocap.synth.dataset import load_dataset
+
+    if bool(jax.config.jax_enable_x64) != bool(spec["x64"]):  # a worker: the driver's precision
+        jax.config.update("jax_enable_x64", bool(spec["x64"]))
+    t0 = time.perf_counter()
+    seq = load_dataset(spec["folder"])
+    cfg = spec["config"]
+    run = _track_shirt if cfg["method"] == "shirt" else _track_pf
+    out = run(seq, cfg, int(spec["seed"]), spec["folder"])
+    out.pop("body")
+    out["wall_s"] = time.perf_counter() - t0
+    out["fps"] = float(seq.config.fps)
+    return out
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def diagnostics_csv(rows: list[dict], valid: np.ndarray) -> str:
+    names = list(rows[0]) if rows else []
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "valid", *names])
+    for t, d in enumerate(rows):
+        w.writerow([t, int(valid[t]), *(f"{d[k]:.6g}" for k in names)])
+    return buf.getvalue()
+
+
+def _share(num: np.ndarray, den: np.ndarray) -> float | None:
+    n = int(den.sum())
+    return None if n == 0 else float((num & den).sum() / n)
+
+
+def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
+                 good_cm: float, bad_cm: float) -> tuple[dict, np.ndarray]:
+    """Metrics of a computed cell whose poses were written to ``poses_path`` (module
+    docstring). Returns (metrics, per-frame error (T,) cm of the raw estimate)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.commands.evaluate import evaluate
+    from jaxmocap.io.export import load_track
+
+    gt = load_track(Path(gt_folder) / "groundtruth.npz")
+    names = list(body.keypoint_names)
+    missing = [j for j in joints if j not in names or j not in gt.keypoint_names]
+    if missing:
+        raise InputError(f"joints {missing}: not keypoints of both the tracker's body and "
+                         f"{gt_folder}/groundtruth.npz")
+    q, valid = result["q"], result["valid"]
+    ev = evaluate(poses_path, gt_folder) if valid.any() else None
+    q_fill = np.where(np.isfinite(q), q, 0.0)
+    kp = np.asarray(jax.jit(jax.vmap(lambda x: keypoints(body, x)))(jnp.asarray(q_fill)))
+    ip = [names.index(j) for j in joints]
+    ig = [list(gt.keypoint_names).index(j) for j in joints]
+    err = np.linalg.norm(kp[:, ip] - gt.keypoints[:, ig], axis=-1) * 100.0  # (T, J) cm
+    err[~np.isfinite(q).all(axis=1)] = np.nan
+    frame_err = err.mean(axis=1)
+    known = np.isfinite(frame_err)
+    bad = known & (frame_err > bad_cm)
+    good = known & (frame_err < good_cm)
+    flagged = ~valid
+    times = result["times"]
+    per_joint = None
+    if ev is not None:
+        per_joint = {j: ev["joints"][j]["mpjpe_cm"] for j in joints}
+    m = {
+        "frames": int(len(valid)),
+        "frames_valid": int(valid.sum()),
+        "mpjpe_cm": None if per_joint is None else float(np.mean(list(per_joint.values()))),
+        "per_joint_cm": per_joint,
+        "jitter_cm_per_frame2": None if ev is None else ev["jitter_cm_per_frame2"],
+        "mean_error_all_frames_cm": float(np.nanmean(frame_err)) if known.any() else None,
+        "frames_below_good_cm": float(np.mean(good & valid)),  # valid and < good_cm
+        "validity": {
+            "good_cm": good_cm, "bad_cm": bad_cm,
+            "frames_bad": int(bad.sum()), "frames_good": int(good.sum()),
+            "bad_flagged_invalid": _share(flagged, bad),  # recall of the invalid flag
+            "invalid_are_not_good": _share(~good, flagged),  # its precision
+            "good_flagged_valid": _share(valid, good),  # recall of the valid flag
+            "valid_are_not_bad": _share(~bad, valid),  # its precision
+        },
+        "ms_per_frame": float(1e3 * np.median(times[1:] if len(times) > 1 else times)),
+        "first_frame_s": float(result.get("first_run_s", times[0])),
+        "wall_s": float(result["wall_s"]),
+    }
+    return m, frame_err

@@ -1,0 +1,126 @@
+"""The experiment's summary: ``summary.json`` (every cell), ``summary.md`` (a table per
+sequence and configuration, seeds averaged, and an overall row per configuration) and
+``summary.png`` (mean error per sequence and configuration, bars; seed spread as error bars)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+COLUMNS = (  # (header, metric path, format)
+    ("MPJPE cm (valid frames)", ("mpjpe_cm",), "{:.2f}"),
+    ("mean cm (all frames)", ("mean_error_all_frames_cm",), "{:.2f}"),
+    ("frames < good", ("frames_below_good_cm",), "{:.0%}"),
+    ("valid", ("valid_share",), "{:.0%}"),
+    ("bad flagged invalid", ("validity", "bad_flagged_invalid"), "{:.0%}"),
+    ("good flagged valid", ("validity", "good_flagged_valid"), "{:.0%}"),
+    ("ms/frame", ("ms_per_frame",), "{:.1f}"),
+)
+
+
+def _get(m: dict, path) -> float | None:
+    for k in path:
+        if m is None:
+            return None
+        m = m.get(k)
+    return m
+
+
+def _mean(vals):
+    vals = [v for v in vals if v is not None]
+    return None if not vals else float(np.mean(vals))
+
+
+def aggregate(cells: list[dict]) -> dict:
+    """Seed- (and sequence-) averaged metrics of finished cells; errors listed."""
+    ok = [c for c in cells if "metrics" in c]
+    for c in ok:
+        m = c["metrics"]
+        m["valid_share"] = m["frames_valid"] / m["frames"] if m["frames"] else None
+    agg = {h: _mean([_get(c["metrics"], p) for c in ok]) for h, p, _ in COLUMNS}
+    agg["cells"] = len(cells)
+    agg["failed"] = len(cells) - len(ok)
+    agg["errors"] = [c["error"] for c in cells if "error" in c]
+    vals = [c["metrics"]["mean_error_all_frames_cm"] for c in ok
+            if c["metrics"]["mean_error_all_frames_cm"] is not None]
+    agg["seed_std_cm"] = float(np.std(vals)) if len(vals) > 1 else None
+    return agg
+
+
+def _fmt(v, f: str) -> str:
+    return "-" if v is None else f.format(v)
+
+
+def write_summary(out: Path, exp, seqs, specs: list[dict], results: dict, stats: dict) -> dict:
+    from jaxmocap.io.atomic import AtomicFiles
+
+    configs = [c.name for c in exp.configs]
+    names = [s.name for s in seqs]
+    cells = [results[s["cell"]] for s in specs]
+    table = {}
+    for c in configs:
+        for s in names:
+            table[(s, c)] = aggregate([x for x in cells if x["sequence"] == s
+                                       and x["config"] == c])
+        table[("all", c)] = aggregate([x for x in cells if x["config"] == c])
+    doc = {
+        "config_file": exp.path, "good_cm": exp.good_cm, "bad_cm": exp.bad_cm,
+        "sequences": names, "configs": [c.to_dict() for c in exp.configs], "run": stats,
+        "table": [{"sequence": s, "config": c, **v} for (s, c), v in table.items()],
+        "cells": cells,
+    }
+    lines = [f"# Experiment: {Path(exp.path).name} on {len(names)} sequence(s)", "",
+             f"good < {exp.good_cm:g} cm, bad > {exp.bad_cm:g} cm; seeds averaged. Cells: "
+             f"{stats['cells']} ({stats['computed']} computed, {stats['reused']} reused, "
+             f"{stats['failed']} failed) in {stats['wall_s']:.1f} s.", "",
+             "| sequence | config | " + " | ".join(h for h, _, _ in COLUMNS) + " |",
+             "|---" * (len(COLUMNS) + 2) + "|"]
+    for s in [*names, "all"]:
+        for c in configs:
+            v = table[(s, c)]
+            row = [f"**{s}**" if s == "all" else s, c]
+            row += [_fmt(v[h], f) for h, _, f in COLUMNS]
+            if v["failed"]:
+                row[-1] += f" ({v['failed']} failed)"
+            lines.append("| " + " | ".join(row) + " |")
+    errors = [c for c in cells if "error" in c]
+    if errors:
+        lines += ["", "## Failed cells", ""]
+        lines += [f"- `{c['cell']}`: {c['error']}" for c in errors]
+    with AtomicFiles() as files:
+        files.path(out / "summary.json").write_text(json.dumps(doc, indent=1) + "\n")
+        files.path(out / "summary.md").write_text("\n".join(lines) + "\n")
+        _plot(files.path(out / "summary.png"), names, configs, cells)
+    return doc
+
+
+def _plot(path: Path, names: list[str], configs: list[str], cells: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = [*names, "all"]
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.0 + 0.9 * len(groups) * max(1, len(configs))
+                                        / 2), 3.6))
+    w = 0.8 / max(1, len(configs))
+    for j, c in enumerate(configs):
+        ys, es = [], []
+        for g in groups:
+            vals = [x["metrics"]["mean_error_all_frames_cm"] for x in cells
+                    if x["config"] == c and (g == "all" or x["sequence"] == g)
+                    and "metrics" in x and x["metrics"]["mean_error_all_frames_cm"] is not None]
+            ys.append(np.mean(vals) if vals else np.nan)
+            es.append(np.std(vals) if len(vals) > 1 else 0.0)
+        xs = np.arange(len(groups)) + (j - (len(configs) - 1) / 2) * w
+        ax.bar(xs, ys, w, yerr=es, label=c, capsize=2)
+    ax.set_xticks(range(len(groups)))
+    ax.set_xticklabels(groups, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("mean joint error, all frames (cm)")
+    ax.set_title("configurations per sequence (bars: seeds' spread)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, format="png")
+    plt.close(fig)

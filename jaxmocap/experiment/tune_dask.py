@@ -1,0 +1,79 @@
+"""IK-covariance tuning (:mod:`jaxmocap.tune`) over many clips with each clip's gradient
+computed on a Dask worker and the results summed.
+
+The loss over clips is ``sum_c total_c / sum_c n_c`` (:func:`jaxmocap.tune.ik_loss_parts`:
+per clip the summed frame errors and the number of valid frames, which does not depend on the
+covariances); its gradient is ``sum_c grad total_c / sum_c n_c``. Each clip's observations
+are sent to the cluster once (``scatter``); every evaluation sends only the parameters
+(a few hundred numbers) and brings back one value, one count and one gradient per clip.
+:func:`clip_value_and_grad` is the same computation in this process, clip after clip, and
+``jax.value_and_grad(jaxmocap.tune.ik_loss)`` on all windows stacked the vmapped one
+(docs/results/experiments.md compares the three).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmocap import tune
+
+_PARTS_VG = eqx.filter_jit(jax.value_and_grad(tune.ik_loss_parts, has_aux=True))
+
+
+def _combine(parts: list) -> tuple[float, tune.IKTheta]:
+    total = sum(float(t) for (t, _), _ in parts)
+    n = max(sum(float(k) for (_, k), _ in parts), 1.0)
+    grads = [g for _, g in parts]
+    grad = jax.tree.map(lambda *a: sum(np.asarray(x, np.float64) for x in a) / n, *grads)
+    return total / n, grad
+
+
+def clip_parts(theta, setup: tune.IKSetup, obs: tune.IKObservations, jitter_weight: float,
+               x64: bool):
+    """``((total, n), grad total)`` of one clip, as numpy (runs on a worker)."""
+    if bool(jax.config.jax_enable_x64) != x64:
+        jax.config.update("jax_enable_x64", x64)
+    (total, n), g = _PARTS_VG(theta, setup, obs, jitter_weight)
+    return jax.device_get(((total, n), g))
+
+
+def clip_value_and_grad(setup: tune.IKSetup, clips: Sequence[tune.IKObservations],
+                        jitter_weight: float = 0.0) -> Callable:
+    """``theta -> (loss, grad)`` over ``clips``, clip after clip in this process."""
+    x64 = bool(jax.config.jax_enable_x64)
+
+    def vg(theta):
+        return _combine([clip_parts(theta, setup, o, jitter_weight, x64) for o in clips])
+
+    return vg
+
+
+def dask_value_and_grad(client, setup: tune.IKSetup, clips: Sequence[tune.IKObservations],
+                        jitter_weight: float = 0.0) -> Callable:
+    """``theta -> (loss, grad)`` over ``clips`` with one task per clip on ``client``'s
+    workers (module docstring); for :func:`jaxmocap.tune.fit` ``value_and_grad=True``."""
+    x64 = bool(jax.config.jax_enable_x64)
+    host = lambda tree: jax.tree.map(np.asarray, tree)  # numpy: no device arrays on the wire
+    setup_f = client.scatter(host(setup), broadcast=True)
+    clip_f = [client.scatter(host(o)) for o in clips]
+
+    def vg(theta):
+        th = host(theta)
+        futures = [client.submit(_worker_parts, th, setup_f, f, jitter_weight, x64, pure=False)
+                   for f in clip_f]
+        return _combine(client.gather(futures))
+
+    return vg
+
+
+def _worker_parts(theta, setup, obs, jitter_weight, x64):
+    if bool(jax.config.jax_enable_x64) != x64:
+        jax.config.update("jax_enable_x64", x64)
+    to_jax = lambda tree: jax.tree.map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray)
+                                       else a, tree)
+    return clip_parts(to_jax(theta), to_jax(setup), to_jax(obs), jitter_weight, x64)
