@@ -100,6 +100,9 @@ def shirt_profile(s: dict, reps: int) -> dict:
     res["valid_sequence"] = valid
     res["tracked_of_states"] = {k: int(v.tracked) for k, v in states.items()}
     res["step"] = {k: _t(lambda v=v: S.step(p, v, frames), reps) for k, v in states.items()}
+    # the dispatch floor of any call taking the parameters (pytree flattening, DB included)
+    empty = eqx.filter_jit(lambda p, st: st.q + 0)
+    res["filter_jit_call_with_params_floor"] = _t(lambda: empty(p, state0), reps * 4)
 
     # the stages, separately jitted, on the steady state's inputs
     st = states["steady"]
@@ -255,6 +258,45 @@ def shirt_profile(s: dict, reps: int) -> dict:
     return res
 
 
+def stereo_profile(reps: int) -> dict:
+    """The stereo live frame's host side split (``stereo_pf.observe``: OpenCV image line of
+    both images, the blob tracker + support maps + host-to-device copies) beside the compiled
+    filter step; the step's own stages are ``bench_stereo_pf``'s rows."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from azad_render import config, load
+
+    from jaxmocap import blobs
+    from jaxmocap.segment import HSVInterval, SegmentParams, segment_cv
+    from jaxmocap.synth.scene import make_cameras
+    from jaxmocap.trackers import stereo_pf as sp
+
+    clip, n_frames = "humanoid3d_punch", 40
+    d = load(clip, n_frames)
+    cams = make_cameras(config(clip, n_frames), jnp.float32)
+    seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
+    params = sp.make_params(cams, segment=seg)
+    obs = sp.observe_sequence(params, d["frames"])
+    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[0], obs))
+    frame = d["frames"][5]
+    out = {"N": int(state.particles.particles.shape[0]), "image": list(frame.shape[1:3])}
+    out["image line (segment_cv x2)"] = _t(lambda: [segment_cv(seg, frame[i]) for i in range(2)],
+                                           reps * 4)  # fmt: skip
+    bs = {"s": blobs.init(sp.BLOB_PARAMS)}
+
+    def observe():
+        o, bs["s"] = sp.observe(params, frame, bs["s"])
+        return o.edges
+
+    out["observe (image line + blobs + support + copies)"] = _t(observe, reps * 4)
+    step_fn = sp.compile_step(params)
+    o0 = jax.tree.map(lambda a: a[5], obs)
+    jax.block_until_ready(step_fn(state, o0))
+    out["filter step (compile_step)"] = _t(lambda: step_fn(state, o0), reps * 4)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--setup", default=None)
@@ -263,6 +305,7 @@ def main():
     s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
     res = {"machine": machine(), "load_average_at_start": list(os.getloadavg())}
     res["floors"] = floors(a.reps)
+    res["stereo"] = stereo_profile(a.reps)
     res["shirt"] = shirt_profile(s, a.reps)
     res["load_average_at_end"] = list(os.getloadavg())
     OUT.parent.mkdir(parents=True, exist_ok=True)
