@@ -305,7 +305,7 @@ def stage_pose_assisted(params, crops, windows, s_found, W, okq, q_g):
     xy, vis = [], []
     for i in range(params.n_cams):
         uv = shirt.crop_uv(windows[i], n)
-        rb = render_uv(params.body, params.garment, q_g, _cam(params, i), uv).patch
+        rb = render_uv(params.render_body, params.garment, q_g, _cam(params, i), uv).patch
         dist = patch_distance_maps(rb, P, dt)
         if params.pose_prior:
             weight, T = PRIOR_SCALE / s_found[i] * (windows[i][2] / n), POSE_THRESHOLD
@@ -339,7 +339,7 @@ def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
         refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
         uv = shirt.crop_uv(windows[i], params.work_size)
         r_star = shirt._erode(
-            render_uv(params.body, params.garment, q_star, _cam(params, i), uv).colour
+            render_uv(params.render_body, params.garment, q_star, _cam(params, i), uv).colour
         )
         W_star = white_balance_from_ids(
             params.color, crops[i], r_star, W_cls[i], None, min_pixels=shirt.REFERENCE_PIXELS
@@ -449,7 +449,7 @@ def _baseline_calls(params, state, frames, r, upto: int) -> dict:
         W_cls = np.asarray(r["cls"].W, np.float64)
         crops = np.asarray(r["crops"], np.float64)
         priors = [
-            np.asarray(render_uv(params.body, params.garment, r["q_g"], _cam(params, i),
+            np.asarray(render_uv(params.render_body, params.garment, r["q_g"], _cam(params, i),
                                  shirt.crop_uv(r["windows"][i], n)).patch)
             for i in range(n_cams)
         ]  # fmt: skip

@@ -100,6 +100,20 @@ def shirt_profile(s: dict, reps: int) -> dict:
     res["valid_sequence"] = valid
     res["tracked_of_states"] = {k: int(v.tracked) for k, v in states.items()}
     res["step"] = {k: _t(lambda v=v: S.step(p, v, frames), reps) for k, v in states.items()}
+    # the same frames with static geom kinds in the renders (``static_kinds``, off by default)
+    import dataclasses
+
+    pk = dataclasses.replace(p, static_kinds=True)
+    t0 = time.perf_counter()
+    jax.block_until_ready(S.step(pk, state0, frames)[1].q)
+    res["static_kinds_compile_plus_first_call_s"] = round(time.perf_counter() - t0, 2)
+    res["step_static_kinds"] = {
+        k: _t(lambda v=v: S.step(pk, v, frames), reps) for k, v in states.items()
+    }
+    res["static_kinds_max_abs_dq_vs_default"] = {
+        k: float(jnp.max(jnp.abs(S.step(pk, v, frames)[1].q - S.step(p, v, frames)[1].q)))
+        for k, v in states.items()
+    }
     # the dispatch floor of any call taking the parameters (pytree flattening, DB included)
     empty = eqx.filter_jit(lambda p, st: st.q + 0)
     res["filter_jit_call_with_params_floor"] = _t(lambda: empty(p, state0), reps * 4)
@@ -128,6 +142,10 @@ def shirt_profile(s: dict, reps: int) -> dict:
     stages["4a render r^b, both crops (render_views)"] = _t(lambda: render(p, ctx, q_g), reps)
     P = p.garment.n_patches
     edt = eqx.filter_jit(lambda hits: [patch_distance_maps(h.patch, P, dt) for h in hits])
+    ctx_k = ctxf(pk, st, views, db.okq, q_g)
+    stages["4a' render r^b, both crops, static geom kinds"] = _t(
+        lambda: render(pk, ctx_k, q_g), reps
+    )
     stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops"] = _t(lambda: edt(hits), reps)
     pac = eqx.filter_jit(
         lambda p, ctx, hits: [
@@ -195,6 +213,10 @@ def shirt_profile(s: dict, reps: int) -> dict:
         lambda: finish(p, st, ctx, h1, vo, agr), reps
     )
     res["stages_steady"] = stages
+    res["compile_s"] = {
+        "step": res["step_compile_plus_first_call_s"],
+        "step, static_kinds": res["static_kinds_compile_plus_first_call_s"],
+    }
 
     # vmap and the LM loop: iterations per start alone and under vmap, time of each
     @eqx.filter_jit

@@ -181,10 +181,26 @@ class ShirtParams(eqx.Module):
     reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
     reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
     held_start: bool = eqx.field(static=True, default=True)
+    # ``static_kinds``: the renders inside the step use the body's geom kinds as constants
+    # (``geom_kinds``), so that the ray caster tests each geom against its own primitive only;
+    # with traced kinds it evaluates every primitive kind for every geom and selects (2.6x
+    # slower per crop). Off by default: the two paths round differently on a few silhouette
+    # pixels and the tracked poses then differ by up to ~1e-2 (docs/results/realtime_profile.md)
+    static_kinds: bool = eqx.field(static=True, default=False)
+    geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
 
     @property
     def n_cams(self) -> int:
         return self.cams.K.shape[0]
+
+    @property
+    def render_body(self) -> BodyModel:
+        """``body`` with its geom kinds as constants (``geom_kinds``) for the ray caster's
+        per-kind tests inside the jitted step (the same body; traced kinds otherwise)."""
+        if not self.static_kinds or len(self.geom_kinds) != self.body.geometry.kind.shape[0]:
+            return self.body
+        kinds = np.asarray(self.geom_kinds, self.body.geometry.kind.dtype)
+        return eqx.tree_at(lambda b: b.geometry.kind, self.body, kinds)
 
 
 class ShirtState(eqx.Module):
@@ -239,6 +255,7 @@ def make_params(
     reacquire_passes: int = REACQUIRE_PASSES,
     reacquire_frames: int = REACQUIRE_FRAMES,
     held_start: bool = True,
+    static_kinds: bool = False,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -265,7 +282,9 @@ def make_params(
     behaviour. ``held_start`` adds a third start on those frames (reacquisition and the
     ``reacquire_frames`` after it): the last valid pose measured without the pose prior (a
     subject re-entering fast is far from it, and a prior rendered there misleads the
-    pose-assisted classification); on other frames it repeats the blend start."""
+    pose-assisted classification); on other frames it repeats the blend start.
+    ``static_kinds`` renders with the body's geom kinds as constants inside the step (faster
+    ray casting, rounding differs from the default; see :class:`ShirtParams`)."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if reacquire_frames < 0:
@@ -291,7 +310,8 @@ def make_params(
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
         bool(temporal_start), float(min_agreement), bool(reacquire_start),
-        int(reacquire_passes), int(reacquire_frames), bool(held_start),
+        int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
+        tuple(int(k) for k in np.asarray(body.geometry.kind)),
     )  # fmt: skip
 
 
@@ -469,8 +489,9 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
 
 def render_views(params: ShirtParams, ctx: RoundContext, q) -> list:
     """The model at ``q`` rendered on each camera's crop grid (patch, colour, 3D point)."""
+    body = params.render_body
     return [
-        render_uv(params.body, params.garment, q, jax.tree.map(lambda a, i=i: a[i], params.cams),
+        render_uv(body, params.garment, q, jax.tree.map(lambda a, i=i: a[i], params.cams),
                   ctx.uvs[i])
         for i in range(params.n_cams)
     ]  # fmt: skip
@@ -658,7 +679,7 @@ def model_centroids(
     for i in range(params.n_cams):
         cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
         win = windows[i].astype(q.dtype)
-        ids = render_uv(params.body, params.garment, q, cam, crop_uv(win, n)).patch
+        ids = render_uv(params.render_body, params.garment, q, cam, crop_uv(win, n)).patch
         out.append(patch_centroids(ids, P, win, dtype=q.dtype))
     return jax.tree.map(lambda *a: jnp.stack(a), *out)
 
