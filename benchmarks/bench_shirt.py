@@ -31,6 +31,7 @@ search's cost grows with it), white-light renders over a grey background, float3
 
 from __future__ import annotations
 
+import os
 import time
 
 import cv2
@@ -120,9 +121,16 @@ def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
 
 # The tracker's extensions beyond the paper's one-pass frame, switched off for the stage
 # breakdown (only those this version of make_params has).
-PAPER_FRAME = {"view_anchors": False, "ik_passes": 1, "robust": None, "temporal_start": False,
-               "reacquire_start": False, "reacquire_passes": 0, "reacquire_frames": 0,
-               "held_start": False}
+PAPER_FRAME = {
+    "view_anchors": False,
+    "ik_passes": 1,
+    "robust": None,
+    "temporal_start": False,
+    "reacquire_start": False,
+    "reacquire_passes": 0,
+    "reacquire_frames": 0,
+    "held_start": False,
+}
 
 
 def paper_frame(params):
@@ -573,7 +581,8 @@ def main():
             line += f" vs {b[0].median_ms:.2f} ms {b[0].implementation} "
             line += f"({b[0].median_ms / r.median_ms:.1f}x)"
         summary.append(line)
-    summary.append("Measured on a shared 2-core machine under contention from other jobs.")
+    summary.append(f"Load average (1, 5, 15 min) at the end of the run: "
+                   f"{', '.join(f'{x:.2f}' for x in os.getloadavg())} (2 cores).")  # fmt: skip
     print(write_results("bench_shirt", rows, summary).read_text())
 
 
