@@ -147,6 +147,14 @@ def shirt_profile(s: dict, reps: int) -> dict:
         lambda: render(pk, ctx_k, q_g), reps
     )
     stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops"] = _t(lambda: edt(hits), reps)
+    import cv2
+
+    src = [
+        (np.asarray(h.patch) != k).astype(np.uint8) for h in hits for k in range(1, P + 1)
+    ]  # the same 2 x P masks, OpenCV's convention (distance to the nearest zero)
+    stages[f"4b' cv2.distanceTransform (PRECISE), the same {2 * P} masks"] = _t(
+        lambda: [cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for m in src], reps
+    )
     pac = eqx.filter_jit(
         lambda p, ctx, hits: [
             S.pose_assisted_centroids(p, ctx, hits[i], i, jnp.array(False)) for i in range(p.n_cams)
