@@ -31,6 +31,7 @@ search's cost grows with it), white-light renders over a grey background, float3
 
 from __future__ import annotations
 
+import os
 import time
 
 import cv2
@@ -120,9 +121,16 @@ def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
 
 # The tracker's extensions beyond the paper's one-pass frame, switched off for the stage
 # breakdown (only those this version of make_params has).
-PAPER_FRAME = {"view_anchors": False, "ik_passes": 1, "robust": None, "temporal_start": False,
-               "reacquire_start": False, "reacquire_passes": 0, "reacquire_frames": 0,
-               "held_start": False}
+PAPER_FRAME = {
+    "view_anchors": False,
+    "ik_passes": 1,
+    "robust": None,
+    "temporal_start": False,
+    "reacquire_start": False,
+    "reacquire_passes": 0,
+    "reacquire_frames": 0,
+    "held_start": False,
+}
 
 
 def paper_frame(params):
@@ -305,7 +313,7 @@ def stage_pose_assisted(params, crops, windows, s_found, W, okq, q_g):
     xy, vis = [], []
     for i in range(params.n_cams):
         uv = shirt.crop_uv(windows[i], n)
-        rb = render_uv(params.body, params.garment, q_g, _cam(params, i), uv).patch
+        rb = render_uv(params.render_body, params.garment, q_g, _cam(params, i), uv).patch
         dist = patch_distance_maps(rb, P, dt)
         if params.pose_prior:
             weight, T = PRIOR_SCALE / s_found[i] * (windows[i][2] / n), POSE_THRESHOLD
@@ -339,7 +347,7 @@ def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
         refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
         uv = shirt.crop_uv(windows[i], params.work_size)
         r_star = shirt._erode(
-            render_uv(params.body, params.garment, q_star, _cam(params, i), uv).colour
+            render_uv(params.render_body, params.garment, q_star, _cam(params, i), uv).colour
         )
         W_star = white_balance_from_ids(
             params.color, crops[i], r_star, W_cls[i], None, min_pixels=shirt.REFERENCE_PIXELS
@@ -449,7 +457,7 @@ def _baseline_calls(params, state, frames, r, upto: int) -> dict:
         W_cls = np.asarray(r["cls"].W, np.float64)
         crops = np.asarray(r["crops"], np.float64)
         priors = [
-            np.asarray(render_uv(params.body, params.garment, r["q_g"], _cam(params, i),
+            np.asarray(render_uv(params.render_body, params.garment, r["q_g"], _cam(params, i),
                                  shirt.crop_uv(r["windows"][i], n)).patch)
             for i in range(n_cams)
         ]  # fmt: skip
@@ -573,7 +581,8 @@ def main():
             line += f" vs {b[0].median_ms:.2f} ms {b[0].implementation} "
             line += f"({b[0].median_ms / r.median_ms:.1f}x)"
         summary.append(line)
-    summary.append("Measured on a shared 2-core machine under contention from other jobs.")
+    summary.append(f"Load average (1, 5, 15 min) at the end of the run: "
+                   f"{', '.join(f'{x:.2f}' for x in os.getloadavg())} (2 cores).")  # fmt: skip
     print(write_results("bench_shirt", rows, summary).read_text())
 
 

@@ -9,6 +9,7 @@ vectorised NumPy (batched over particles). Paper: 14 / 23 / 29 / 66 ms on a 3 GH
 """
 
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -254,8 +255,9 @@ def main():
     summary = [
         "Paper (Azad Table I, 3 GHz CPU, 2007): image line 14 ms, 1000 FK + projection 23 ms, "
         "1000 likelihoods 29 ms, total 66 ms.",
-        "Measured on a 2-core machine shared with other engineers' jobs (load ~6-9): medians are "
-        "noisy, min ms is the better estimate of the uncontended cost.",
+        "Load average (1, 5, 15 min) at the end of the run: "
+        + ", ".join(f"{x:.2f}" for x in os.getloadavg())
+        + " (2 cores).",
     ]
     write_results("bench_stereo_pf", rows, summary)
     for r in rows:

@@ -196,3 +196,36 @@ def test_bundled_trained_covariances():
         assert np.asarray(term).shape[-1] == n and np.all(np.isfinite(np.asarray(term)))
     with pytest.raises(ValueError, match="shirt_ik_cov.npz.*DOF"):
         shirt.trained_covariances(n + 1)
+
+
+def test_step_renders_with_static_geom_kinds(setup):
+    """Inside the jitted step the body's arrays are traced; with ``static_kinds``,
+    ``params.render_body`` keeps the geom kinds static so that the ray caster runs each geom's
+    own primitive test (per-kind groups, not one group of every kind), and renders what the
+    body as given renders."""
+    import equinox as eqx
+
+    from jaxmocap.render import render_uv
+    from jaxmocap.render._raycast import kind_groups
+
+    p, model = setup["params"], setup["model"]
+    assert p.render_body is p.body  # off by default
+    p = dataclasses.replace(p, static_kinds=True)
+    assert p.geom_kinds == tuple(int(k) for k in np.asarray(model.geometry.kind))
+    seen = {}
+
+    @eqx.filter_jit
+    def patches(p, q, uv):
+        seen["traced"] = kind_groups(p.body)[1]
+        seen["static"] = kind_groups(p.render_body)[1]
+        cam = jax.tree.map(lambda a: a[0], p.cams)
+        return render_uv(p.render_body, p.garment, q, cam, uv).patch
+
+    uv = shirt.crop_uv(jnp.asarray([60.0, 20.0, 120.0, 120.0]), 48)
+    got = np.asarray(patches(p, setup["q_true"], uv))
+    kinds = np.unique(np.asarray(model.geometry.kind))
+    assert seen["traced"][0][0] is None  # the traced body: one group of every kind
+    assert [g[0] for g in seen["static"]] == kinds.tolist()
+    cam0 = jax.tree.map(lambda a: a[0], p.cams)
+    ref = np.asarray(render_uv(model, p.garment, setup["q_true"], cam0, uv).patch)  # eager
+    assert np.mean(got == ref) > 0.995 and (ref > 0).sum() > 100

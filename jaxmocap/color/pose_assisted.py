@@ -17,7 +17,7 @@ over colours equals the minimum over patches of
 
 so the argmin patch gives both the colour id and the patch a pixel belongs to: a pixel of
 colour k goes to the patch of colour k that the prior places nearest. The distance transforms
-are one exact EDT per patch (:func:`jaxmocap.distance.id_map_distances`) of the rendered
+are one exact EDT per patch (:func:`jaxmocap.distance.edt`) of the rendered
 *patch* id map.
 
 ``C d`` is scale invariant as long as ``d`` and ``s`` are in the same pixels: on a crop
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
-from jaxmocap.distance import id_map_distances
+from jaxmocap.distance import edt
 
 from .classify import mahalanobis_sq
 from .model import ColorModel
@@ -59,7 +59,10 @@ def patch_distance_maps(
     absent from the map gets ``h + w`` everywhere (:func:`jaxmocap.distance.edt`), so it wins
     only if its colour is by far the best match.
     """
-    return id_map_distances(prior_patches, n_patches + 1, dtype)[1:]
+    prior_patches = jnp.asarray(prior_patches)
+    ids = jnp.arange(1, n_patches + 1, dtype=prior_patches.dtype)
+    # one mask per patch id 1..P (the background's transform is not needed)
+    return edt(prior_patches[None, :, :] == ids[:, None, None], dtype)
 
 
 class PoseAssistedClassification(eqx.Module):

@@ -87,7 +87,7 @@ def posed_scene(model: BodyModel, q: Float[Array, " n_dof"]) -> Scene:
         R=T[:, :3, :3],
         p=T[:, :3, 3],
         size=geo.size.astype(q.dtype)[perm],
-        kind=geo.kind[perm],
+        kind=jnp.asarray(geo.kind)[perm],
         geom_index=jnp.asarray(perm, jnp.int32),
         groups=groups,
     )

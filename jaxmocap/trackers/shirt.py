@@ -56,6 +56,7 @@ masks computed on the host per frame), ``run_scan`` runs a whole sequence under
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -103,6 +104,14 @@ from jaxmocap.render import TINY_SIZE, render_uv, resample_ids, tiny_hits, windo
 from jaxmocap.trackers.shirt_covariances import TRAINED_COV_FILE as TRAINED_COV_FILE
 from jaxmocap.trackers.shirt_covariances import covariances_for_body as covariances_for_body
 from jaxmocap.trackers.shirt_covariances import trained_covariances as trained_covariances
+from jaxmocap.trackers.shirt_image import (
+    _crop_to_image,
+    _erode,
+    crop_uv,
+    crop_window,
+    sample_bilinear,
+    sample_nearest,
+)
 
 # Not in the paper: crop side relative to the histogram search's scale s' (the shirt's
 # extent is about 2 s' with the arms out) and the working size of the resampled crop.
@@ -172,10 +181,26 @@ class ShirtParams(eqx.Module):
     reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
     reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
     held_start: bool = eqx.field(static=True, default=True)
+    # ``static_kinds``: the renders inside the step use the body's geom kinds as constants
+    # (``geom_kinds``), so that the ray caster tests each geom against its own primitive only;
+    # with traced kinds it evaluates every primitive kind for every geom and selects (2.6x
+    # slower per crop). Off by default: the two paths round differently on a few silhouette
+    # pixels and the tracked poses then differ by up to ~1e-2 (docs/results/realtime_profile.md)
+    static_kinds: bool = eqx.field(static=True, default=False)
+    geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
 
     @property
     def n_cams(self) -> int:
         return self.cams.K.shape[0]
+
+    @property
+    def render_body(self) -> BodyModel:
+        """``body`` with its geom kinds as constants (``geom_kinds``) for the ray caster's
+        per-kind tests inside the jitted step (the same body; traced kinds otherwise)."""
+        if not self.static_kinds or len(self.geom_kinds) != self.body.geometry.kind.shape[0]:
+            return self.body
+        kinds = np.asarray(self.geom_kinds, self.body.geometry.kind.dtype)
+        return eqx.tree_at(lambda b: b.geometry.kind, self.body, kinds)
 
 
 class ShirtState(eqx.Module):
@@ -230,6 +255,7 @@ def make_params(
     reacquire_passes: int = REACQUIRE_PASSES,
     reacquire_frames: int = REACQUIRE_FRAMES,
     held_start: bool = True,
+    static_kinds: bool = False,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -256,7 +282,9 @@ def make_params(
     behaviour. ``held_start`` adds a third start on those frames (reacquisition and the
     ``reacquire_frames`` after it): the last valid pose measured without the pose prior (a
     subject re-entering fast is far from it, and a prior rendered there misleads the
-    pose-assisted classification); on other frames it repeats the blend start."""
+    pose-assisted classification); on other frames it repeats the blend start.
+    ``static_kinds`` renders with the body's geom kinds as constants inside the step (faster
+    ray casting, rounding differs from the default; see :class:`ShirtParams`)."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if reacquire_frames < 0:
@@ -282,7 +310,8 @@ def make_params(
         pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
         bool(temporal_start), float(min_agreement), bool(reacquire_start),
-        int(reacquire_passes), int(reacquire_frames), bool(held_start),
+        int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
+        tuple(int(k) for k in np.asarray(body.geometry.kind)),
     )  # fmt: skip
 
 
@@ -301,69 +330,14 @@ def init(
     )
 
 
-# ----------------------------------------------------------------------------- image helpers
-
-
-def crop_window(x: Array, y: Array, s: Array, factor: float) -> Float[Array, " 4"]:
-    """Square crop ``(x0, y0, side, side)`` of side ``factor s`` centred on ``(x, y)``."""
-    side = factor * s
-    return jnp.stack([x - side / 2, y - side / 2, side, side])
-
-
-def crop_uv(window: Float[Array, " 4"], n: int) -> Float[Array, "n n 2"]:
-    """Image positions of the ``n x n`` working pixels: ``x0 + (j + 1/2) s / n`` (as
-    :func:`jaxmocap.render.window_uv`)."""
-    f = (jnp.arange(n, dtype=window.dtype) + 0.5) / n
-    uu, vv = jnp.meshgrid(window[0] + f * window[2], window[1] + f * window[3])
-    return jnp.stack([uu, vv], axis=-1)
-
-
-def sample_bilinear(
-    image: UInt8[Array, "h w c"] | Float[Array, "h w c"], uv: Float[Array, "m n 2"]
-) -> Float[Array, "m n c"]:
-    """Bilinear samples of ``image`` at pixel positions ``uv`` (x, y), edge-clamped."""
-    h, w = image.shape[:2]
-    dt = uv.dtype
-    x = jnp.clip(uv[..., 0], 0, w - 1)
-    y = jnp.clip(uv[..., 1], 0, h - 1)
-    x0 = jnp.clip(jnp.floor(x), 0, w - 2).astype(jnp.int32)
-    y0 = jnp.clip(jnp.floor(y), 0, h - 2).astype(jnp.int32)
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None]
-    im = image.astype(dt)
-    a, b = im[y0, x0], im[y0, x0 + 1]
-    c, d = im[y0 + 1, x0], im[y0 + 1, x0 + 1]
-    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
-
-
-def sample_nearest(mask: Bool[Array, "h w"], uv: Float[Array, "m n 2"]) -> Bool[Array, "m n"]:
-    """Nearest-pixel samples of a mask at ``uv``; False outside the image."""
-    h, w = mask.shape
-    ij = jnp.round(uv).astype(jnp.int32)
-    inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
-    return inside & mask[jnp.clip(ij[..., 1], 0, h - 1), jnp.clip(ij[..., 0], 0, w - 1)]
-
-
-def _erode(ids: Int[Array, "h w"]) -> Int[Array, "h w"]:
-    """Ids kept where the 4 neighbours carry the same id (a one-pixel erosion per id)."""
-    p = jnp.pad(ids, 1, constant_values=-1)
-    same = (
-        (p[:-2, 1:-1] == ids) & (p[2:, 1:-1] == ids) & (p[1:-1, :-2] == ids) & (p[1:-1, 2:] == ids)
-    )
-    return jnp.where(same, ids, 0)
-
-
-def _crop_to_image(win_crop: Float[Array, " 4"], crop: Float[Array, " 4"], n: int) -> Array:
-    """A window in working-pixel coordinates (pixel j covering [j - 1/2, j + 1/2]) as image
-    pixels: ``x = x0 + (x_c + 1/2) s / n``."""
-    k = crop[2] / n
-    return jnp.stack(
-        [crop[0] + (win_crop[0] + 0.5) * k, crop[1] + (win_crop[1] + 0.5) * k,
-         win_crop[2] * k, win_crop[3] * k]
-    )  # fmt: skip
-
-
 # ----------------------------------------------------------------------------- the frame step
+#
+# ``_step`` is the paper's steps in order, each a module-level function (per camera lists;
+# the bench and the profile time them separately): ``locate_and_classify`` (§4, §5.2 step 1),
+# ``database_pose`` (step 2, 10-NN), ``global_placement`` (step 2, 6-DOF IK),
+# ``pose_assisted_centroids`` + ``ik_round`` (steps 3 + 4, run from the starts by
+# ``choose_start`` and ``ik_passes - 1`` more times by ``more_rounds``), ``frame_validity`` and
+# ``white_balance_refit`` (step 5).
 
 
 def _root_guess(params: ShirtParams, q_db: Array, win_db: Array, win_q: Array, i: int) -> Array:
@@ -393,18 +367,50 @@ def _widened(prior: Array, blend: Array, fresh: Array) -> Array:
     return jnp.where(fresh, prior + blend.astype(prior.dtype), prior)
 
 
-def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
-    n = params.work_size
-    P = params.garment.n_patches
-    dt = state.q.dtype
-    n_cams = params.n_cams
-    cams = params.cams
-    cam_i = [jax.tree.map(lambda a, i=i: a[i], cams) for i in range(n_cams)]
-    patch_colour = params.garment.patch_colour
+class Views(NamedTuple):
+    """Steps 0–1 per camera (lists over cameras): resampled crop, its foreground (or None),
+    crop window, scale ``s'``, whether the search found the shirt, step-1 classification."""
 
-    # step 0 + 1: search, crop, classify (per camera, unrolled: lax.cond stays a branch)
+    crops: list
+    fgs: list
+    windows: list
+    s_found: list
+    found: list
+    cls: list
+
+
+class DatabasePose(NamedTuple):
+    """Step 2 per camera: blended database pose, query window (image px), ``q_db``'s tiny patch
+    map and canonical window; ``okq`` (n_cams,) cameras that found the shirt; the joint
+    angles averaged over them."""
+
+    q_dbs: list
+    win_qs: list
+    tiny_patch: list
+    win_dbs: list
+    okq: Array
+    joints: Array
+
+
+class RoundContext(NamedTuple):
+    """What every round of steps 3–4 shares: the views, ``okq``, the placed blend ``q_g``,
+    the temporal prior ``q_h``, the IK covariances and the crops' pixel grids."""
+
+    views: Views
+    okq: Array
+    q_g: Array
+    q_h: Array
+    cov: IKCovariances
+    uvs: list
+    uv_all: Array
+
+
+def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
+    """§4 + §5.2 step 1 per camera (unrolled: the reference fallback's lax.cond stays a branch):
+    histogram search, crop resampling, classification with the reference illuminations."""
+    n, dt = params.work_size, state.q.dtype
     crops, fgs, windows, s_found, found, cls = [], [], [], [], [], []
-    for i in range(n_cams):
+    for i in range(params.n_cams):
         mask_i = None if masks is None else masks[i]
         res = histogram_search(frames[i], mask_i, scales=params.scales)
         win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt), params.crop_factor)
@@ -420,164 +426,200 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
             )
         crops.append(crop), fgs.append(fg), windows.append(win)
         s_found.append(res.s.astype(dt)), found.append(res.found), cls.append(c)
+    return Views(crops, fgs, windows, s_found, found, cls)
 
-    # step 2: database pose per camera, joint angles averaged over cameras that found the shirt
+
+def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
+    """§5.2 step 2: the database pose per camera, joint angles averaged over the cameras that
+    found the shirt."""
+    n = params.work_size
     q_dbs, win_qs, tiny_patch, win_dbs, okq = [], [], [], [], []
-    for i in range(n_cams):
-        ids = cls[i].ids
+    for i in range(params.n_cams):
+        ids = views.cls[i].ids
         win_c = window_from_mask(ids > 0)
         tiny = resample_ids(ids, win_c, TINY_SIZE)
         q_db = estimate_pose(params.db, tiny)[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
         q_dbs.append(q_db)
-        win_qs.append(_crop_to_image(win_c, windows[i], n))
+        win_qs.append(_crop_to_image(win_c, views.windows[i], n))
         tiny_patch.append(hits.patch)
         win_dbs.append(win_db)
-        okq.append(found[i] & (jnp.sum(ids > 0) > 0))
+        okq.append(views.found[i] & (jnp.sum(ids > 0) > 0))
     okq = jnp.stack(okq)
     wq = okq.astype(dt) / jnp.maximum(jnp.sum(okq), 1)
-    joints = sum(wq[i] * q_dbs[i][6:] for i in range(n_cams))
+    joints = sum(wq[i] * q_dbs[i][6:] for i in range(params.n_cams))
+    return DatabasePose(q_dbs, win_qs, tiny_patch, win_dbs, okq, joints)
 
-    # step 2 (global): 2D constraints = centroids of r^b's patches in each query window
+
+def global_placement(params: ShirtParams, db: DatabasePose, dt) -> Array:
+    """§5.2 step 2 (global): the centroids of ``r^b``'s patches in each query window are 2D
+    constraints of a 6-DOF IK from a closed-form root guess; returns the placed blend ``q_g``."""
+    P, n_cams, cams = params.garment.n_patches, params.n_cams, params.cams
     cons = [
-        patch_centroids(tiny_patch[i], P, win_qs[i], min_pixels=2, dtype=dt) for i in range(n_cams)
+        patch_centroids(db.tiny_patch[i], P, db.win_qs[i], min_pixels=2, dtype=dt)
+        for i in range(n_cams)
     ]
     c_xy = jnp.stack([c.xy for c in cons])
-    c_vis = jnp.stack([c.valid for c in cons]) & okq[:, None]
-    best = jnp.argmax(okq)  # first camera that found the shirt
+    c_vis = jnp.stack([c.valid for c in cons]) & db.okq[:, None]
+    best = jnp.argmax(db.okq)  # first camera that found the shirt
     guesses = jnp.stack(
-        [_root_guess(params, q_dbs[i], win_dbs[i], win_qs[i], i) for i in range(n_cams)]
+        [_root_guess(params, db.q_dbs[i], db.win_dbs[i], db.win_qs[i], i) for i in range(n_cams)]
     )
-    q_b = jnp.concatenate([jnp.zeros(6, dt), joints])
+    q_b = jnp.concatenate([jnp.zeros(6, dt), db.joints])
     root0, _ = initial_root(
         cams, params.body.chain, params.anchors, c_xy, c_vis, q_b, guesses[best]
     )
     glob = solve_global(
         params.body.chain, cams, params.anchors, c_xy, c_vis, q_b, root0, params.cov.centroid
     )
-    q_g = glob.q
+    return glob.q
 
-    # steps 3 + 4, repeated ``ik_passes`` times: the model rendered in each crop (r^b at q_g
-    # first, then at the previous pass's IK solution) is the prior of the pose-assisted
-    # classification (step 3, one exact EDT per patch) and, with per-view anchors
-    # (jaxmocap.ik.view_anchors), the model whose centroids the IK (step 4) matches to the
-    # measured ones, under the blend and temporal priors.
-    uvs = [crop_uv(windows[i], n) for i in range(n_cams)]
-    uv_all = jnp.stack(uvs)
+
+def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g) -> RoundContext:
+    """The shared inputs of steps 3–4; the temporal prior widened by Sigma_b for
+    ``reacquire_frames`` frames after a loss (its ``q_h`` comes from a cold start)."""
+    uvs = [crop_uv(views.windows[i], params.work_size) for i in range(params.n_cams)]
     q_h = jnp.where(state.valid, state.q, q_g)
-    chain = params.body.chain
     cov = params.cov
     if params.reacquire_frames:
-        # q_h from a cold start: its error is of the blend's order (Sigma_b), not Sigma_p's
         fresh = state.tracked < params.reacquire_frames
         cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
+    return RoundContext(views, okq, q_g, q_h, cov, uvs, jnp.stack(uvs))
 
-    def measure(hits_i, i, plain):
-        dist = patch_distance_maps(hits_i.patch, P, dt)
-        W_i = cls[i].W
-        if params.pose_prior:
-            weight = PRIOR_SCALE / s_found[i] * (windows[i][2] / n)  # C = 6/s', d in image px
-            # ``plain``: the ablation's measurement (step-1 threshold, distance a tie-break)
-            weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
-            thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
-            pa = pose_assisted_classify(
-                params.color, W_i, crops[i], dist, patch_colour, weight, fgs[i], thr
-            )
-        else:
-            pa = pose_assisted_classify(
-                params.color, W_i, crops[i], dist, patch_colour, TIE_BREAK_WEIGHT, fgs[i],
-                THRESHOLD,
-            )  # fmt: skip
-        c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
-        return PatchCentroids(c.xy, c.count, c.valid & okq[i])
 
-    def render_all(q):
-        return [render_uv(params.body, params.garment, q, cam_i[i], uvs[i])
-                for i in range(n_cams)]  # fmt: skip
+def render_views(params: ShirtParams, ctx: RoundContext, q) -> list:
+    """The model at ``q`` rendered on each camera's crop grid (patch, colour, 3D point)."""
+    body = params.render_body
+    return [
+        render_uv(body, params.garment, q, jax.tree.map(lambda a, i=i: a[i], params.cams),
+                  ctx.uvs[i])
+        for i in range(params.n_cams)
+    ]  # fmt: skip
 
-    def one_round(q, hits, plain=False):
-        meas = [measure(hits[i], i, plain) for i in range(n_cams)]
-        c_obs = jnp.stack([m.xy for m in meas])
-        v_obs = jnp.stack([m.valid for m in meas])
-        if params.view_anchors:
-            anchors = _view_anchors(chain, params.anchors, cams, q,
-                                    jnp.stack([h.patch for h in hits]),
-                                    jnp.stack([h.point for h in hits]), uv_all)  # fmt: skip
-        else:
-            anchors = params.anchors
-        sol = solve_ik(chain, cams, anchors, c_obs, v_obs, q_g, q_h, cov, q,
-                       robust=params.robust)  # fmt: skip
-        return sol.q, c_obs, v_obs
 
-    def first_round(q_start, plain):
-        q1, c_obs, v_obs = one_round(q_start, render_all(q_start), plain)
-        hits = render_all(q1)
-        # agreement of the result's render with the step-1 colour classification (shared by
-        # all starts, so comparable between them): agreeing minus disagreeing pixels
-        score, shown = jnp.zeros((), dt), jnp.zeros((), dt)
-        for i in range(n_cams):
-            c1 = cls[i].ids
-            both = (hits[i].colour > 0) & (c1 > 0) & okq[i]
-            score = score + jnp.sum(both & (hits[i].colour == c1))
-            score = score - jnp.sum(both & (hits[i].colour != c1))
-            shown = shown + jnp.sum((hits[i].colour > 0) & okq[i])
-        return q1, c_obs, v_obs, hits, score / jnp.maximum(shown, 1.0)
-
-    # the first round from each start (under vmap), the rest from the best one only
-    # (after a loss there is no previous pose: the second start is then the blend measured
-    # without the pose prior, ``reacquire_start``)
-    reacquire = ~state.valid
-    if params.temporal_start:
-        starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
-        plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
-        results = jax.vmap(first_round)(starts, plain)
-        if params.held_start:
-            # the last valid pose measured without the pose prior, right after a (re)acquisition;
-            # computed only on those frames (lax.cond): elsewhere it stands in as a copy of the
-            # blend start, which the argmax's first-index tie rule never prefers
-            fresh = reacquire | (state.tracked < params.reacquire_frames)
-            held = jax.lax.cond(
-                fresh,
-                lambda: first_round(state.q, jnp.array(True)),
-                lambda: jax.tree.map(lambda a: a[0], results),
-            )
-            results = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), results, held)
-        best = jnp.argmax(results[-1])
-        q_sol, c_obs, v_obs, hits, agreement = jax.tree.map(lambda a: a[best], results)
-    else:
-        q_sol, c_obs, v_obs, hits, agreement = first_round(q_g, jnp.array(False))
-
-    def rounds(k, carry):
-        q_sol, c_obs, v_obs, hits = carry
-        for _ in range(k):
-            q_sol, c_obs, v_obs = one_round(q_sol, hits)
-            hits = render_all(q_sol)
-        return q_sol, c_obs, v_obs, hits
-
-    carry = rounds(params.ik_passes - 1, (q_sol, c_obs, v_obs, hits))
-    if params.reacquire_passes:
-        carry = jax.lax.cond(
-            reacquire, lambda c: rounds(params.reacquire_passes, c), lambda c: c, carry
+def pose_assisted_centroids(
+    params: ShirtParams, ctx: RoundContext, hits_i, i: int, plain
+) -> PatchCentroids:
+    """§5.2 step 3 in camera ``i``: one exact EDT per patch of the render ``hits_i``, the
+    pose-assisted classification (``C = 6/s'``, ``T = 5``; with ``plain`` the ablation's
+    measurement: step-1 threshold, distance only a tie-break) and its patch centroids."""
+    n, P, dt = params.work_size, params.garment.n_patches, ctx.q_g.dtype
+    v = ctx.views
+    dist = patch_distance_maps(hits_i.patch, P, dt)
+    W_i = v.cls[i].W
+    patch_colour = params.garment.patch_colour
+    if params.pose_prior:
+        weight = PRIOR_SCALE / v.s_found[i] * (v.windows[i][2] / n)  # C = 6/s', d in image px
+        weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
+        thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
+        pa = pose_assisted_classify(
+            params.color, W_i, v.crops[i], dist, patch_colour, weight, v.fgs[i], thr
         )
-    q_sol, c_obs, v_obs, hits = carry
-    valid = jnp.any(okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-    # the gate needs a usable step-1 classification: after a sudden lighting change it
-    # classifies almost nothing until W is re-fitted, and then says nothing about the pose
-    seen = jnp.max(jnp.stack([c.fraction for c in cls]) * okq) >= GATE_MIN_FRACTION
-    valid = valid & ((agreement >= params.min_agreement) | ~seen)
-    q_star = jnp.where(valid, q_sol, state.q)
+    else:
+        pa = pose_assisted_classify(
+            params.color, W_i, v.crops[i], dist, patch_colour, TIE_BREAK_WEIGHT, v.fgs[i],
+            THRESHOLD,
+        )  # fmt: skip
+    c = patch_centroids(pa.patch, P, v.windows[i], dtype=dt)
+    return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[i])
 
-    # step 5: white balance for the next frame from r* (q* rendered in each crop)
+
+def ik_round(params: ShirtParams, ctx: RoundContext, q, hits, plain=False):
+    """One round of steps 3 + 4 with the model rendered at ``q`` (``hits``): measured
+    centroids in every camera, then the full IK (per-view anchors from ``hits``)."""
+    meas = [pose_assisted_centroids(params, ctx, hits[i], i, plain) for i in range(params.n_cams)]
+    c_obs = jnp.stack([m.xy for m in meas])
+    v_obs = jnp.stack([m.valid for m in meas])
+    chain = params.body.chain
+    if params.view_anchors:
+        anchors = _view_anchors(chain, params.anchors, params.cams, q,
+                                jnp.stack([h.patch for h in hits]),
+                                jnp.stack([h.point for h in hits]), ctx.uv_all)  # fmt: skip
+    else:
+        anchors = params.anchors
+    sol = solve_ik(chain, params.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov, q,
+                   robust=params.robust)  # fmt: skip
+    return sol.q, c_obs, v_obs
+
+
+def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
+    """:func:`ik_round` from ``q_start``, the result re-rendered, and its agreement with the
+    step-1 classification (agreeing minus disagreeing pixels over the rendered shirt pixels;
+    shared by all starts, so comparable between them)."""
+    dt = ctx.q_g.dtype
+    q1, c_obs, v_obs = ik_round(params, ctx, q_start, render_views(params, ctx, q_start), plain)
+    hits = render_views(params, ctx, q1)
+    score, shown = jnp.zeros((), dt), jnp.zeros((), dt)
+    for i in range(params.n_cams):
+        c1 = ctx.views.cls[i].ids
+        ok = ctx.okq[i]
+        both = (hits[i].colour > 0) & (c1 > 0) & ok
+        score = score + jnp.sum(both & (hits[i].colour == c1))
+        score = score - jnp.sum(both & (hits[i].colour != c1))
+        shown = shown + jnp.sum((hits[i].colour > 0) & ok)
+    return q1, c_obs, v_obs, hits, score / jnp.maximum(shown, 1.0)
+
+
+def choose_start(params: ShirtParams, state: ShirtState, ctx: RoundContext):
+    """The first round from each start, the best-agreeing result kept: the placed blend and
+    the previous pose (after a loss: the blend measured without the pose prior) under
+    ``jax.vmap``; on (re)acquisition frames and ``reacquire_frames`` after, the last valid
+    pose measured without the pose prior (``lax.cond`` on a scalar predicate, so only on
+    those frames; elsewhere a copy of the blend start, which the argmax's first-index tie rule
+    never prefers). Returns ``(q, c_obs, v_obs, hits, agreement)``."""
+    q_g = ctx.q_g
+    if not params.temporal_start:
+        return first_round(params, ctx, q_g, jnp.array(False))
+    reacquire = ~state.valid
+    starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
+    plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
+    results = jax.vmap(lambda q, p: first_round(params, ctx, q, p))(starts, plain)
+    if params.held_start:
+        fresh = reacquire | (state.tracked < params.reacquire_frames)
+        held = jax.lax.cond(
+            fresh,
+            lambda: first_round(params, ctx, state.q, jnp.array(True)),
+            lambda: jax.tree.map(lambda a: a[0], results),
+        )
+        results = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), results, held)
+    best = jnp.argmax(results[-1])
+    return jax.tree.map(lambda a: a[best], results)
+
+
+def more_rounds(params: ShirtParams, ctx: RoundContext, k: int, carry):
+    """``k`` more rounds of steps 3 + 4 from ``carry = (q, c_obs, v_obs, hits)``, each with
+    the model re-rendered at the last round's pose."""
+    q_sol, c_obs, v_obs, hits = carry
+    for _ in range(k):
+        q_sol, c_obs, v_obs = ik_round(params, ctx, q_sol, hits)
+        hits = render_views(params, ctx, q_sol)
+    return q_sol, c_obs, v_obs, hits
+
+
+def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> Array:
+    """Found in some camera, ``MIN_VALID_PATCHES`` centroids measured, and (when step 1
+    classified ``GATE_MIN_FRACTION`` of some crop: after a sudden lighting change it
+    classifies almost nothing until W is re-fitted) the agreement gate passed."""
+    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+    seen = jnp.max(jnp.stack([c.fraction for c in ctx.views.cls]) * ctx.okq) >= GATE_MIN_FRACTION
+    return valid & ((agreement >= params.min_agreement) | ~seen)
+
+
+def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid):
+    """§5.2 step 5: ``W*`` per camera refitted on ``r*`` (the final pose's render, eroded by
+    one pixel), joining the reference illuminations when new. Returns ``(W, refs, added)``
+    stacked over cameras."""
+    v = ctx.views
     W_new, refs_new, added = [], [], []
-    for i in range(n_cams):
+    for i in range(params.n_cams):
         refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
         if params.adaptive_white_balance:
             r_star = _erode(hits[i].colour)  # q* rendered in the crop (unused if not valid)
             W_star = white_balance_from_ids(
-                params.color, crops[i], r_star, cls[i].W, fgs[i], min_pixels=REFERENCE_PIXELS
+                params.color, v.crops[i], r_star, v.cls[i].W, v.fgs[i], min_pixels=REFERENCE_PIXELS
             )
-            ok = valid & okq[i] & jnp.all(jnp.isfinite(W_star))
-            W_star = jnp.where(ok, W_star, cls[i].W)
+            ok = valid & ctx.okq[i] & jnp.all(jnp.isfinite(W_star))
+            W_star = jnp.where(ok, W_star, v.cls[i].W)
             refs_i2, add = maybe_add_reference(refs_i, W_star)
             refs_i = jax.tree.map(lambda a, b, ok=ok: jnp.where(ok, a, b), refs_i2, refs_i)
             W_new.append(W_star), added.append(add & ok)
@@ -585,16 +627,37 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
             W_new.append(state.W[i]), added.append(jnp.array(False))
         refs_new.append(refs_i)
     refs = jax.tree.map(lambda *a: jnp.stack(a), *refs_new)
+    return jnp.stack(W_new), refs, jnp.stack(added)
+
+
+def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
+    dt = state.q.dtype
+    views = locate_and_classify(params, state, frames, masks)
+    db = database_pose(params, views, dt)
+    q_g = global_placement(params, db, dt)
+    ctx = round_context(params, state, views, db.okq, q_g)
+    first = choose_start(params, state, ctx)
+    q_sol, c_obs, v_obs, hits, agreement = first
+    carry = more_rounds(params, ctx, params.ik_passes - 1, (q_sol, c_obs, v_obs, hits))
+    if params.reacquire_passes:  # after a loss only (lax.cond: no cost on tracked frames)
+        carry = jax.lax.cond(
+            ~state.valid, lambda c: more_rounds(params, ctx, params.reacquire_passes, c),
+            lambda c: c, carry,
+        )  # fmt: skip
+    q_sol, c_obs, v_obs, hits = carry
+    valid = frame_validity(params, ctx, v_obs, agreement)
+    q_star = jnp.where(valid, q_sol, state.q)
+    W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
-    new_state = ShirtState(W=jnp.stack(W_new), refs=refs, q=q_star, valid=valid, tracked=tracked)
+    new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
     out = ShirtOutput(
         q=q_star,
         q_blend=q_g,
         valid=valid,
-        window=jnp.stack(windows),
-        fraction=jnp.stack([c.fraction for c in cls]),
-        used_reference=jnp.stack([c.used_reference for c in cls]),
-        added_reference=jnp.stack(added),
+        window=jnp.stack(views.windows),
+        fraction=jnp.stack([c.fraction for c in views.cls]),
+        used_reference=jnp.stack([c.used_reference for c in views.cls]),
+        added_reference=added,
         centroids=c_obs,
         visible=v_obs,
         agreement=agreement,
@@ -616,7 +679,7 @@ def model_centroids(
     for i in range(params.n_cams):
         cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
         win = windows[i].astype(q.dtype)
-        ids = render_uv(params.body, params.garment, q, cam, crop_uv(win, n)).patch
+        ids = render_uv(params.render_body, params.garment, q, cam, crop_uv(win, n)).patch
         out.append(patch_centroids(ids, P, win, dtype=q.dtype))
     return jax.tree.map(lambda *a: jnp.stack(a), *out)
 

@@ -1,0 +1,347 @@
+"""Where the milliseconds of the shipped colour-shirt step go (issue 21), with the floor of
+each stage: the shipped ``shirt.step`` (two 640x480 cameras, the shipped defaults) on the three
+kinds of frame it meets, then its stages as separately jitted calls of the module-level step
+functions of :mod:`jaxmocap.trackers.shirt` on the same inputs, what ``jax.vmap`` does to the
+two starts (LM iterations per start alone and vmapped; ``lax.cond`` / ``while`` census of the
+traced programs), and measured floors (dispatch of an empty jitted call, memory bandwidth).
+
+Writes ``docs/results/realtime_profile.json`` (all numbers) and prints a summary; the
+discussion is ``docs/results/realtime_profile.md``.
+
+    python -m benchmarks.profile_realtime [--setup PATH.npz] [--reps N]
+
+``--setup``: a set-up stored by ``bench_shirt.save_setup`` (skips rendering the database).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks import bench_shirt
+from benchmarks._common import machine, time_call
+from jaxmocap.color.pose_assisted import patch_distance_maps
+from jaxmocap.ik import solve_ik
+from jaxmocap.ik import view_anchors as _view_anchors
+from jaxmocap.trackers import shirt as S
+
+OUT = Path(__file__).parents[1] / "docs" / "results" / "realtime_profile.json"
+
+
+def _census(jaxpr, counts=None) -> dict:
+    """Primitive counts in a closed jaxpr, sub-jaxprs included (cond/while/select_n ...)."""
+    counts = {} if counts is None else counts
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        counts[name] = counts.get(name, 0) + 1
+        for v in eqn.params.values():
+            subs = v if isinstance(v, (tuple, list)) else [v]
+            for sub in subs:
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    _census(sub.jaxpr, counts)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    _census(sub, counts)
+    return counts
+
+
+def _pick(c: dict) -> dict:
+    return {k: c.get(k, 0) for k in ("cond", "while", "select_n", "scan", "dot_general")}
+
+
+def _t(fn, reps):
+    med, mn = time_call(fn, n=reps, warmup=1)
+    return {"median_ms": round(med, 3), "min_ms": round(mn, 3)}
+
+
+def floors(reps: int) -> dict:
+    """Measured: an empty jitted call's round trip; read bandwidth (100 MB float32 sum)."""
+    f = jax.jit(lambda x: x + 1)
+    x = jnp.zeros(())
+    big = np.ones(25_000_000, np.float32)
+    med, mn = time_call(lambda: big.sum(), n=10, warmup=1)
+    return {
+        "empty_jit_call": _t(lambda: f(x), 200),
+        "read_100MB_numpy_sum": {
+            "median_ms": round(med, 3),
+            "min_ms": round(mn, 3),
+            "GB_per_s_min_time": round(0.1 / (mn / 1e3), 1),
+        },  # fmt: skip
+    }
+
+
+def shirt_profile(s: dict, reps: int) -> dict:
+    p, state0, frames = s["params"], s["state"], s["frames"]
+    dt = state0.q.dtype
+    res: dict = {"config": {k: getattr(p, k) for k in bench_shirt.PAPER_FRAME}}
+    res["config"].update(work_size=p.work_size, n_cams=p.n_cams, db_size=int(p.db.size),
+                         image=list(frames.shape[1:3]), n_patches=p.garment.n_patches)  # fmt: skip
+
+    # the three kinds of frame: reacquisition (state of init: first frame / after a loss:
+    # held start + reacquire_passes extra rounds), fresh (tracked < reacquire_frames: held
+    # start), steady (tracked)
+    t0 = time.perf_counter()
+    st, out = S.step(p, state0, frames)
+    jax.block_until_ready(out.q)
+    res["step_compile_plus_first_call_s"] = round(time.perf_counter() - t0, 2)
+    states = {"reacquisition": state0, "fresh": st}
+    valid = [bool(out.valid)]
+    for _ in range(p.reacquire_frames):
+        st, out = S.step(p, st, frames)
+        valid.append(bool(out.valid))
+    states["steady"] = st
+    res["valid_sequence"] = valid
+    res["tracked_of_states"] = {k: int(v.tracked) for k, v in states.items()}
+    res["step"] = {k: _t(lambda v=v: S.step(p, v, frames), reps) for k, v in states.items()}
+    # the same frames with static geom kinds in the renders (``static_kinds``, off by default)
+    import dataclasses
+
+    pk = dataclasses.replace(p, static_kinds=True)
+    t0 = time.perf_counter()
+    jax.block_until_ready(S.step(pk, state0, frames)[1].q)
+    res["static_kinds_compile_plus_first_call_s"] = round(time.perf_counter() - t0, 2)
+    res["step_static_kinds"] = {
+        k: _t(lambda v=v: S.step(pk, v, frames), reps) for k, v in states.items()
+    }
+    res["static_kinds_max_abs_dq_vs_default"] = {
+        k: float(jnp.max(jnp.abs(S.step(pk, v, frames)[1].q - S.step(p, v, frames)[1].q)))
+        for k, v in states.items()
+    }
+    # the dispatch floor of any call taking the parameters (pytree flattening, DB included)
+    empty = eqx.filter_jit(lambda p, st: st.q + 0)
+    res["filter_jit_call_with_params_floor"] = _t(lambda: empty(p, state0), reps * 4)
+
+    # the stages, separately jitted, on the steady state's inputs
+    st = states["steady"]
+    loc = eqx.filter_jit(lambda p, st, fr: S.locate_and_classify(p, st, fr, None))
+    dbf = eqx.filter_jit(lambda p, v: S.database_pose(p, v, dt))
+    glo = eqx.filter_jit(lambda p, db: S.global_placement(p, db, dt))
+    ctxf = eqx.filter_jit(S.round_context)
+    views = loc(p, st, frames)
+    db = dbf(p, views)
+    q_g = glo(p, db)
+    ctx = ctxf(p, st, views, db.okq, q_g)
+    stages = {}
+    stages["1 search + crop + classify (locate_and_classify)"] = _t(
+        lambda: loc(p, st, frames), reps
+    )
+    stages["2 DB query + blend (database_pose)"] = _t(lambda: dbf(p, views), reps)
+    stages["3 global placement (global_placement)"] = _t(lambda: glo(p, db), reps)
+    stages["- round context (crop grids, widened prior)"] = _t(
+        lambda: ctxf(p, st, views, db.okq, q_g), reps
+    )
+    render = eqx.filter_jit(S.render_views)
+    hits = render(p, ctx, q_g)
+    stages["4a render r^b, both crops (render_views)"] = _t(lambda: render(p, ctx, q_g), reps)
+    P = p.garment.n_patches
+    edt = eqx.filter_jit(lambda hits: [patch_distance_maps(h.patch, P, dt) for h in hits])
+    ctx_k = ctxf(pk, st, views, db.okq, q_g)
+    stages["4a' render r^b, both crops, static geom kinds"] = _t(
+        lambda: render(pk, ctx_k, q_g), reps
+    )
+    stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops"] = _t(lambda: edt(hits), reps)
+    import cv2
+
+    src = [
+        (np.asarray(h.patch) != k).astype(np.uint8) for h in hits for k in range(1, P + 1)
+    ]  # the same 2 x P masks, OpenCV's convention (distance to the nearest zero)
+    stages[f"4b' cv2.distanceTransform (PRECISE), the same {2 * P} masks"] = _t(
+        lambda: [cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for m in src], reps
+    )
+    pac = eqx.filter_jit(
+        lambda p, ctx, hits: [
+            S.pose_assisted_centroids(p, ctx, hits[i], i, jnp.array(False)) for i in range(p.n_cams)
+        ]
+    )
+    stages["4c EDT + pose-assisted classification + centroids, both crops"] = _t(
+        lambda: pac(p, ctx, hits), reps
+    )
+    meas = pac(p, ctx, hits)
+    c_obs = jnp.stack([m.xy for m in meas])
+    v_obs = jnp.stack([m.valid for m in meas])
+    va = eqx.filter_jit(
+        lambda p, ctx, q, hits: _view_anchors(
+            p.body.chain, p.anchors, p.cams, q, jnp.stack([h.patch for h in hits]),
+            jnp.stack([h.point for h in hits]), ctx.uv_all,
+        )
+    )  # fmt: skip
+    anchors = va(p, ctx, q_g, hits)
+    stages["4d per-view anchors"] = _t(lambda: va(p, ctx, q_g, hits), reps)
+
+    @eqx.filter_jit
+    def ik(p, ctx, anchors, c_obs, v_obs, q):
+        return solve_ik(p.body.chain, p.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov,
+                        q, robust=p.robust)  # fmt: skip
+
+    stages["4e full IK (solve_ik, robust, one start)"] = _t(
+        lambda: ik(p, ctx, anchors, c_obs, v_obs, q_g), reps
+    )
+    round_ = eqx.filter_jit(S.ik_round)
+    stages["4 one round = 4c + 4d + 4e (ik_round)"] = _t(lambda: round_(p, ctx, q_g, hits), reps)
+    first = eqx.filter_jit(S.first_round)
+    fal = jnp.array(False)
+    stages["5 first_round, one start (render + round + render + agreement)"] = _t(
+        lambda: first(p, ctx, q_g, fal), reps
+    )
+    starts = jnp.stack([q_g, st.q])
+    plain = jnp.stack([fal, fal])
+    firstv = eqx.filter_jit(
+        lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl)
+    )
+    stages["5v first_round, 2 starts under vmap (as shipped)"] = _t(
+        lambda: firstv(p, ctx, starts, plain), reps
+    )
+    choose = eqx.filter_jit(S.choose_start)
+    stages["6 choose_start, steady frame (vmap 2 starts; held cond false)"] = _t(
+        lambda: choose(p, st, ctx), reps
+    )
+    ctx_f = ctxf(p, states["fresh"], views, db.okq, q_g)
+    stages["6f choose_start, fresh frame (vmap 2 starts + held start)"] = _t(
+        lambda: choose(p, states["fresh"], ctx_f), reps
+    )
+    q1, co, vo, h1, agr = choose(p, st, ctx)
+    more = eqx.filter_jit(lambda p, ctx, carry: S.more_rounds(p, ctx, 1, carry))
+    stages["7 one more round (more_rounds(1): round + render)"] = _t(
+        lambda: more(p, ctx, (q1, co, vo, h1)), reps
+    )
+
+    @eqx.filter_jit
+    def finish(p, st, ctx, hits, v_obs, agreement):
+        valid = S.frame_validity(p, ctx, v_obs, agreement)
+        return valid, S.white_balance_refit(p, st, ctx, hits, valid)
+
+    stages["8 validity + W* re-fit + references"] = _t(
+        lambda: finish(p, st, ctx, h1, vo, agr), reps
+    )
+    res["stages_steady"] = stages
+    res["compile_s"] = {
+        "step": res["step_compile_plus_first_call_s"],
+        "step, static_kinds": res["static_kinds_compile_plus_first_call_s"],
+    }
+
+    # vmap and the LM loop: iterations per start alone and under vmap, time of each
+    @eqx.filter_jit
+    def ik_inputs(p, ctx, q, plain):
+        hits = S.render_views(p, ctx, q)
+        m = [S.pose_assisted_centroids(p, ctx, hits[i], i, plain) for i in range(p.n_cams)]
+        a = _view_anchors(p.body.chain, p.anchors, p.cams, q, jnp.stack([h.patch for h in hits]),
+                          jnp.stack([h.point for h in hits]), ctx.uv_all)  # fmt: skip
+        return a, jnp.stack([x.xy for x in m]), jnp.stack([x.valid for x in m])
+
+    lm = {}
+    ins = [ik_inputs(p, ctx, q, fal) for q in (q_g, st.q)]
+    for name, q, (a, c, v) in zip(("blend start", "previous-pose start"), (q_g, st.q), ins,
+                                  strict=True):  # fmt: skip
+        sol = ik(p, ctx, a, c, v, q)
+        timing = _t(lambda a=a, c=c, v=v, q=q: ik(p, ctx, a, c, v, q), reps)
+        lm[name] = {"num_steps": int(sol.num_steps), **timing}
+    stack = jax.tree.map(lambda *x: jnp.stack(x), *ins)
+    ikv = eqx.filter_jit(
+        lambda p, ctx, st3, qs: jax.vmap(
+            lambda s3, q: solve_ik(
+                p.body.chain,
+                p.cams,
+                s3[0],
+                s3[1],
+                s3[2],
+                ctx.q_g,
+                ctx.q_h,
+                ctx.cov,
+                q,
+                robust=p.robust,
+            )  # fmt: skip
+        )(st3, qs)
+    )
+    solv = ikv(p, ctx, stack, starts)
+    lm["both starts under vmap"] = {"num_steps": np.asarray(solv.num_steps).tolist(),
+                                    **_t(lambda: ikv(p, ctx, stack, starts), reps)}  # fmt: skip
+    lm["max_abs_dq_vmap_vs_alone"] = float(
+        max(jnp.max(jnp.abs(solv.q[k] - ik(p, ctx, *ins[k], starts[k]).q)) for k in range(2))
+    )
+    res["lm_under_vmap"] = lm
+
+    # census of the traced programs: conds that stay conds, conds turned into selects by vmap
+    one = jax.make_jaxpr(lambda q, b: S.first_round(p, ctx, q, b))(q_g, fal)
+    two = jax.make_jaxpr(lambda qs, bs: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, bs))(
+        starts, plain
+    )
+    whole = jax.make_jaxpr(lambda st, fr: S._step(p, st, fr, None))(st, frames)
+    res["census"] = {
+        "first_round, one start": _pick(_census(one.jaxpr)),
+        "first_round, vmap over 2 starts": _pick(_census(two.jaxpr)),
+        "whole _step": _pick(_census(whole.jaxpr)),
+        "whole _step, equations": sum(_census(whole.jaxpr).values()),
+    }
+    res["floors_inputs"] = {
+        "frame_pair_MB": round(frames.size / 1e6, 2),
+        "db_codes_MB": round(np.asarray(p.db.codes).nbytes / 1e6, 2),
+        "rays_per_render_pair": int(p.n_cams * p.work_size**2),
+        "edt_row_pass_candidate_ops_per_crop": int(P * p.work_size**3),
+    }
+    return res
+
+
+def stereo_profile(reps: int) -> dict:
+    """The stereo live frame's host side split (``stereo_pf.observe``: OpenCV image line of
+    both images, the blob tracker + support maps + host-to-device copies) beside the compiled
+    filter step; the step's own stages are ``bench_stereo_pf``'s rows."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from azad_render import config, load
+
+    from jaxmocap import blobs
+    from jaxmocap.segment import HSVInterval, SegmentParams, segment_cv
+    from jaxmocap.synth.scene import make_cameras
+    from jaxmocap.trackers import stereo_pf as sp
+
+    clip, n_frames = "humanoid3d_punch", 40
+    d = load(clip, n_frames)
+    cams = make_cameras(config(clip, n_frames), jnp.float32)
+    seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
+    params = sp.make_params(cams, segment=seg)
+    obs = sp.observe_sequence(params, d["frames"])
+    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[0], obs))
+    frame = d["frames"][5]
+    out = {"N": int(state.particles.particles.shape[0]), "image": list(frame.shape[1:3])}
+    out["image line (segment_cv x2)"] = _t(lambda: [segment_cv(seg, frame[i]) for i in range(2)],
+                                           reps * 4)  # fmt: skip
+    bs = {"s": blobs.init(sp.BLOB_PARAMS)}
+
+    def observe():
+        o, bs["s"] = sp.observe(params, frame, bs["s"])
+        return o.edges
+
+    out["observe (image line + blobs + support + copies)"] = _t(observe, reps * 4)
+    step_fn = sp.compile_step(params)
+    o0 = jax.tree.map(lambda a: a[5], obs)
+    jax.block_until_ready(step_fn(state, o0))
+    out["filter step (compile_step)"] = _t(lambda: step_fn(state, o0), reps * 4)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--setup", default=None)
+    ap.add_argument("--reps", type=int, default=15)
+    a = ap.parse_args()
+    s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
+    res = {"machine": machine(), "load_average_at_start": list(os.getloadavg())}
+    res["floors"] = floors(a.reps)
+    res["stereo"] = stereo_profile(a.reps)
+    res["shirt"] = shirt_profile(s, a.reps)
+    res["load_average_at_end"] = list(os.getloadavg())
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(res, indent=1))
+    print(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
