@@ -338,8 +338,8 @@ def config_hash(cfg: TrackerConfig, good_cm: float, bad_cm: float) -> str:
     content) and the thresholds. A cell with another hash is recomputed."""
     doc = cfg.to_dict()
     doc.pop("seeds")
-    for key in ("body", "garment"):
-        if doc[key]:
+    for key in ("body", "garment"):  # "sequence": the files are in the dataset's digest
+        if doc[key] and doc[key] != SEQUENCE:
             doc[key] = _file_digest(Path(doc[key]))
     opts = doc["options"]
     for k in PATH_OPTIONS:
