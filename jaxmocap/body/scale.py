@@ -50,7 +50,7 @@ from .model import BodyModel, default_body, keypoint_index
 REFERENCE_PELVIS_HEIGHT = 0.87  # m, standing pelvis height of the motion source (docstring)
 MEASUREMENTS = ("height", "shoulder_width", "upper_arm", "forearm")
 MEASUREMENT_RANGE = (0.5, 1.6)  # allowed factor w.r.t. the bundled body, per measurement
-# Scale segment of each link of the bundled body (links not listed: isotropic s_h).
+# Scale segment of the link playing each role (links of no role listed: isotropic s_h).
 _SEGMENT = {
     "pelvis": "torso", "chest": "torso", "head": "head",
     "l_upper_arm": "upper_arm", "r_upper_arm": "upper_arm",
@@ -147,22 +147,23 @@ def scale_factors(measurements: Mapping[str, float | None], reference: Mapping[s
 
 
 def scale_body(model: BodyModel | None = None, **measurements: float | None) -> ScaledBody:
-    """The bundled body (or ``model``, which must have its link names and world-aligned rest
-    frames) scaled to the given measurements in metres (module docstring)."""
+    """The bundled body (or ``model``, which must have roles and world-aligned rest frames)
+    scaled to the given measurements in metres (module docstring)."""
     model = default_body() if model is None else model
     chain, geom = model.chain, model.geometry
     origin = np.array(chain.joint_origin, np.float64)
     if not np.allclose(origin[:, :3, :3], np.eye(3), atol=1e-9):
         raise ValueError("scale_body: the body's joint origins must not rotate (rest link "
                          "frames world-aligned, as the bundled body's)")
-    missing = sorted(set(_SEGMENT) - set(chain.link_names))
-    if missing:
-        raise ValueError(f"scale_body: the body lacks the bundled body's links {missing}")
+    from .roles import require_roles
+
+    roles = require_roles(model, "scale_body")
+    segment_of = {roles.link(role): seg for role, seg in _SEGMENT.items()}  # link -> segment
     f = scale_factors(measurements, measure(model))
     s_h, s_w = f["height"], f["shoulder_width"]
     seg_scale = {"torso": (s_h, s_w, s_h), "head": (s_h,) * 3, "hand": (s_h,) * 3,
                  "upper_arm": (s_h, s_h, f["upper_arm"]), "forearm": (s_h, s_h, f["forearm"])}
-    link_s = np.array([seg_scale[_SEGMENT[n]] if n in _SEGMENT else (s_h,) * 3
+    link_s = np.array([seg_scale[segment_of[n]] if n in segment_of else (s_h,) * 3
                        for n in chain.link_names], np.float64)
     parents = np.asarray(chain.parents)
     new_origin = origin.copy()
