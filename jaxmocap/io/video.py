@@ -192,7 +192,11 @@ class _Capture(FrameSource):
         self.log = _DecoderLog()
         with self.log.capture():  # FFmpeg's complaints about a bad file: we say it in one line
             try:
-                self.cap = cv2.VideoCapture(spec, cv2.CAP_ANY if live else cv2.CAP_FFMPEG)
+                # one decoding thread: FFmpeg logs a damaged frame from the thread that
+                # decodes it; with frame threading the message could land between two reads,
+                # outside the capture, and the damage went unreported (a test flaked 2 in 3)
+                self.cap = cv2.VideoCapture(spec, cv2.CAP_ANY) if live else cv2.VideoCapture(
+                    spec, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, 1])
             except cv2.error:
                 self.cap = cv2.VideoCapture()
         if not self.cap.isOpened():
