@@ -155,19 +155,12 @@ class SceneConfig:
         return rig
 
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        return settings_to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "scene") -> SceneConfig:
         """Inverse of :meth:`to_dict`; unknown or ill-typed fields raise :class:`SceneError`."""
-        if not isinstance(d, dict):
-            raise SceneError(f"{where}: expected a JSON object of scene settings")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise SceneError(f"{where}: unknown field(s) {unknown}; known: {sorted(names)}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        kw = settings_kwargs(cls, d, where, "scene settings", SceneError)
         for k in _FLOAT_FIELDS & set(kw):  # JSON writes 30.0 as 30
             if _is_int(kw[k]):
                 kw[k] = float(kw[k])
@@ -182,6 +175,24 @@ class SceneConfig:
     def to_json(self) -> str:
         return json.dumps({"version": SCENE_JSON_VERSION, "scene": self.to_dict()}, indent=2)
 
+
+
+def settings_to_dict(settings) -> dict[str, Any]:
+    """A settings dataclass as JSON-ready fields (tuples as lists)."""
+    d = dataclasses.asdict(settings)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def settings_kwargs(cls, d, where: str, what: str, error: type[Exception]) -> dict[str, Any]:
+    """Keyword arguments of ``cls`` from a JSON object (lists as tuples); anything but an
+    object, or a field ``cls`` does not have, is one ``error`` line naming ``where``."""
+    if not isinstance(d, dict):
+        raise error(f"{where}: expected a JSON object of {what}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise error(f"{where}: unknown field(s) {unknown}; known: {sorted(names)}")
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 def _check(ok: bool, field: str, expected: str, value: Any) -> None:
     if not ok:

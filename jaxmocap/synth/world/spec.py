@@ -37,6 +37,7 @@ from jaxmocap.garment import (
     single_colour_garment,
 )
 from jaxmocap.synth.motion import HELDOUT_CLIPS
+from jaxmocap.synth.scene import settings_kwargs, settings_to_dict
 
 WORLD_VERSION = 1
 GARMENT_LAYOUTS = ("wang", "bands", "single")
@@ -114,18 +115,11 @@ class WorldSpec:
         _validate(self)
 
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        return settings_to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "world") -> WorldSpec:
-        if not isinstance(d, dict):
-            raise WorldError(f"{where}: expected a JSON object of world settings")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise WorldError(f"{where}: unknown field(s) {unknown}; known: {sorted(names)}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        kw = settings_kwargs(cls, d, where, "world settings", WorldError)
         try:
             return cls(**kw)
         except WorldError as e:
