@@ -149,23 +149,7 @@ def test_out_folder_type_stale_and_writability(kit, capsys, monkeypatch):
     refused(capsys, k, "a file is in the way", "synth", k / "file")
 
     # --overwrite: the earlier set is replaced as a whole once the new one is complete
-    class Rest:
-        diagnostic_names = ()
-
-        def __init__(self):
-            self.body = default_body()
-
-        def start(self, frames):
-            pass
-
-        def step(self, frames):
-            q = np.zeros(self.body.n_dof)
-            return track_cmd.FrameResult(q, True, {})
-
-        def draw(self, frames, result):
-            return frames
-
-    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: Rest())
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
     rc, out, err = _cli(capsys, *base, "--out", k / "res", "--overwrite", "--formats", "csv")
     assert rc == 0, err
     assert sorted(os.listdir(k / "res")) == ["diagnostics.csv", "poses.csv", "run.json"]
