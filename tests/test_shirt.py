@@ -81,7 +81,8 @@ def setup():
     anchors = anchors_from_garment(model, garment)
     cov = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
     params = shirt.make_params(color, model, garment, cams, anchors, cov, db, work_size=96)
-    return dict(model=model, params=params, frames=frames, q_true=q_true, W0=W0)
+    ids = np.stack([np.asarray(o[1].colour) for o in outs])
+    return dict(model=model, params=params, frames=frames, q_true=q_true, W0=W0, ids=ids)
 
 
 def _at_root() -> np.ndarray:
@@ -171,6 +172,27 @@ def test_ablation_switches_change_the_program(setup):
         p, reacquire_start=False, reacquire_passes=0, reacquire_frames=0
     )
     assert n_eqns(paper_loss) < full  # no lax.cond of extra rounds, no widened prior
+
+
+def test_step_with_shading_and_scene_colours(setup):
+    """Issue 17's options for footage under spot lamps (shading-invariant colour distance, the
+    room's colour Gaussians from the non-shirt pixels, white-balanced by W0) keep the frame
+    valid and as accurate on the own renderer; make_params refuses a bad brightness range."""
+    from jaxmocap.color import fit_scene_colors
+
+    p, model = setup["params"], setup["model"]
+    room = [shirt.scribbles((m == 0).astype(np.int32), 3) > 0 for m in setup["ids"]]
+    scene = fit_scene_colors(list(setup["frames"]), room, list(np.asarray(setup["W0"])), 8)
+    q = dataclasses.replace(p, shading=(0.5, 4.0), scene_colors=scene)
+    state = shirt.init(q, setup["W0"], jnp.zeros(model.n_dof))
+    state, out = shirt.step(q, state, setup["frames"])
+    kp = jax.jit(lambda x: keypoints(model, x))
+    err = np.linalg.norm(np.asarray(kp(out.q)) - np.asarray(kp(setup["q_true"])), axis=-1)
+    assert bool(out.valid) and err.mean() < 0.08, err
+    assert float(jnp.min(out.fraction)) > 0.1  # the shirt is still classified
+    with pytest.raises(ValueError, match="shading"):
+        shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
+                          shading=(2.0, 4.0))
 
 
 def test_invalid_inputs(setup):

@@ -18,6 +18,19 @@ XLA the unrolled loop over the k classes with a running minimum fuses into a *si
 the pixels (no ``(N, 10)`` feature or ``(N, k)`` distance array is ever written), which measured
 ~7x faster than the GEMM form on 640 x 480 (see ``benchmarks/bench_color.py``).
 
+**Shading-invariant option** (``gain=(lo, hi)``; not in the paper): spot lamps, shadows and
+the cloth's curvature scale a patch's colour by a spatially varying factor that one global ``W``
+cannot follow. Each pixel is then compared to each colour at its best brightness,
+
+    d_k^2(x) = min_{lo <= a <= hi} ||a W x - mu_k||^2_{Sigma_k}
+             = a*^2 x^T A_k x + a* b_k^T x + c_k,   a* = clip(-b_k^T x / (2 x^T A_k x), lo, hi),
+
+(uncentred ``A_k = W^T P_k W``, ``b_k = -2 W^T P_k mu_k``, ``c_k = mu_k^T P_k mu_k``): the
+chromatic part of the Gaussian is kept, brightness is free within ``[lo, hi]`` (so black,
+near-grey and very dark pixels, whose chromaticity is noise, stay far from every colour). Its
+covariances are fitted on brightness-normalised scribbles
+(:func:`jaxmocap.color.fit_color_model` ``gain=``), the same geometry.
+
 The soft form gives per-class responsibilities ``softmax(-d_k^2 / (2 t))`` with a background
 class whose squared distance is ``T^2``; it is differentiable w.r.t. ``mu``, ``Sigma`` (use
 :func:`~jaxmocap.color.model.cov_from_log_cholesky` for unconstrained parameters), ``W``, ``T``
@@ -74,6 +87,42 @@ def quadratic_coefficients(model: ColorModel, W: Float[Array, "3 3"]) -> Float[A
     )
 
 
+def gain_coefficients(model: ColorModel, W: Float[Array, "3 3"]) -> Float[Array, "10 k"]:
+    """Uncentred rows ``A00, A11, A22, 2A01, 2A02, 2A12, b0, b1, b2, c`` of
+    ``||W x - mu_k||^2_{Sigma_k}`` (the shading-invariant form needs ``x`` itself)."""
+    P = precision(model.cov)
+    A = jnp.einsum("ji,kjl,lm->kim", W, P, W)
+    Pm = jnp.einsum("kij,kj->ki", P, model.mean)
+    b = -2.0 * Pm @ W
+    c = jnp.einsum("ki,ki->k", model.mean, Pm)
+    return jnp.stack([A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], 2 * A[:, 0, 1], 2 * A[:, 0, 2],
+                      2 * A[:, 1, 2], b[:, 0], b[:, 1], b[:, 2], c])
+
+
+def _gain_squared_distances(coef: Array, image: Array, dtype, gain) -> list[Array]:
+    x0, x1, x2 = (image[..., c].astype(dtype) for c in range(3))
+    quad = [x0 * x0, x1 * x1, x2 * x2, x0 * x1, x0 * x2, x1 * x2]
+    lo, hi = (jnp.asarray(g, dtype) for g in gain)
+    out = []
+    for k in range(coef.shape[1]):
+        q = quad[0] * coef[0, k]
+        for j in range(1, 6):
+            q = q + quad[j] * coef[j, k]
+        lin = x0 * coef[6, k] + x1 * coef[7, k] + x2 * coef[8, k]
+        a = jnp.clip(-lin / (2 * jnp.maximum(q, 1e-12)), lo, hi)
+        out.append(jnp.maximum(a * a * q + a * lin + coef[9, k], 0))
+    return out
+
+
+def _distances(model: ColorModel, W: Array, image: Array, dtype, gain) -> list[Array]:
+    """Per-colour squared distances (the paper's, or the shading-invariant ones)."""
+    if gain is None:
+        coef = quadratic_coefficients(model, W.astype(dtype)).astype(dtype)
+        return _squared_distances(coef, _features(image, dtype))
+    coef = gain_coefficients(model, W.astype(dtype)).astype(dtype)
+    return _gain_squared_distances(coef, image, dtype, gain)
+
+
 def _features(image: Array, dtype) -> list[Array]:
     x0, x1, x2 = (image[..., c].astype(dtype) - CENTRE for c in range(3))
     return [x0 * x0, x1 * x1, x2 * x2, x0 * x1, x0 * x2, x1 * x2, x0, x1, x2]
@@ -93,11 +142,12 @@ def mahalanobis_sq(
     model: ColorModel,
     W: Float[Array, "3 3"],
     image: UInt8[Array, "h w 3"] | Float[Array, "h w 3"],
+    gain: tuple[float, float] | None = None,
 ) -> Float[Array, "h w k"]:
-    """Squared Mahalanobis distances ``||W I_xy - mu_k||^2_{Sigma_k}`` to every colour."""
+    """Squared Mahalanobis distances ``||W I_xy - mu_k||^2_{Sigma_k}`` to every colour (with
+    ``gain``: at each pixel's best brightness, module docstring)."""
     dtype = _dtype(model, W, image)
-    coef = quadratic_coefficients(model, W.astype(dtype)).astype(dtype)
-    return jnp.stack(_squared_distances(coef, _features(image, dtype)), axis=-1)
+    return jnp.stack(_distances(model, W, image, dtype, gain), axis=-1)
 
 
 def classify(
@@ -106,17 +156,19 @@ def classify(
     image: UInt8[Array, "h w 3"] | Float[Array, "h w 3"],
     mask: Bool[Array, "h w"] | None = None,
     threshold: float | Float[Array, ""] = THRESHOLD,
+    gain: tuple[float, float] | None = None,
+    background: ColorModel | None = None,
 ) -> tuple[Int[Array, "h w"], Float[Array, "h w"]]:
     """Id map ``r`` (0 background, ``1..k`` colours; int32) and the winner's distance.
 
     The distance (standard deviations) is ``min_k ||W I_xy - mu_k||_{Sigma_k}`` for every pixel,
-    also where the id is 0 (above ``threshold`` or outside ``mask``).
+    also where the id is 0 (above ``threshold`` or outside ``mask``); ``gain``: the
+    shading-invariant distance (module docstring); ``background``: Gaussians of the scene's
+    colours (:func:`background_mask`), a pixel nearer one of them than every colour is 0.
     """
     dtype = _dtype(model, W, image)
-    coef = quadratic_coefficients(model, W.astype(dtype)).astype(dtype)
-    feats = _features(image, dtype)
     best, idx = None, None
-    for k, d in enumerate(_squared_distances(coef, feats)):
+    for k, d in enumerate(_distances(model, W, image, dtype, gain)):
         if best is None:
             best, idx = d, jnp.ones(d.shape, jnp.int32)
         else:
@@ -126,7 +178,23 @@ def classify(
     keep = best < jnp.asarray(threshold, dtype) ** 2
     if mask is not None:
         keep = keep & mask
+    if background is not None:
+        keep = keep & (best < nearest_sq(background, W, image, gain))
     return jnp.where(keep, idx, 0), jnp.sqrt(jnp.maximum(best, 0))
+
+
+def nearest_sq(
+    model: ColorModel,
+    W: Float[Array, "3 3"],
+    image: UInt8[Array, "h w 3"] | Float[Array, "h w 3"],
+    gain: tuple[float, float] | None = None,
+) -> Float[Array, "h w"]:
+    """``min_k`` of the squared distances to ``model``'s Gaussians (one fused pass)."""
+    dtype = _dtype(model, W, image)
+    best = None
+    for d in _distances(model, W, image, dtype, gain):
+        best = d if best is None else jnp.minimum(best, d)
+    return best
 
 
 def classified_fraction(

@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
-from .classify import THRESHOLD, classified_fraction, classify
+from .classify import THRESHOLD, classified_fraction
+from .classify import classify as _classify
 from .model import ColorModel
 
 MIN_CLASSIFIED_FRACTION = 0.4  # Wang §5.2 step 1: "less than 40% of the foreground pixels"
@@ -81,13 +82,20 @@ def classify_with_references(
     mask: Bool[Array, "h w"] | None = None,
     threshold: float | Float[Array, ""] = THRESHOLD,
     min_fraction: float | Float[Array, ""] = MIN_CLASSIFIED_FRACTION,
+    gain: tuple[float, float] | None = None,
+    background: ColorModel | None = None,
 ) -> ReferenceClassification:
     """Classify with ``W``; below ``min_fraction`` classified, use the best stored reference.
 
     Pure jit code: the fallback is a ``lax.cond`` (only evaluated when needed on CPU; a select
     under vmap) whose branch classifies with every stored matrix (``vmap`` over the buffer),
     keeps the one with the most classified pixels, and uses it only if it beats ``W``.
+    ``gain`` / ``background``: :func:`jaxmocap.color.classify`'s options.
     """
+
+    def classify(model, W, image, mask, threshold):
+        return _classify(model, W, image, mask, threshold, gain, background)
+
     ids, dist = classify(model, W, image, mask, threshold)
     frac = classified_fraction(ids, mask)
 

@@ -41,6 +41,7 @@ VERSION = 1
 # Not in the paper: a variance floor (0..255 units^2) keeping fitted covariances positive
 # definite when a colour is saturated or quantised to a single value in a channel.
 MIN_VARIANCE = 1.0
+GAIN_FIT_ROUNDS = 3  # brightness normalisation <-> Gaussian fit alternations (``gain=``)
 
 
 class ColorModelError(InputError):
@@ -75,8 +76,15 @@ def fit_color_model(
     n_colors: int,
     names: Sequence[str] = (),
     min_variance: float = MIN_VARIANCE,
+    gain: tuple[float, float] | None = None,
 ) -> ColorModel:
     """Maximum-likelihood Gaussians of the labelled pixels (Wang §5.1; NumPy, at the edge).
+
+    With ``gain = (lo, hi)`` (the shading-invariant classification of
+    :mod:`jaxmocap.color.classify`; not in the paper) every pixel is first brought to its
+    colour's brightness, ``x -> a x`` with ``a = argmin ||a x - mu||_Sigma`` clipped to
+    ``[lo, hi]``, alternating with the fit (:data:`GAIN_FIT_ROUNDS` rounds), so that the
+    covariance holds the chromatic spread only and not the shading's.
 
     ``images[i]`` is (H, W, 3) RGB (uint8 or float in 0..255), ``labels[i]`` (H, W) ints with
     0 = unlabelled and ``1..n_colors`` the colour ids. Each colour needs at least 4 pixels. The
@@ -111,9 +119,16 @@ def fit_color_model(
                 f"fit_color_model: colour {k + 1} has {len(x)} labelled pixels, need >= 4"
             )
         mu = x.mean(axis=0)
-        d = x - mu
+        cov = (x - mu).T @ (x - mu) / len(x) + min_variance * np.eye(3)
+        for _ in range(GAIN_FIT_ROUNDS if gain is not None else 0):
+            P = np.linalg.inv(cov)
+            a = np.clip((x @ P @ mu) / np.maximum(np.einsum("ni,ij,nj->n", x, P, x), 1e-12),
+                        gain[0], gain[1])
+            y = a[:, None] * x
+            mu = y.mean(axis=0)
+            cov = (y - mu).T @ (y - mu) / len(y) + min_variance * np.eye(3)
         means.append(mu)
-        covs.append(d.T @ d / len(x) + min_variance * np.eye(3))
+        covs.append(cov)
     return ColorModel(
         mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names)
     )

@@ -36,7 +36,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxmocap.distance import edt
 
-from .classify import mahalanobis_sq
+from .classify import mahalanobis_sq, nearest_sq
 from .model import ColorModel
 
 POSE_THRESHOLD = 5.0  # Wang §5.2 step 3: "The classifier threshold T is set to five."
@@ -82,6 +82,8 @@ def pose_assisted_classify(
     weight: float | Float[Array, ""],
     mask: Bool[Array, "h w"] | None = None,
     threshold: float | Float[Array, ""] = POSE_THRESHOLD,
+    gain: tuple[float, float] | None = None,
+    background: ColorModel | None = None,
 ) -> PoseAssistedClassification:
     """Wang §5.2 step 3 with the per-patch assignment (module docstring).
 
@@ -94,10 +96,13 @@ def pose_assisted_classify(
         weight: ``C`` (per pixel of distance), e.g. :func:`prior_weight` of the crop side.
         mask: optional foreground mask (background subtraction); False pixels are background.
         threshold: ``T`` (standard deviations).
+        gain: the shading-invariant colour distance (:mod:`jaxmocap.color.classify`).
+        background: Gaussians of the scene's colours; a pixel nearer one of them than every
+            shirt colour is background (:func:`jaxmocap.color.classify`).
 
     Jit-able; differentiable w.r.t. the score (not the argmin).
     """
-    d2 = mahalanobis_sq(model, W, image)  # (h, w, k)
+    d2 = mahalanobis_sq(model, W, image, gain)  # (h, w, k)
     dtype = d2.dtype
     colour_dist = jnp.sqrt(jnp.maximum(d2, 0))
     per_patch = jnp.take(colour_dist, patch_colour - 1, axis=-1)  # (h, w, P)
@@ -107,6 +112,8 @@ def pose_assisted_classify(
     keep = score < jnp.asarray(threshold, dtype)
     if mask is not None:
         keep = keep & mask
+    if background is not None:
+        keep = keep & (jnp.min(d2, axis=-1) < nearest_sq(background, W, image, gain))
     patch = jnp.where(keep, best.astype(jnp.int32) + 1, 0)
     colour = jnp.where(keep, jnp.take(patch_colour.astype(jnp.int32), best), 0)
     return PoseAssistedClassification(patch=patch, colour=colour, score=score)

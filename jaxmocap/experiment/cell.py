@@ -37,6 +37,7 @@ SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_
 PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 ISOTROPIC_COV = (2.0, 0.3, 0.5)  # px, blend std, prior std (setup_for_sequence's default)
 SCRIBBLE_FRAMES = 3  # colors = "scribbles": frames of the capture the user scribbles on
+SCRIBBLE_MIN_PIXELS = 20  # a colour with fewer scribbled pixels is scribbled on a later frame
 
 
 def eval_joints(cfg: dict) -> tuple[str, ...]:
@@ -75,19 +76,64 @@ def _garment(cfg: dict, body, folder=None):
     return default_garment(body) if path is None else load_garment(path, body)
 
 
-def _scribbled_color_model(seq, garment, n_frames: int = SCRIBBLE_FRAMES):
+def scribble_frames(colour_ids: np.ndarray, n_colours: int, n_frames: int = SCRIBBLE_FRAMES,
+                    min_pixels: int = SCRIBBLE_MIN_PIXELS) -> list[int]:
+    """The frames a user scribbles: the first ``n_frames``, and for a colour with fewer than
+    ``min_pixels`` scribbled pixels there (hidden at the start: a patch on the back), the first
+    later frame where it shows with that many (``colour_ids`` (T, n_cams, H, W))."""
+    from jaxmocap.trackers import shirt
+
+    T = colour_ids.shape[0]
+    frames = list(range(min(n_frames, T)))
+    counts = np.zeros(n_colours + 1, np.int64)
+    for t in frames:
+        for m in colour_ids[t]:
+            counts += np.bincount(shirt.scribbles(np.asarray(m, np.int32)).ravel(), minlength=n_colours + 1)
+    for t in range(len(frames), T):
+        missing = np.nonzero(counts[1:] < min_pixels)[0] + 1
+        if missing.size == 0:
+            break
+        if not np.isin(missing, colour_ids[t]).any():  # cheap test before the erosion
+            continue
+        c_t = sum(np.bincount(shirt.scribbles(np.asarray(m, np.int32)).ravel(), minlength=n_colours + 1)
+                  for m in colour_ids[t])
+        if np.any(c_t[missing] >= min_pixels):
+            frames.append(t)
+            counts += c_t
+    return frames
+
+
+def _scribbled_color_model(seq, garment, n_frames: int = SCRIBBLE_FRAMES, gain=None):
     """The colour model a user makes from scribbles on the capture (``jaxmocap colors``): the
-    first frames of every camera, each pixel of the ground-truth colour ids eroded by
-    ``shirt.scribbles`` (no pixel near a patch border) labelled with its colour."""
+    frames of :func:`scribble_frames` of every camera, each pixel of the ground-truth colour ids
+    eroded by ``shirt.scribbles`` (no pixel near a patch border) labelled with its colour;
+    ``gain``: fitted for the shading-invariant distance."""
     from jaxmocap.color import fit_color_model
     from jaxmocap.trackers import shirt
 
+    cids = seq.groundtruth["colour_ids"]
     images, labels = [], []
-    for t in range(min(n_frames, seq.frames.shape[0])):
+    for t in scribble_frames(cids, garment.n_colours, n_frames):
         for c in range(seq.frames.shape[1]):
             images.append(np.asarray(seq.frames[t, c]))
-            labels.append(shirt.scribbles(np.asarray(seq.groundtruth["colour_ids"][t, c])))
-    return fit_color_model(images, labels, garment.n_colours, garment.colour_names)
+            labels.append(shirt.scribbles(np.asarray(cids[t, c])))
+    return fit_color_model(images, labels, garment.n_colours, garment.colour_names, gain=gain)
+
+
+def _scene_colors(seq, W0, n_clusters: int, n_frames: int = SCRIBBLE_FRAMES):
+    """Gaussians of the room a user scribbles beside the shirt: the pixels of the first frames
+    that are not shirt, ``SCRIBBLE_EROSION`` pixels away from it, white-balanced by ``W0``."""
+    from jaxmocap.color import fit_scene_colors
+    from jaxmocap.trackers import shirt
+
+    images, masks, Ws = [], [], []
+    for t in range(min(n_frames, seq.frames.shape[0])):
+        for c in range(seq.frames.shape[1]):
+            room = (np.asarray(seq.groundtruth["colour_ids"][t, c]) == 0).astype(np.int32)
+            images.append(np.asarray(seq.frames[t, c]))
+            masks.append(shirt.scribbles(room, shirt.SCRIBBLE_EROSION + 2) > 0)
+            Ws.append(np.asarray(W0[c]))
+    return fit_scene_colors(images, masks, Ws, n_clusters)
 
 
 # ----------------------------------------------------------------------------- the trackers
@@ -119,9 +165,12 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
     else:
         cov = IKCovariances.load(cov_opt)
     names = list(seq.camera_names)
+    shading = opts.get("shading")
+    scene_clusters = int(opts.pop("scene_clusters", 0))
     if opts.get("colors") == "scribbles":
         opts.pop("colors")
-        color = _scribbled_color_model(seq, garment)
+        color = _scribbled_color_model(seq, garment, gain=None if shading is None else
+                                       tuple(shading))
     elif "colors" in opts:
         from jaxmocap.color import load_color_model
 
@@ -139,6 +188,8 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
         W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
     background = opts.pop("background", False)
+    if scene_clusters:
+        opts["scene_colors"] = _scene_colors(seq, W0, scene_clusters)
     cams = stack_cameras(list(seq.cameras))
     params = shirt.make_params(color, body, garment, cams, anchors_from_garment(body, garment),
                                cov, db, **opts)

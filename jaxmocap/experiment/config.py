@@ -29,7 +29,10 @@ Relative paths are relative to the configuration file. Tracker options:
   from scribbles on the sequence's own first frames (its ground-truth colour ids eroded, as a
   user scribbles a capture: needed for footage of another renderer); default: the set-up of
   :func:`jaxmocap.trackers.shirt.setup_for_sequence` from the dataset's first-frame colour ids)
-  and ``background`` (OpenCV MOG2 masks, as ``shirt.run(background=True)``);
+  ``background`` (OpenCV MOG2 masks, as ``shirt.run(background=True)``) and
+  ``scene_clusters`` (k > 0: Gaussians of the room from the scribble frames' non-shirt pixels,
+  ``make_params(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
+  model is fitted for the shading-invariant distance);
 * ``pf``: every keyword of :func:`jaxmocap.trackers.stereo_pf.make_params` except the cameras,
   body and DOFs (``n_particles`` or its alias ``particles``, ``swivel_fraction``, ``guided``,
   ``use_distance``, ``sigma_g``, ...), plus ``azad`` (Azad's filter,
@@ -79,10 +82,10 @@ EXPERIMENT_KEYS = {"good_cm", "bad_cm"}
 CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"}
 # options the experiment interprets itself (beside the trackers' make_params keywords)
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
-               "white_balance": (str,), "background": (bool,)}
+               "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,)}
-SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db"}
+SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db", "scene_colors"}
 PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype"}
 PATH_OPTIONS = ("covariances", "db", "colors", "white_balance")
 

@@ -76,6 +76,7 @@ from jaxmocap.color import (
     white_balance_from_ids,
 )
 from jaxmocap.color.classify import THRESHOLD
+from jaxmocap.color.illumination import MIN_CLASSIFIED_FRACTION
 from jaxmocap.color.pose_assisted import (
     POSE_THRESHOLD,
     PRIOR_SCALE,
@@ -167,6 +168,7 @@ class ShirtParams(eqx.Module):
     cov: IKCovariances
     db: PoseDB
     canon: Camera  # the database's canonical camera
+    scene_colors: ColorModel | None = None  # Gaussians of the room (jaxmocap.color.scene_colors)
     pose_prior: bool = eqx.field(static=True, default=True)
     adaptive_white_balance: bool = eqx.field(static=True, default=True)
     work_size: int = eqx.field(static=True, default=WORK_SIZE)
@@ -188,6 +190,12 @@ class ShirtParams(eqx.Module):
     # pixels and the tracked poses then differ by up to ~1e-2 (docs/results/realtime_profile.md)
     static_kinds: bool = eqx.field(static=True, default=False)
     geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
+    # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance
+    # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
+    shading: tuple[float, float] | None = eqx.field(static=True, default=None)
+    # ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose (default); off:
+    # this frame's own estimate (still flagged invalid; the state keeps the last valid pose).
+    hold_invalid: bool = eqx.field(static=True, default=True)
 
     @property
     def n_cams(self) -> int:
@@ -256,6 +264,9 @@ def make_params(
     reacquire_frames: int = REACQUIRE_FRAMES,
     held_start: bool = True,
     static_kinds: bool = False,
+    shading: Sequence[float] | None = None,
+    scene_colors: ColorModel | None = None,
+    hold_invalid: bool = True,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -284,7 +295,14 @@ def make_params(
     subject re-entering fast is far from it, and a prior rendered there misleads the
     pose-assisted classification); on other frames it repeats the blend start.
     ``static_kinds`` renders with the body's geom kinds as constants inside the step (faster
-    ray casting, rounding differs from the default; see :class:`ShirtParams`)."""
+    ray casting, rounding differs from the default; see :class:`ShirtParams`).
+
+    Footage under spot lamps (not in the paper; both off by default): ``shading = (lo, hi)``
+    compares every pixel to every colour at its best brightness in ``[lo, hi]`` (steps 1 and 3;
+    the colour model should then be fitted with the same ``gain``,
+    :func:`jaxmocap.color.fit_color_model`); ``scene_colors`` (Gaussians of the room's colours,
+    :func:`jaxmocap.color.fit_scene_colors`) makes a pixel nearer one of them than every shirt
+    colour background in steps 1 and 3."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if reacquire_frames < 0:
@@ -305,13 +323,18 @@ def make_params(
     if work_size < 16:
         raise ValueError(f"make_params: work_size must be >= 16, got {work_size}")
     sc = tuple(int(s) for s in scales) if scales is not None else scales_for_width(cams.width)
+    if shading is not None:
+        shading = tuple(float(g) for g in shading)
+        if len(shading) != 2 or not 0 < shading[0] <= 1 <= shading[1]:
+            raise ValueError(f"make_params: shading must be (lo, hi) with 0 < lo <= 1 <= hi, "
+                             f"got {shading}")
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
-        pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
+        scene_colors, pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
         bool(temporal_start), float(min_agreement), bool(reacquire_start),
         int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
-        tuple(int(k) for k in np.asarray(body.geometry.kind)),
+        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, bool(hold_invalid),
     )  # fmt: skip
 
 
@@ -418,12 +441,11 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
         crop = sample_bilinear(frames[i], uv)
         fg = None if masks is None else sample_nearest(masks[i], uv)
         refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
-        if params.adaptive_white_balance:
-            c = classify_with_references(params.color, refs_i, state.W[i], crop, fg, THRESHOLD)
-        else:
-            c = classify_with_references(
-                params.color, refs_i, state.W[i], crop, fg, THRESHOLD, min_fraction=0.0
-            )
+        c = classify_with_references(
+            params.color, refs_i, state.W[i], crop, fg, THRESHOLD,
+            min_fraction=MIN_CLASSIFIED_FRACTION if params.adaptive_white_balance else 0.0,
+            gain=params.shading, background=params.scene_colors,
+        )  # fmt: skip
         crops.append(crop), fgs.append(fg), windows.append(win)
         s_found.append(res.s.astype(dt)), found.append(res.found), cls.append(c)
     return Views(crops, fgs, windows, s_found, found, cls)
@@ -513,12 +535,13 @@ def pose_assisted_centroids(
         weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
         thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
         pa = pose_assisted_classify(
-            params.color, W_i, v.crops[i], dist, patch_colour, weight, v.fgs[i], thr
-        )
+            params.color, W_i, v.crops[i], dist, patch_colour, weight, v.fgs[i], thr,
+            params.shading, params.scene_colors,
+        )  # fmt: skip
     else:
         pa = pose_assisted_classify(
             params.color, W_i, v.crops[i], dist, patch_colour, TIE_BREAK_WEIGHT, v.fgs[i],
-            THRESHOLD,
+            THRESHOLD, params.shading, params.scene_colors,
         )  # fmt: skip
     c = patch_centroids(pa.patch, P, v.windows[i], dtype=dt)
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[i])
@@ -651,7 +674,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
     new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
     out = ShirtOutput(
-        q=q_star,
+        q=q_star if params.hold_invalid else q_sol,
         q_blend=q_g,
         valid=valid,
         window=jnp.stack(views.windows),
