@@ -83,20 +83,20 @@ def scribble_frames(colour_ids: np.ndarray, n_colours: int, n_frames: int = SCRI
     later frame where it shows with that many (``colour_ids`` (T, n_cams, H, W))."""
     from jaxmocap.trackers import shirt
 
+    def scribbled(t):  # scribbled pixels per colour id in frame t, all cameras
+        return sum(np.bincount(shirt.scribbles(np.asarray(m, np.int32)).ravel(),
+                               minlength=n_colours + 1) for m in colour_ids[t])
+
     T = colour_ids.shape[0]
     frames = list(range(min(n_frames, T)))
-    counts = np.zeros(n_colours + 1, np.int64)
-    for t in frames:
-        for m in colour_ids[t]:
-            counts += np.bincount(shirt.scribbles(np.asarray(m, np.int32)).ravel(), minlength=n_colours + 1)
+    counts = sum((scribbled(t) for t in frames), np.zeros(n_colours + 1, np.int64))
     for t in range(len(frames), T):
         missing = np.nonzero(counts[1:] < min_pixels)[0] + 1
         if missing.size == 0:
             break
         if not np.isin(missing, colour_ids[t]).any():  # cheap test before the erosion
             continue
-        c_t = sum(np.bincount(shirt.scribbles(np.asarray(m, np.int32)).ravel(), minlength=n_colours + 1)
-                  for m in colour_ids[t])
+        c_t = scribbled(t)
         if np.any(c_t[missing] >= min_pixels):
             frames.append(t)
             counts += c_t
