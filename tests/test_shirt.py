@@ -190,6 +190,14 @@ def test_step_with_shading_and_scene_colours(setup):
     err = np.linalg.norm(np.asarray(kp(out.q)) - np.asarray(kp(setup["q_true"])), axis=-1)
     assert bool(out.valid) and err.mean() < 0.08, err
     assert float(jnp.min(out.fraction)) > 0.1  # the shirt is still classified
+    # every frame invalid (an agreement gate no render can pass): hold_invalid=False still
+    # reports the frame's own estimate; the state keeps the last valid pose (here the initial)
+    r = dataclasses.replace(q, min_agreement=1.5, gate_min_fraction=0.0, hold_invalid=False)
+    state = shirt.init(r, setup["W0"], jnp.zeros(model.n_dof))
+    state, out = shirt.step(r, state, setup["frames"])
+    assert not bool(out.valid) and not np.any(np.asarray(state.q))
+    err = np.linalg.norm(np.asarray(kp(out.q)) - np.asarray(kp(setup["q_true"])), axis=-1)
+    assert err.mean() < 0.08, err
     with pytest.raises(ValueError, match="shading"):
         shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
                           shading=(2.0, 4.0))

@@ -65,7 +65,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxmocap.body import BodyModel
-from jaxmocap.camera import Camera, pixel_rays, to_camera
+from jaxmocap.camera import Camera, pixel_rays, project, to_camera
 from jaxmocap.color import (
     ColorModel,
     ReferenceIlluminations,
@@ -194,8 +194,13 @@ class ShirtParams(eqx.Module):
     # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
     shading: tuple[float, float] | None = eqx.field(static=True, default=None)
     # ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose (default); off:
-    # this frame's own estimate (still flagged invalid; the state keeps the last valid pose).
+    # this frame's own estimate where MIN_VALID_PATCHES centroids were measured (still flagged
+    # invalid; the state keeps the last valid pose).
     hold_invalid: bool = eqx.field(static=True, default=True)
+    # the validity rule's counts (frame_validity): measured centroids, and the step-1 share
+    # from which on the agreement gate applies (0: always)
+    min_patches: int = eqx.field(static=True, default=MIN_VALID_PATCHES)
+    gate_min_fraction: float = eqx.field(static=True, default=GATE_MIN_FRACTION)
 
     @property
     def n_cams(self) -> int:
@@ -267,6 +272,8 @@ def make_params(
     shading: Sequence[float] | None = None,
     scene_colors: ColorModel | None = None,
     hold_invalid: bool = True,
+    min_patches: int = MIN_VALID_PATCHES,
+    gate_min_fraction: float = GATE_MIN_FRACTION,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -335,6 +342,7 @@ def make_params(
         bool(temporal_start), float(min_agreement), bool(reacquire_start),
         int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
         tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, bool(hold_invalid),
+        int(min_patches), float(gate_min_fraction),
     )  # fmt: skip
 
 
@@ -620,12 +628,27 @@ def more_rounds(params: ShirtParams, ctx: RoundContext, k: int, carry):
 
 
 def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> Array:
-    """Found in some camera, ``MIN_VALID_PATCHES`` centroids measured, and (when step 1
-    classified ``GATE_MIN_FRACTION`` of some crop: after a sudden lighting change it
+    """Found in some camera, ``min_patches`` centroids measured, and (when step 1
+    classified ``gate_min_fraction`` of some crop: after a sudden lighting change it
     classifies almost nothing until W is re-fitted) the agreement gate passed."""
-    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-    seen = jnp.max(jnp.stack([c.fraction for c in ctx.views.cls]) * ctx.okq) >= GATE_MIN_FRACTION
+    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= params.min_patches)
+    frac = jnp.max(jnp.stack([c.fraction for c in ctx.views.cls]) * ctx.okq)
+    seen = frac >= params.gate_min_fraction
     return valid & ((agreement >= params.min_agreement) | ~seen)
+
+
+def in_windows(params: ShirtParams, ctx: RoundContext, q) -> Array:
+    """Whether ``q`` is finite and its root lies in front of every camera that found the
+    shirt and inside that camera's crop window (a pose the crop can have measured)."""
+    ok = jnp.all(jnp.isfinite(q))
+    for i in range(params.n_cams):
+        cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
+        x0, y0, side = ctx.views.windows[i][0], ctx.views.windows[i][1], ctx.views.windows[i][2]
+        uv = project(cam, q[:3])
+        inside = (to_camera(cam, q[:3])[2] > 0) & (uv[0] >= x0) & (uv[0] <= x0 + side) \
+            & (uv[1] >= y0) & (uv[1] <= y0 + side)
+        ok = ok & (inside | ~ctx.okq[i])
+    return ok
 
 
 def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid):
@@ -673,8 +696,13 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
     new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
+    if params.hold_invalid:
+        q_out = q_star
+    else:  # this frame's estimate where there was something to fit (else it is unconstrained)
+        measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+        q_out = jnp.where(measured & in_windows(params, ctx, q_sol), q_sol, state.q)
     out = ShirtOutput(
-        q=q_star if params.hold_invalid else q_sol,
+        q=q_out,
         q_blend=q_g,
         valid=valid,
         window=jnp.stack(views.windows),
