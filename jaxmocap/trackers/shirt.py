@@ -65,7 +65,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxmocap.body import BodyModel
-from jaxmocap.camera import Camera, pixel_rays, project, to_camera
+from jaxmocap.camera import Camera, pixel_rays, to_camera
 from jaxmocap.color import (
     ColorModel,
     ReferenceIlluminations,
@@ -138,6 +138,7 @@ MIN_AGREEMENT = 0.25
 REACQUIRE_PASSES = 2
 # Not in the paper: frames after a loss during which the temporal prior is widened by Sigma_b.
 REACQUIRE_FRAMES = 3
+MAX_ROOT_OFFSET = 1.0  # metres: an invalid frame's estimate this far from the blend is not shown
 GATE_MIN_FRACTION = 0.2  # the gate applies only if step 1 classified this share in some camera
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
 
@@ -194,8 +195,9 @@ class ShirtParams(eqx.Module):
     # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
     shading: tuple[float, float] | None = eqx.field(static=True, default=None)
     # ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose (default); off:
-    # this frame's own estimate where MIN_VALID_PATCHES centroids were measured (still flagged
-    # invalid; the state keeps the last valid pose).
+    # this frame's own estimate where MIN_VALID_PATCHES centroids were measured and its root is
+    # near the placed blend's (near_placement; still flagged invalid; the state keeps the last
+    # valid pose).
     hold_invalid: bool = eqx.field(static=True, default=True)
     # the validity rule's counts (frame_validity): measured centroids, and the step-1 share
     # from which on the agreement gate applies (0: always)
@@ -637,18 +639,12 @@ def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> 
     return valid & ((agreement >= params.min_agreement) | ~seen)
 
 
-def in_windows(params: ShirtParams, ctx: RoundContext, q) -> Array:
-    """Whether ``q`` is finite and its root lies in front of every camera that found the
-    shirt and inside that camera's crop window (a pose the crop can have measured)."""
-    ok = jnp.all(jnp.isfinite(q))
-    for i in range(params.n_cams):
-        cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
-        x0, y0, side = ctx.views.windows[i][0], ctx.views.windows[i][1], ctx.views.windows[i][2]
-        uv = project(cam, q[:3])
-        inside = (to_camera(cam, q[:3])[2] > 0) & (uv[0] >= x0) & (uv[0] <= x0 + side) \
-            & (uv[1] >= y0) & (uv[1] <= y0 + side)
-        ok = ok & (inside | ~ctx.okq[i])
-    return ok
+def near_placement(ctx: RoundContext, q) -> Array:
+    """Whether ``q`` is finite and its root within ``MAX_ROOT_OFFSET`` of the placed blend's
+    (step 2's root, from where and how large the shirt appears in the crops): an IK that ran
+    off (too few or wrong centroids) lands metres away."""
+    off = jnp.linalg.norm(q[:3] - ctx.q_g[:3])
+    return jnp.all(jnp.isfinite(q)) & (off < MAX_ROOT_OFFSET)
 
 
 def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid):
@@ -700,7 +696,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         q_out = q_star
     else:  # this frame's estimate where there was something to fit (else it is unconstrained)
         measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-        q_out = jnp.where(measured & in_windows(params, ctx, q_sol), q_sol, state.q)
+        q_out = jnp.where(measured & near_placement(ctx, q_sol), q_sol, state.q)
     out = ShirtOutput(
         q=q_out,
         q_blend=q_g,
