@@ -240,3 +240,12 @@ def test_cli_refuses_bad_inputs_before_any_work(dataset, tmp_path, capsys):
     shirt.write_text("[[config]]\nname='s'\nmethod='shirt'\n")
     assert main(["experiment", str(dataset), str(shirt), "--out", str(out)]) == 2
     assert "has no colour_ids" in capsys.readouterr().err and not out.exists()
+
+
+def test_affinity_deals_configurations_to_workers_in_turn():
+    from jaxmocap.experiment.cluster import affinity
+
+    specs = [{"config": {"name": n}} for n in ("b", "a", "b", "c", "a", "c")]
+    assert affinity(specs, ["tcp://w2", "tcp://w1"]) == {"b": "tcp://w1", "a": "tcp://w2",
+                                                         "c": "tcp://w1"}
+    assert affinity(specs, []) == {}
