@@ -326,4 +326,21 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
         "first_frame_s": float(result.get("first_run_s", times[0])),
         "wall_s": float(result["wall_s"]),
     }
+    m["world"] = _world_metrics(gt_folder, frame_err, valid, good_cm, result)
     return m, frame_err
+
+
+def _world_metrics(gt_folder: str, frame_err, valid, good_cm: float, result: dict):
+    """:func:`jaxmocap.experiment.world_metrics.world_metrics` of the cell (None without
+    visibility ground truth)."""
+    from jaxmocap.camera import load_cameras
+    from jaxmocap.experiment.world_metrics import RECOVER_CM, world_metrics
+
+    with np.load(Path(gt_folder) / "groundtruth.npz") as z:
+        gt = {k: z[k] for k in ("occluded_fraction", "visible", "keypoints", "keypoint_names")
+              if k in z.files}
+    cam_file = Path(gt_folder) / "cameras.json"
+    cams = load_cameras(cam_file)[0] if cam_file.is_file() else None
+    return world_metrics(gt, frame_err, np.asarray(valid, bool), recover_cm=RECOVER_CM,
+                         good_cm=good_cm, cameras=cams,
+                         blobs=result.get("blobs"))
