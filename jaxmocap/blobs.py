@@ -278,9 +278,14 @@ def update(
     mask_left: np.ndarray,
     mask_right: np.ndarray,
     cams: camlib.Camera | Sequence[camlib.Camera],
+    reach: float | None = None,
 ) -> tuple[BlobState, Float[np.ndarray, "3 3"], Bool[np.ndarray, " 3"]]:
     """One stereo frame: skin masks (h, w) of the left and right image -> new state,
-    ``points3d`` (3, 3) metres (zeros where missing) and ``valid`` (3,)."""
+    ``points3d`` (3, 3) metres (zeros where missing) and ``valid`` (3,).
+
+    ``reach`` (metres; not in the paper): candidates farther than this from the head -- its
+    prediction while it is tracked, the chosen head at initialisation -- cannot be a hand (a
+    skin-coloured prop) and are dropped before association."""
     p = state.params
     cams = _as_stacked(cams)
     masks = (np.asarray(mask_left), np.asarray(mask_right))
@@ -337,12 +342,15 @@ def update(
     pairs = _greedy(cost)
     cand = np.array([X[i, j] for i, j in pairs]).reshape(-1, 3)
     cand_area = np.array([bl.area[i] + br.area[j] for i, j in pairs])
+    if reach is not None and tracked[HEAD] and len(cand):
+        keep = np.linalg.norm(cand - predicted[HEAD], axis=1) <= reach
+        cand, cand_area = cand[keep], cand_area[keep]
 
     # association of candidates with entities
     assigned: dict[int, int] = {}  # entity -> candidate
     if not np.any(tracked):
-        if len(cand) >= 3:
-            assigned = _initial_identities(cand, cand_area, cams, p)
+        if len(cand) >= (1 if reach is not None else 3):
+            assigned = _initial_identities(cand, cand_area, cams, p, reach)
     else:
         gate = p.gate + p.gate_growth * state.coast
         live = [e for e in range(3) if tracked[e] and not merged[e]]
@@ -408,11 +416,24 @@ def update(
 
 
 def _initial_identities(
-    cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams
+    cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams,
+    reach: float | None = None,
 ) -> dict[int, int]:
-    """Head = highest (Z) of the three largest candidates; hands by side of the head."""
+    """Head = highest (Z) of the three largest candidates; hands by side of the head. With
+    ``reach``, the hands are the (up to) two largest candidates within reach of the head; a
+    single one is the hand on its side of the head."""
     top3 = np.argsort(-area, kind="stable")[:3]
     head = int(top3[np.argmax(cand[top3, 2])])
+    if reach is not None:
+        near = [int(c) for c in np.argsort(-area, kind="stable")
+                if c != head and np.linalg.norm(cand[c] - cand[head]) <= reach]
+        if len(near) < 2:
+            out = {HEAD: head}
+            if near:
+                side = (cand[near[0]] - cand[head]) @ np.asarray(cams.R[0, 0])
+                out[LEFT_HAND if (side > 0) == p.subject_faces_cameras else RIGHT_HAND] = near[0]
+            return out
+        top3 = np.array([head, *near[:2]])
     hands = [int(c) for c in top3 if c != head]
     right_axis = np.asarray(cams.R[0, 0])  # left camera's image-x axis in the world
     side = [(cand[c] - cand[head]) @ right_axis for c in hands]

@@ -87,8 +87,10 @@ from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
 from jaxmocap.pf import guided as pf_guided
+from jaxmocap.pf.colors import CaptureColors
+from jaxmocap.pf.colors import masks as color_masks
 from jaxmocap.pf.cues import Observation, StereoLikelihood
-from jaxmocap.segment import SegmentParams, segment_cv
+from jaxmocap.segment import SegmentParams, Segmentation, segment_cv
 
 __all__ = [
     "AZAD_FILTER",
@@ -98,6 +100,7 @@ __all__ = [
     "SYNTH_SKIN_HSV",
     "BLOB_PARAMS",
     "anchor_frame",
+    "hand_reach",
     "compile_step",
     "StereoEstimate",
     "StereoPFParams",
@@ -160,6 +163,30 @@ SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
 
 
 SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint role, hand keypoint)
+# Blob plausibility (issue 18, not in the paper): a hand candidate farther from the head than
+# the arm's reach (head -> shoulder -> elbow -> wrist -> hand keypoints at rest) times this
+# factor is no hand -- a skin-coloured prop -- and is not triangulated into the filter.
+REACH_MARGIN = 1.15
+REACH_CHAINS = (("head", "l_shoulder", "l_elbow", "l_wrist", "l_hand"),
+                ("head", "r_shoulder", "r_elbow", "r_wrist", "r_hand"))
+
+
+def hand_reach(model: BodyModel, margin: float = REACH_MARGIN) -> float:
+    """The largest head-to-hand distance the body can take (metres, x ``margin``): the sum of
+    the keypoint-to-keypoint lengths along head, shoulder, elbow, (wrist,) hand at rest, the
+    longer arm. Keypoints by role name; raises one line when the body lacks them."""
+    names = list(model.keypoint_names)
+    kp = np.asarray(keypoints(model, jnp.zeros(model.n_dof)), np.float64)
+    best = 0.0
+    for chain in REACH_CHAINS:
+        present = [k for k in chain if k in names]
+        if not {chain[0], chain[1], chain[2], chain[-1]} <= set(present):
+            raise InputError(f"stereo_pf: blob plausibility needs the keypoints {chain} "
+                             f"(wrist optional); the body has {names}; give plausible_blobs="
+                             "False for this body")
+        pts = kp[[names.index(k) for k in present]]
+        best = max(best, float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
+    return margin * best
 
 
 def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
@@ -275,6 +302,10 @@ class StereoPFParams(eqx.Module):
     fallback_root: Float[Array, " 3"]
     n_particles: int = eqx.field(static=True)
     guided_init: bool = eqx.field(static=True, default=False)
+    # the capture's colour model (jaxmocap.pf.colors) instead of the HSV intervals; None: Azad's
+    colors: CaptureColors | None = None
+    # blob plausibility: hand candidates farther than this from the head are dropped (m; 0 off)
+    reach: float = eqx.field(static=True, default=0.0)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -319,6 +350,8 @@ def make_params(
     guided_damping: float = pf_guided.GUIDED_DAMPING,
     guided_init: bool = GUIDED_INIT,
     swivel_fraction: float = SWIVEL_FRACTION,
+    colors: CaptureColors | None = None,
+    plausible_blobs: bool = False,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -337,6 +370,10 @@ def make_params(
     support map to the observation). ``swivel_fraction``: the fraction of the particles
     whose elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`;
     default :data:`SWIVEL_FRACTION`; 0 disables). Azad's filter: ``**AZAD_FILTER``.
+    ``colors``: the capture's skin and shirt colour model (:mod:`jaxmocap.pf.colors`) used for
+    the skin map and the foreground instead of ``segment``'s HSV intervals.
+    ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
+    (:func:`hand_reach`, by keypoint roles) before they reach the distance cue.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -429,6 +466,8 @@ def make_params(
         fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
         n_particles=int(n_particles),
         guided_init=bool(guided and guided_init),
+        colors=colors,
+        reach=hand_reach(model) if plausible_blobs else 0.0,
     )
 
 
@@ -582,6 +621,16 @@ def support_map(
     return m.astype(np.float32)
 
 
+def _segment(params: StereoPFParams, image: np.ndarray) -> Segmentation:
+    """Azad's image line on one image; with ``params.colors`` the skin map and the foreground
+    come from the capture's colour model (:func:`jaxmocap.pf.colors.masks`)."""
+    if params.colors is None:
+        return segment_cv(params.segment, image)
+    skin, shirt = color_masks(params.colors, image)
+    seg = segment_cv(params.segment, image, foreground=shirt)
+    return Segmentation(skin, seg.foreground, seg.edges)
+
+
 def observe(
     params: StereoPFParams,
     frame_pair: UInt8[np.ndarray, "2 h w 3"],
@@ -597,9 +646,11 @@ def observe(
             f"stereo_pf: frame_pair: expected uint8 (2, {cams.height}, {cams.width}, 3) RGB, "
             f"got {frame_pair.dtype} {frame_pair.shape}"
         )
-    seg = [segment_cv(params.segment, frame_pair[i]) for i in range(2)]
+    seg = [_segment(params, frame_pair[i]) for i in range(2)]
     if blob_obs is None:
-        blob_state, points, valid = bloblib.update(blob_state, seg[0].skin, seg[1].skin, cams)
+        blob_state, points, valid = bloblib.update(
+            blob_state, seg[0].skin, seg[1].skin, cams, reach=params.reach or None
+        )
     else:
         points, valid = blob_obs
     dt = params.prior_lower.dtype
