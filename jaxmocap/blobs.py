@@ -278,14 +278,17 @@ def update(
     mask_left: np.ndarray,
     mask_right: np.ndarray,
     cams: camlib.Camera | Sequence[camlib.Camera],
-    reach: float | None = None,
+    reach: float | tuple[float, float] | None = None,
 ) -> tuple[BlobState, Float[np.ndarray, "3 3"], Bool[np.ndarray, " 3"]]:
     """One stereo frame: skin masks (h, w) of the left and right image -> new state,
     ``points3d`` (3, 3) metres (zeros where missing) and ``valid`` (3,).
 
     ``reach`` (metres; not in the paper): candidates farther than this from the head -- its
     prediction while it is tracked, the chosen head at initialisation -- cannot be a hand (a
-    skin-coloured prop) and are dropped before association."""
+    skin-coloured prop) and are dropped before association; ``reach = (near, far)`` also
+    drops the candidates other than the head's own (the nearest) closer than ``near`` to it:
+    the neck, seen as a blob of its own under the head, is no hand either."""
+    near_m, reach = (None, reach) if reach is None or np.isscalar(reach) else reach
     p = state.params
     cams = _as_stacked(cams)
     masks = (np.asarray(mask_left), np.asarray(mask_right))
@@ -343,14 +346,17 @@ def update(
     cand = np.array([X[i, j] for i, j in pairs]).reshape(-1, 3)
     cand_area = np.array([bl.area[i] + br.area[j] for i, j in pairs])
     if reach is not None and tracked[HEAD] and len(cand):
-        keep = np.linalg.norm(cand - predicted[HEAD], axis=1) <= reach
+        dist = np.linalg.norm(cand - predicted[HEAD], axis=1)
+        keep = dist <= reach
+        if near_m is not None:
+            keep &= (dist >= near_m) | (np.arange(len(cand)) == np.argmin(dist))
         cand, cand_area = cand[keep], cand_area[keep]
 
     # association of candidates with entities
     assigned: dict[int, int] = {}  # entity -> candidate
     if not np.any(tracked):
         if len(cand) >= (1 if reach is not None else 3):
-            assigned = _initial_identities(cand, cand_area, cams, p, reach)
+            assigned = _initial_identities(cand, cand_area, cams, p, reach, near_m or 0.0)
     else:
         gate = p.gate + p.gate_growth * state.coast
         live = [e for e in range(3) if tracked[e] and not merged[e]]
@@ -417,7 +423,7 @@ def update(
 
 def _initial_identities(
     cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams,
-    reach: float | None = None,
+    reach: float | None = None, near: float = 0.0,
 ) -> dict[int, int]:
     """Head = highest (Z) of the three largest candidates; hands by side of the head. With
     ``reach``, the hands are the (up to) two largest candidates within reach of the head; a
@@ -426,7 +432,7 @@ def _initial_identities(
     head = int(top3[np.argmax(cand[top3, 2])])
     if reach is not None:
         near = [int(c) for c in np.argsort(-area, kind="stable")
-                if c != head and np.linalg.norm(cand[c] - cand[head]) <= reach]
+                if c != head and near <= np.linalg.norm(cand[c] - cand[head]) <= reach]
         if len(near) < 2:
             out = {HEAD: head}
             if near:

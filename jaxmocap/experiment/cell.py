@@ -216,6 +216,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     blob = sp.BLOB_PARAMS if opts.pop("blob_params", "tracker") == "tracker" \
         else bloblib.BlobParams()
     lag = int(opts.pop("smooth_lag", 0))
+    validity = opts.pop("validity", True)
     for k in ("step_betas", "init_betas"):
         if k in opts:
             opts[k] = tuple(opts[k])
@@ -254,10 +255,9 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     est = jax.device_get(est)
     n = seq.frames.shape[0]
     q = np.asarray(est.q, np.float64)
-    valid = np.isfinite(q).all(axis=1)
-    if getattr(est, "valid", None) is not None:  # a filter that reports its own validity
-        valid = valid & np.asarray(est.valid, bool)
     ov = np.asarray(obs.valid)
+    valid = sp.frame_validity(params, q, np.asarray(obs.points), ov) if validity \
+        else np.isfinite(q).all(axis=1)
     rows = [{"ess": float(est.ess[t]), "best_loglik": float(est.best_loglik[t]),
              "degenerate": float(est.degenerate[t]), "blobs": float(ov[t].sum())}
             for t in range(n)]

@@ -39,8 +39,9 @@ Relative paths are relative to the configuration file. Tracker options:
   from scribbles on its first frames -- the shirt's ground-truth colour ids eroded, a disc on
   the face around the projected head keypoint -- or ``"auto"`` calibrated from the first
   frames without labels, :func:`jaxmocap.pf.colors.calibrate_from_frames`), ``blob_params``
-  (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``) and
-  ``smooth_lag``.
+  (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``),
+  ``smooth_lag`` and ``validity`` (default true: frames flagged by
+  :func:`~jaxmocap.trackers.stereo_pf.frame_validity`; false: every finite frame is valid).
 
 **Dataset**: a folder written by ``jaxmocap synth`` (``scene.json``, ``cameras.json``,
 ``groundtruth.npz``, videos / PNG folders), or a folder whose sub-folders are such folders.
@@ -85,7 +86,7 @@ CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
                "white_balance": (str,), "background": (bool,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
-            "smooth_lag": (int,)}
+            "smooth_lag": (int,), "validity": (bool,)}
 SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db"}
 PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype", "colors"}
 PF_SKINS = ("synth", "default", "scribbles", "auto")

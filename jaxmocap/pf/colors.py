@@ -209,8 +209,10 @@ def save_capture_colors(path: str | os.PathLike, colors: CaptureColors) -> Path:
         doc[name] = {"mean": np.asarray(c.mean).tolist(), "cov": np.asarray(c.cov).tolist()}
     if colors.background is not None:
         doc["background_log_density"] = np.round(np.asarray(colors.background), 4).tolist()
+    from jaxmocap.io.atomic import write_text
+
     path = Path(path)
-    path.write_text(json.dumps(doc, indent=2) + "\n")
+    write_text(path, json.dumps(doc, indent=2) + "\n")
     return path
 
 
@@ -259,3 +261,79 @@ def load_capture_colors(path: str | os.PathLike) -> CaptureColors:
                              f"{'x'.join(map(str, HIST_BINS))} array")
         bg = jnp.asarray(bg)
     return CaptureColors(classes["skin"], classes["shirt"], bg, **kw)
+
+
+# ----------------------------------------------------------------------------- automatic
+# calibrate_from_frames: the shirt is the dominant clearly coloured surface that moves over the
+# first frames; the head sits on top of it. Not in Azad et al.; constants for 320x240.
+AUTO_FRAMES = 30  # frames of the capture looked at (1 s at 30 Hz)
+MOTION_THRESHOLD = 0.04  # feature change (chromaticity units; brightness / 10) of "moving"
+COLOURED = 0.04  # chromaticity distance from neutral grey of a "coloured" pixel
+MODE_RADIUS = 0.03  # chromaticity radius around the histogram mode taken as the shirt
+HEAD_WINDOW = (0.35, 0.25)  # head search window above the shirt: height, half width (x the
+# shirt's height)
+
+
+def _shirt_from_motion(feats: np.ndarray) -> np.ndarray:
+    """(n, 3) feature rows of the shirt: among the pixels that change over the frames and are
+    clearly coloured, those near the chromaticity mode (the moving subject is mostly shirt)."""
+    change = np.abs(np.diff(feats, axis=0))
+    change[..., 2] /= 10.0
+    moving = np.zeros(feats.shape[1:3], bool)
+    moving |= np.max(change, axis=(0, 3)) > MOTION_THRESHOLD
+    f = feats[:, moving].reshape(-1, 3)
+    coloured = np.hypot(f[:, 0] - 1 / 3, f[:, 1] - 1 / 3) > COLOURED
+    f = f[coloured]
+    if f.shape[0] < 100:
+        raise InputError("pf.colors.calibrate_from_frames: fewer than 100 coloured pixels move "
+                         "over the calibration frames; give the colours from scribbles "
+                         "(`jaxmocap colors --pf`)")
+    h, ex, ey = np.histogram2d(f[:, 0], f[:, 1], bins=50, range=((0, 1), (0, 1)))
+    i, j = np.unravel_index(np.argmax(h), h.shape)
+    mode = np.array([(ex[i] + ex[i + 1]) / 2, (ey[j] + ey[j + 1]) / 2])
+    return f[np.hypot(*(f[:, :2] - mode).T) < MODE_RADIUS]
+
+
+def calibrate_from_frames(
+    frames: Sequence[np.ndarray], n_frames: int = AUTO_FRAMES, **kw
+) -> CaptureColors:
+    """The capture's colours without labels, from the first ``n_frames`` RGB uint8 frames of
+    one camera:
+
+    1. **shirt**: the Gaussian of the clearly coloured pixels that move over the frames, near
+       their chromaticity mode (walls and props do not move; the subject is mostly shirt);
+    2. **background**: the histogram of the pixels far from the shirt (:func:`with_background`);
+    3. **skin**: the face -- in a window above the shirt's largest component, centred on its
+       centroid's column (the torso dominates it), the pixels that are neither shirt nor
+       background-like (log background density below its 10th percentile over the image).
+    """
+    frames = [np.asarray(f) for f in list(frames)[:n_frames]]
+    if len(frames) < 2:
+        raise InputError("pf.colors.calibrate_from_frames: expected >= 2 frames")
+    feats = np.stack([features(f) for f in frames])
+    shirt = fit_class(_shirt_from_motion(feats))
+    dummy = ColorClass(shirt.mean, shirt.cov)
+    colors = with_background(CaptureColors(dummy, shirt, **kw), frames[:: max(1, len(frames) // 5)])
+    bg = np.asarray(colors.background)
+    skin_px = []
+    for f in feats[:: max(1, len(feats) // 5)]:
+        m = shirt.mahalanobis_sq(f) < colors.shirt_threshold
+        n, lab, stats, cents = cv2.connectedComponentsWithStats(m.astype(np.uint8), 8)
+        if n < 2:
+            continue
+        k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        x0, y0, w, h = stats[k, :4]
+        cx = int(round(cents[k][0]))
+        col = np.flatnonzero(lab[:, max(cx - 2, 0):cx + 3].max(1) == k)
+        top = int(col[0]) if col.size else y0
+        hh, hw = int(HEAD_WINDOW[0] * h), int(HEAD_WINDOW[1] * h)
+        win = (slice(max(top - hh, 0), top), slice(max(cx - hw, 0), cx + hw + 1))
+        lb = bg[_bin_index(f)]
+        cand = ~m[win] & (lb[win] < np.percentile(lb, 10))
+        skin_px.append(f[win][cand])
+    skin_px = np.concatenate(skin_px) if skin_px else np.zeros((0, 3))
+    if skin_px.shape[0] < 10:
+        raise InputError("pf.colors.calibrate_from_frames: no face found above the shirt in the "
+                         "calibration frames; give the colours from scribbles (`jaxmocap colors "
+                         "--pf`)")
+    return dataclasses.replace(colors, skin=fit_class(skin_px))

@@ -100,7 +100,9 @@ __all__ = [
     "SYNTH_SKIN_HSV",
     "BLOB_PARAMS",
     "anchor_frame",
+    "frame_validity",
     "hand_reach",
+    "head_residual",
     "compile_step",
     "StereoEstimate",
     "StereoPFParams",
@@ -167,14 +169,19 @@ SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint rol
 # the arm's reach (head -> shoulder -> elbow -> wrist -> hand keypoints at rest) times this
 # factor is no hand -- a skin-coloured prop -- and is not triangulated into the filter.
 REACH_MARGIN = 1.15
+# ... and a candidate closer to the head than NECK_FRACTION x the head-to-shoulder-centre
+# distance (at rest) is the neck seen as a blob of its own (on the dev split of the test world
+# the "hand" 8 cm from the neck), not a hand
+NECK_FRACTION = 0.8
 REACH_CHAINS = (("head", "l_shoulder", "l_elbow", "l_wrist", "l_hand"),
                 ("head", "r_shoulder", "r_elbow", "r_wrist", "r_hand"))
 
 
-def hand_reach(model: BodyModel, margin: float = REACH_MARGIN) -> float:
-    """The largest head-to-hand distance the body can take (metres, x ``margin``): the sum of
+def hand_reach(model: BodyModel, margin: float = REACH_MARGIN) -> tuple[float, float]:
+    """(near, far): the head-to-hand distances a hand blob may have (metres). far: the sum of
     the keypoint-to-keypoint lengths along head, shoulder, elbow, (wrist,) hand at rest, the
-    longer arm. Keypoints by role name; raises one line when the body lacks them."""
+    longer arm, x ``margin``; near: :data:`NECK_FRACTION` x the distance from the head to the
+    shoulders' centre. Keypoints by role name; raises one line when the body lacks them."""
     names = list(model.keypoint_names)
     kp = np.asarray(keypoints(model, jnp.zeros(model.n_dof)), np.float64)
     best = 0.0
@@ -186,7 +193,8 @@ def hand_reach(model: BodyModel, margin: float = REACH_MARGIN) -> float:
                              "False for this body")
         pts = kp[[names.index(k) for k in present]]
         best = max(best, float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
-    return margin * best
+    mid = 0.5 * (kp[names.index("l_shoulder")] + kp[names.index("r_shoulder")])
+    return NECK_FRACTION * float(np.linalg.norm(kp[names.index("head")] - mid)), margin * best
 
 
 def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
@@ -304,8 +312,8 @@ class StereoPFParams(eqx.Module):
     guided_init: bool = eqx.field(static=True, default=False)
     # the capture's colour model (jaxmocap.pf.colors) instead of the HSV intervals; None: Azad's
     colors: CaptureColors | None = None
-    # blob plausibility: hand candidates farther than this from the head are dropped (m; 0 off)
-    reach: float = eqx.field(static=True, default=0.0)
+    # blob plausibility (hand_reach): (near, far) head-to-hand distances, m; None: off
+    reach: tuple[float, float] | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -467,7 +475,7 @@ def make_params(
         n_particles=int(n_particles),
         guided_init=bool(guided and guided_init),
         colors=colors,
-        reach=hand_reach(model) if plausible_blobs else 0.0,
+        reach=hand_reach(model) if plausible_blobs else None,
     )
 
 
@@ -649,7 +657,7 @@ def observe(
     seg = [_segment(params, frame_pair[i]) for i in range(2)]
     if blob_obs is None:
         blob_state, points, valid = bloblib.update(
-            blob_state, seg[0].skin, seg[1].skin, cams, reach=params.reach or None
+            blob_state, seg[0].skin, seg[1].skin, cams, reach=params.reach
         )
     else:
         points, valid = blob_obs
@@ -754,6 +762,56 @@ def anchor_frame(observations: Observation) -> int:
         if col.any():
             return int(np.argmax(col))
     return 0
+
+
+# Per-frame validity (issue 18; Azad report none): the estimate agrees with the measurements
+# it can be checked against -- the model's head within VALID_HEAD_M of the triangulated head,
+# and every triangulated hand within VALID_HAND_M of the model's hand. A frame without a
+# triangulated head cannot be checked and is invalid. Calibrated on the dev split of the
+# independent test world (docs/results/stereo_pf.md, "Validity").
+VALID_HEAD_M = 0.10
+VALID_HAND_M = 0.15
+_CHECKED = ("head", "l_hand", "r_hand")  # the blob tracker's entities, as keypoints
+
+
+def _residuals(params: StereoPFParams, q: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(T, 3) distances (m) of the model's head / hands at ``q`` (T, n_dof) to ``points``."""
+    model = params.model
+    idx = np.asarray([keypoint_index(model, k)[0] for k in _CHECKED])
+    kp = np.asarray(
+        jax.vmap(lambda x: keypoints(model, x))(jnp.asarray(q, params.prior_lower.dtype))
+    )[:, idx]
+    return np.linalg.norm(kp - np.asarray(points, kp.dtype), axis=-1)
+
+
+def head_residual(
+    params: StereoPFParams, q: np.ndarray, points: np.ndarray, valid: np.ndarray
+) -> np.ndarray:
+    """(T,) distance (m) of the model's head at ``q`` to the triangulated head; NaN where
+    the head is not triangulated."""
+    r = _residuals(params, q, points)[:, 0]
+    return np.where(np.asarray(valid)[:, 0], r, np.nan)
+
+
+def frame_validity(
+    params: StereoPFParams,
+    q: Float[np.ndarray, "t n_dof"],
+    points: Float[np.ndarray, "t 3 3"],
+    valid: Bool[np.ndarray, "t 3"],
+    ess: Float[np.ndarray, " t"] | None = None,
+    head_m: float = VALID_HEAD_M,
+    hand_m: float = VALID_HAND_M,
+) -> Bool[np.ndarray, " t"]:
+    """Whether each frame's estimate can be trusted (host; see :data:`VALID_HEAD_M`): the
+    head triangulated and within ``head_m`` of the model's head, the triangulated hands within
+    ``hand_m`` of the model's, the pose finite. ``ess`` is accepted for the callers' symmetry
+    (not used: on the dev split it did not separate good frames from bad ones)."""
+    q = np.asarray(q)
+    valid = np.asarray(valid, bool)
+    r = _residuals(params, np.nan_to_num(q), points)
+    ok = valid[:, 0] & (r[:, 0] <= head_m)
+    ok &= np.all(~valid[:, 1:] | (r[:, 1:] <= hand_m), axis=1)
+    return ok & np.all(np.isfinite(q), axis=1)
 
 
 def track(
