@@ -371,6 +371,23 @@ def update(
             dist = np.linalg.norm(state.last_seen[lost][:, None] - cand[free][None], axis=-1)
             dist = np.where(dist <= p.reacquire, dist, np.inf)
             assigned.update({lost[r]: free[c] for r, c in _greedy(dist)})
+        if reach is not None and tracked[HEAD] and not merged[HEAD]:
+            # with the plausibility gate every candidate left is within reach of the head: a
+            # hand missing (or never acquired at a head-only start) takes the largest free one,
+            # on its side of the head (a hand lost far from where it was last seen would
+            # otherwise never come back)
+            right_axis = np.asarray(cams.R[0, 0])
+            for ent in (LEFT_HAND, RIGHT_HAND):
+                if ent in assigned or status_missing(state, ent) is False:
+                    continue
+                free = [c for c in range(len(cand)) if c not in assigned.values()]
+                head_pos = predicted[HEAD]
+                sides = [((cand[c] - head_pos) @ right_axis > 0) == p.subject_faces_cameras
+                         for c in free]
+                mine = [c for c, left in zip(free, sides, strict=True)
+                        if left == (ent == LEFT_HAND)]
+                if mine:
+                    assigned[ent] = max(mine, key=lambda c: cand_area[c])
 
     # linear motion model update
     position, velocity = predicted.copy(), state.velocity.copy()
@@ -419,6 +436,11 @@ def update(
         rejected,
     )
     return new, new.points3d, new.valid
+
+
+def status_missing(state: BlobState, ent: int) -> bool:
+    """Whether entity ``ent`` is missing (not tracked) in ``state``."""
+    return bool(state.status[ent] == MISSING)
 
 
 def _initial_identities(

@@ -23,7 +23,7 @@ SHIRT_RGB = (40, 70, 190)
 WALL_RGB = (120, 110, 100)
 HEAD = (80, 30, 12)  # u, v, r
 TORSO = (60, 44, 100, 110)  # x0, y0, x1, y1
-PROP = (18, 100, 9)
+PROP = (12, 100, 7)
 
 
 def scene(rng, gains=(1.0, 1.0, 1.0), prop_rgb=SKIN_RGB):
@@ -155,3 +155,40 @@ def test_reach_drops_a_distant_skin_candidate(rng):
         else:
             assert np.all(valid) and np.all(d > 0.5)
             np.testing.assert_allclose(pts, centres, atol=0.05)
+
+
+def test_calibration_from_moving_frames_without_labels(rng):
+    """No scribbles: the subject (shirt torso with the head on top) sways over a static room
+    with a skin-coloured and a shirt-coloured prop; the calibration finds the shirt from the
+    motion and the face above it, and the masks of a later frame match the drawn geometry."""
+    frames, truths = [], []
+    for t in range(12):
+        dx = int(round(10 * np.sin(t / 2.0)))
+        img = np.zeros((H, W, 3), np.float64) + WALL_RGB
+        img += np.linspace(-15, 15, W)[None, :, None]
+        x0, y0, x1, y1 = TORSO
+        cv2.rectangle(img, (x0 + dx, y0), (x1 + dx, y1), SHIRT_RGB, -1)
+        cv2.circle(img, (HEAD[0] + dx, HEAD[1]), HEAD[2], SKIN_RGB, -1)
+        cv2.circle(img, PROP[:2], PROP[2], SKIN_RGB, -1)
+        cv2.circle(img, (145, 20), 8, SHIRT_RGB, -1)  # a static prop of the shirt's colour
+        frames.append(np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8))
+        yy, xx = np.mgrid[:H, :W]
+        truths.append((xx - HEAD[0] - dx) ** 2 + (yy - HEAD[1]) ** 2 <= HEAD[2] ** 2)
+    colors = PC.calibrate_from_frames(frames)
+    np.testing.assert_allclose(np.asarray(colors.shirt.mean)[:2],
+                               PC.features(frames[0])[80, 80, :2], atol=0.01)
+    face = PC.features(frames[0])[truths[0]][:, :2].mean(0)
+    np.testing.assert_allclose(np.asarray(colors.skin.mean)[:2], face, atol=0.015)
+    skin, shirt = PC.masks(colors, frames[-1])
+    head = truths[-1]
+    inner = cv2.erode(head.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    outer = cv2.dilate(head.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert skin[inner].mean() > 0.9 and skin[~outer].mean() < 0.002  # (blurred border)
+    _, prop, _ = truth()
+    assert not skin[prop].any()
+
+
+def test_calibration_refuses_a_static_capture(rng):
+    frames = [scene(rng) for _ in range(6)]
+    with pytest.raises(InputError, match="move over the calibration frames"):
+        PC.calibrate_from_frames(frames)

@@ -249,11 +249,14 @@ class StereoPFFrameTracker:
     Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
     ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
     covariance), ``blobs`` (head/hands triangulated this frame, 0..3), ``waiting_for_head``,
-    ``head_residual_m`` (model head to the triangulated head; empty when not triangulated).
-    A frame is valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says so."""
+    ``head_residual_m`` (model head to the triangulated head; empty when not triangulated),
+    ``calibrating`` (``pf_colors="auto"``: the first
+    :data:`jaxmocap.pf.colors.AUTO_FRAMES` frames calibrate the capture's colours and are not
+    tracked). A frame is valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says
+    so."""
 
     diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs",
-                        "waiting_for_head", "head_residual_m")
+                        "waiting_for_head", "head_residual_m", "calibrating")
 
     def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
                  body: BodyModel | None = None, pf_colors: str | None = None):
@@ -269,16 +272,20 @@ class StereoPFFrameTracker:
                              f"{n_particles}")
         self._pf, self._blobs = stereo_pf, blobs
         segment, colors = None, None
-        if pf_colors is not None:
+        self._calibration: list[np.ndarray] | None = None
+        if pf_colors == "auto":
+            self._calibration = []
+        elif pf_colors is not None:
             from jaxmocap.pf.colors import load_capture_colors
 
             colors = load_capture_colors(pf_colors)
         elif skin == "synth":
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
-        self.params = stereo_pf.make_params(cams, model=body, n_particles=n_particles,
-                                            segment=segment, colors=colors,
-                                            plausible_blobs=colors is not None)
+        self._make = lambda colors: stereo_pf.make_params(
+            cams, model=body, n_particles=n_particles, segment=segment, colors=colors,
+            plausible_blobs=colors is not None, hand_swap=colors is not None)
+        self.params = self._make(colors)
         self._step = stereo_pf.compile_step(self.params)
         self.body = self.params.model
         self.cams = cams
@@ -290,6 +297,15 @@ class StereoPFFrameTracker:
         self.state = None
 
     def step(self, frames: np.ndarray) -> FrameResult:
+        if self._calibration is not None:
+            from jaxmocap.pf.colors import AUTO_FRAMES, calibrate_from_frames
+
+            self._calibration.append(np.asarray(frames[0]))
+            if len(self._calibration) < AUTO_FRAMES:
+                return FrameResult(np.full(self.body.n_dof, np.nan), False, {"calibrating": 1.0})
+            self.params = self._make(calibrate_from_frames(self._calibration))
+            self._step = self._pf.compile_step(self.params)
+            self._calibration = None
         obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
         valid_blobs = np.asarray(obs.valid)
         if self.state is None:
@@ -311,7 +327,7 @@ class StereoPFFrameTracker:
              "degenerate": float(est.degenerate),
              "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
              "blobs": float(np.sum(valid_blobs)), "waiting_for_head": 0.0,
-             "head_residual_m": float(res)}
+             "head_residual_m": float(res), "calibrating": 0.0}
         return FrameResult(q, ok, d)
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
@@ -521,10 +537,12 @@ def add_parser(sub) -> None:
     g.add_argument("--skin", choices=("default", "synth"), default="default",
                    help="fixed HSV skin interval without --pf-colors: default (Azad's), or "
                    "synth for jaxmocap synth scenes (default: %(default)s)")
-    g.add_argument("--pf-colors", metavar="PF_COLORS_JSON",
-                   help="the capture's skin and shirt colours (from `jaxmocap colors --pf` on "
-                   "scribbled frames of the capture; recommended for real footage): replaces "
-                   "the fixed HSV intervals and turns on the blob plausibility gate")
+    g.add_argument("--pf-colors", metavar="PF_COLORS_JSON|auto",
+                   help="the capture's skin and shirt colours, recommended for real footage: "
+                   "a file from `jaxmocap colors --pf` (scribbled frames of the capture), or "
+                   "auto (calibrated from the first 30 frames of the first camera, which are "
+                   "not tracked); replaces the fixed HSV intervals and turns on the blob "
+                   "plausibility gate and the nearest pairing of the hands")
     p.set_defaults(func=run)
 
 
@@ -533,7 +551,8 @@ def _inputs(args) -> list:
     srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
     return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
             getattr(args, "body", None), getattr(args, "garment", None),
-            getattr(args, "pf_colors", None)]
+            None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
+                                                                            None)]
 
 
 def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> None:

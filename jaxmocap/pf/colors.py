@@ -50,7 +50,9 @@ VERSION = 1
 # 94-100% of its pixels over the dev sequences (module docstring)
 SKIN_THRESHOLD = 25.0
 SHIRT_THRESHOLD = 16.0
-NEAR_PX = 30  # skin counted within this many pixels of the shirt (a head ~25 px tall sits on a neck)
+# skin counted within this many pixels of the shirt: a head ~25 px tall sits on a neck (12 px
+# lost the head on the dev split, 20 px gave 62 cm, 30 px 47 cm mean joint error)
+NEAR_PX = 30
 # variance floors (r, g, log-brightness): a class scribbled on one flat patch must still admit
 # the frame-to-frame noise and the shading of a curved surface
 MIN_VARIANCE = (0.004**2, 0.003**2, 0.08**2)
@@ -124,6 +126,7 @@ class CaptureColors(eqx.Module):
     skin_threshold: float = eqx.field(static=True, default=SKIN_THRESHOLD)
     shirt_threshold: float = eqx.field(static=True, default=SHIRT_THRESHOLD)
     near_px: int = eqx.field(static=True, default=NEAR_PX)
+    skin_log_ratio: float = eqx.field(static=True, default=SKIN_LOG_RATIO)
 
 
 def fit_class(feats: np.ndarray, min_variance: Sequence[float] = MIN_VARIANCE) -> ColorClass:
@@ -191,7 +194,7 @@ def masks(colors: CaptureColors, image: np.ndarray) -> tuple[np.ndarray, np.ndar
         cov = np.asarray(colors.skin.cov, np.float64)
         log_skin = -0.5 * d_skin - 0.5 * np.log((2 * np.pi) ** 3 * np.linalg.det(cov))
         log_bg = np.asarray(colors.background)[_bin_index(f)]
-        skin &= log_skin - log_bg > SKIN_LOG_RATIO
+        skin &= log_skin - log_bg > colors.skin_log_ratio
     if colors.near_px > 0:
         k = 2 * colors.near_px + 1
         near = cv2.dilate(shirt.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
@@ -267,31 +270,43 @@ def load_capture_colors(path: str | os.PathLike) -> CaptureColors:
 # calibrate_from_frames: the shirt is the dominant clearly coloured surface that moves over the
 # first frames; the head sits on top of it. Not in Azad et al.; constants for 320x240.
 AUTO_FRAMES = 30  # frames of the capture looked at (1 s at 30 Hz)
-MOTION_THRESHOLD = 0.04  # feature change (chromaticity units; brightness / 10) of "moving"
-COLOURED = 0.04  # chromaticity distance from neutral grey of a "coloured" pixel
+MOTION_STEP = 5  # frames between the compared images
+MOTION_THRESHOLD = 25  # grey-level difference (0..255, 3x3-blurred) of a "moving" pixel
+COLOURED = 0.08  # chromaticity distance from neutral grey of a "coloured" pixel (the balanced
+# walls of the dev split lie within 0.06 of it, the shirts 0.11-0.19 away)
 MODE_RADIUS = 0.03  # chromaticity radius around the histogram mode taken as the shirt
+FACE_PERCENTILE = 40  # the window's pixels least like the background taken as face candidates
+FACE_RADIUS = 0.02  # chromaticity radius around the window's mode taken as the face
 HEAD_WINDOW = (0.35, 0.25)  # head search window above the shirt: height, half width (x the
 # shirt's height)
 
 
-def _shirt_from_motion(feats: np.ndarray) -> np.ndarray:
+def _shirt_from_motion(frames: Sequence[np.ndarray], feats: np.ndarray) -> np.ndarray:
     """(n, 3) feature rows of the shirt: among the pixels that change over the frames and are
     clearly coloured, those near the chromaticity mode (the moving subject is mostly shirt)."""
-    change = np.abs(np.diff(feats, axis=0))
-    change[..., 2] /= 10.0
-    moving = np.zeros(feats.shape[1:3], bool)
-    moving |= np.max(change, axis=(0, 3)) > MOTION_THRESHOLD
-    f = feats[:, moving].reshape(-1, 3)
+    grey = [cv2.GaussianBlur(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), (3, 3), 0) for f in frames]
+    rows = []
+    for t in range(0, len(frames) - MOTION_STEP, MOTION_STEP):
+        for a in (t, t + MOTION_STEP):
+            moving = cv2.absdiff(grey[t], grey[t + MOTION_STEP]) > MOTION_THRESHOLD
+            rows.append(feats[a][moving])
+    f = np.concatenate(rows) if rows else np.zeros((0, 3))
     coloured = np.hypot(f[:, 0] - 1 / 3, f[:, 1] - 1 / 3) > COLOURED
     f = f[coloured]
     if f.shape[0] < 100:
         raise InputError("pf.colors.calibrate_from_frames: fewer than 100 coloured pixels move "
                          "over the calibration frames; give the colours from scribbles "
                          "(`jaxmocap colors --pf`)")
+    return _near_mode(f, MODE_RADIUS)
+
+
+def _near_mode(f: np.ndarray, radius: float) -> np.ndarray:
+    """The rows of ``f`` within ``radius`` (chromaticity) of the 2D chromaticity histogram's
+    mode (50 bins per axis)."""
     h, ex, ey = np.histogram2d(f[:, 0], f[:, 1], bins=50, range=((0, 1), (0, 1)))
     i, j = np.unravel_index(np.argmax(h), h.shape)
     mode = np.array([(ex[i] + ex[i + 1]) / 2, (ey[j] + ey[j + 1]) / 2])
-    return f[np.hypot(*(f[:, :2] - mode).T) < MODE_RADIUS]
+    return f[np.hypot(*(f[:, :2] - mode).T) < radius]
 
 
 def calibrate_from_frames(
@@ -305,13 +320,14 @@ def calibrate_from_frames(
     2. **background**: the histogram of the pixels far from the shirt (:func:`with_background`);
     3. **skin**: the face -- in a window above the shirt's largest component, centred on its
        centroid's column (the torso dominates it), the pixels that are neither shirt nor
-       background-like (log background density below its 10th percentile over the image).
+       background-like (log background density below the window's 40th percentile), near the
+       chromaticity mode of those.
     """
     frames = [np.asarray(f) for f in list(frames)[:n_frames]]
     if len(frames) < 2:
         raise InputError("pf.colors.calibrate_from_frames: expected >= 2 frames")
     feats = np.stack([features(f) for f in frames])
-    shirt = fit_class(_shirt_from_motion(feats))
+    shirt = fit_class(_shirt_from_motion(frames, feats))
     dummy = ColorClass(shirt.mean, shirt.cov)
     colors = with_background(CaptureColors(dummy, shirt, **kw), frames[:: max(1, len(frames) // 5)])
     bg = np.asarray(colors.background)
@@ -328,10 +344,12 @@ def calibrate_from_frames(
         top = int(col[0]) if col.size else y0
         hh, hw = int(HEAD_WINDOW[0] * h), int(HEAD_WINDOW[1] * h)
         win = (slice(max(top - hh, 0), top), slice(max(cx - hw, 0), cx + hw + 1))
-        lb = bg[_bin_index(f)]
-        cand = ~m[win] & (lb[win] < np.percentile(lb, 10))
+        lb = bg[_bin_index(f[win])]
+        cand = ~m[win] & (lb < np.percentile(lb, FACE_PERCENTILE))
         skin_px.append(f[win][cand])
     skin_px = np.concatenate(skin_px) if skin_px else np.zeros((0, 3))
+    if skin_px.shape[0] >= 10:
+        skin_px = _near_mode(skin_px, FACE_RADIUS)
     if skin_px.shape[0] < 10:
         raise InputError("pf.colors.calibrate_from_frames: no face found above the shirt in the "
                          "calibration frames; give the colours from scribbles (`jaxmocap colors "

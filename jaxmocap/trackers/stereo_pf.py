@@ -90,7 +90,7 @@ from jaxmocap.pf import guided as pf_guided
 from jaxmocap.pf.colors import CaptureColors
 from jaxmocap.pf.colors import masks as color_masks
 from jaxmocap.pf.cues import Observation, StereoLikelihood
-from jaxmocap.segment import SegmentParams, Segmentation, segment_cv
+from jaxmocap.segment import Segmentation, SegmentParams, segment_cv
 
 __all__ = [
     "AZAD_FILTER",
@@ -172,7 +172,7 @@ REACH_MARGIN = 1.15
 # ... and a candidate closer to the head than NECK_FRACTION x the head-to-shoulder-centre
 # distance (at rest) is the neck seen as a blob of its own (on the dev split of the test world
 # the "hand" 8 cm from the neck), not a hand
-NECK_FRACTION = 0.8
+NECK_FRACTION = 1.5
 REACH_CHAINS = (("head", "l_shoulder", "l_elbow", "l_wrist", "l_hand"),
                 ("head", "r_shoulder", "r_elbow", "r_wrist", "r_hand"))
 
@@ -360,6 +360,8 @@ def make_params(
     swivel_fraction: float = SWIVEL_FRACTION,
     colors: CaptureColors | None = None,
     plausible_blobs: bool = False,
+    hand_swap: bool = False,
+    init_yaw: float = INIT_YAW,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -382,6 +384,10 @@ def make_params(
     the skin map and the foreground instead of ``segment``'s HSV intervals.
     ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
     (:func:`hand_reach`, by keypoint roles) before they reach the distance cue.
+    ``hand_swap``: each particle pairs its hands with the triangulated ones in the nearer
+    pairing (:class:`~jaxmocap.pf.cues.StereoLikelihood`), robust to swapped blob identities.
+    ``init_yaw``: the initial prior's turn about the vertical, uniform in +-``init_yaw`` rad
+    (default :data:`INIT_YAW`, a subject facing the cameras; pi: any facing).
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -411,7 +417,7 @@ def make_params(
         sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
         points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
         use_region=use_region, sigma_s=jnp.asarray(sigma_s, dtype), use_support=use_support,
-        support_all=support_all,
+        support_all=support_all, hand_swap=hand_swap,
         edge_outside=None if edge_outside is None else float(edge_outside),
     )  # fmt: skip
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
@@ -468,7 +474,7 @@ def make_params(
         init_betas=jnp.asarray(init_betas, dtype),
         step_betas=jnp.asarray(step_betas, dtype),
         head_rest=head_rest.astype(dtype),
-        init_yaw=jnp.asarray(INIT_YAW, dtype),
+        init_yaw=jnp.asarray(init_yaw, dtype),
         init_tilt=jnp.asarray(INIT_TILT, dtype),
         init_root_std=jnp.asarray(INIT_ROOT_STD, dtype),
         fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
