@@ -368,6 +368,13 @@ def test_frame_validity_against_the_true_pose(scene):
     no_head[1, 0] = False
     np.testing.assert_array_equal(sp.frame_validity(params, qs, pts, no_head),
                                   [True, False, True, True])
+    # swapped hand identities are paired with the nearer model hands; a hand without a point
+    # leaves the arm unmeasured in depth: invalid (by default both hands are required)
+    assert sp.frame_validity(params, qs, pts[:, [0, 2, 1]], val).all()
+    one_hand = val.copy()
+    one_hand[:, 2] = False
+    assert not sp.frame_validity(params, qs, pts, one_hand).any()
+    assert sp.frame_validity(params, qs, pts, one_hand, min_hands=1).all()
     res = sp.head_residual(params, moved, pts, val)
     np.testing.assert_allclose(res, 0.3, atol=0.06)  # the blob centroid is ~3 cm off the centre
 

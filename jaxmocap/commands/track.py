@@ -322,7 +322,7 @@ class StereoPFFrameTracker:
                                      valid_blobs[None])[0]
         ok = bool(np.all(np.isfinite(q))) and bool(
             self._pf.frame_validity(self.params, q[None], np.asarray(obs.points)[None],
-                                    valid_blobs[None], np.asarray(est.ess)[None])[0])
+                                    valid_blobs[None])[0])
         d = {"ess": float(est.ess), "best_loglik": float(est.best_loglik),
              "degenerate": float(est.degenerate),
              "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
