@@ -34,7 +34,10 @@ Identities (§III-C uses c_1, c_2, c_3 for left hand, right hand, head; we order
 three largest candidates the highest (world Z up) is the head, and of the two others the hand
 on the subject's left -- the camera's right when the subject faces the cameras -- is the left
 hand. From then on the identities are kept by tracking (a hand crossing to the other side stays
-the same hand). When all three are missing the tracker initialises again.
+the same hand). When all three are missing the tracker initialises again. With the
+plausibility gate of :func:`update` (``reach``; not in the paper) the tracker may start on the
+head alone, and a missing hand is re-acquired from any candidate within reach on its side of
+the head.
 
 Output per frame: ``points3d`` (3, 3) metres and ``valid`` (3,) bool. Invalid entities have
 ``points3d = 0``, Azad's convention for a missing c_i (§III-D), so the distance cue ignores them.
@@ -378,7 +381,7 @@ def update(
             # otherwise never come back)
             right_axis = np.asarray(cams.R[0, 0])
             for ent in (LEFT_HAND, RIGHT_HAND):
-                if ent in assigned or status_missing(state, ent) is False:
+                if ent in assigned or state.status[ent] != MISSING:
                     continue
                 free = [c for c in range(len(cand)) if c not in assigned.values()]
                 head_pos = predicted[HEAD]
@@ -438,11 +441,6 @@ def update(
     return new, new.points3d, new.valid
 
 
-def status_missing(state: BlobState, ent: int) -> bool:
-    """Whether entity ``ent`` is missing (not tracked) in ``state``."""
-    return bool(state.status[ent] == MISSING)
-
-
 def _initial_identities(
     cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams,
     reach: float | None = None, near: float = 0.0,
@@ -453,15 +451,16 @@ def _initial_identities(
     top3 = np.argsort(-area, kind="stable")[:3]
     head = int(top3[np.argmax(cand[top3, 2])])
     if reach is not None:
-        near = [int(c) for c in np.argsort(-area, kind="stable")
-                if c != head and near <= np.linalg.norm(cand[c] - cand[head]) <= reach]
-        if len(near) < 2:
+        within = [int(c) for c in np.argsort(-area, kind="stable")
+                  if c != head and near <= np.linalg.norm(cand[c] - cand[head]) <= reach]
+        if len(within) < 2:
             out = {HEAD: head}
-            if near:
-                side = (cand[near[0]] - cand[head]) @ np.asarray(cams.R[0, 0])
-                out[LEFT_HAND if (side > 0) == p.subject_faces_cameras else RIGHT_HAND] = near[0]
+            if within:
+                side = (cand[within[0]] - cand[head]) @ np.asarray(cams.R[0, 0])
+                hand = LEFT_HAND if (side > 0) == p.subject_faces_cameras else RIGHT_HAND
+                out[hand] = within[0]
             return out
-        top3 = np.array([head, *near[:2]])
+        top3 = np.array([head, *within[:2]])
     hands = [int(c) for c in top3 if c != head]
     right_axis = np.asarray(cams.R[0, 0])  # left camera's image-x axis in the world
     side = [(cand[c] - cand[head]) @ right_axis for c in hands]

@@ -192,3 +192,23 @@ def test_calibration_refuses_a_static_capture(rng):
     frames = [scene(rng) for _ in range(6)]
     with pytest.raises(InputError, match="move over the calibration frames"):
         PC.calibrate_from_frames(frames)
+
+
+def test_reach_starts_on_the_head_and_acquires_a_hand_seen_later(rng):
+    """With the gate the tracker starts on head + one hand; the other hand, never seen
+    before, is acquired on its side of the head when it appears (Azad's tracker needs three
+    candidates to start and re-acquires only near a last sighting)."""
+    cams = stereo_cams()
+    centres = np.array([[0.0, 0.0, 1.6], [0.0, 0.3, 1.2], [0.0, -0.3, 1.2]])
+
+    def masks(pts, radii):
+        return [S.segment_cv(S.SegmentParams(), render(c, pts, radii, rng)).skin for c in cams]
+
+    state = B.init()
+    state, _, valid = B.update(state, *masks(centres[:2], RADII[:2]), cams, reach=(0.2, 0.9))
+    np.testing.assert_array_equal(valid, [True, True, False])
+    state, pts, valid = B.update(state, *masks(centres, RADII), cams, reach=(0.2, 0.9))
+    assert valid.all()
+    np.testing.assert_allclose(pts, centres, atol=0.05)
+    azad = B.update(B.init(), *masks(centres[:2], RADII[:2]), cams)
+    assert not azad[2].any()  # two candidates: Azad's tracker does not start
