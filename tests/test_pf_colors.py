@@ -8,6 +8,7 @@ the whole image (a white balance change of the camera or the lamp's colour).
 """
 
 import cv2
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_blobs import RADII, render, stereo_cams
@@ -212,3 +213,26 @@ def test_reach_starts_on_the_head_and_acquires_a_hand_seen_later(rng):
     np.testing.assert_allclose(pts, centres, atol=0.05)
     azad = B.update(B.init(), *masks(centres[:2], RADII[:2]), cams)
     assert not azad[2].any()  # two candidates: Azad's tracker does not start
+
+
+def test_hand_reach_by_roles_on_a_renamed_and_a_scaled_body():
+    """The reach comes from keypoint roles, not link names: a mixamo-renamed body has the
+    bundled body's reach; one with 10% longer arms reaches farther, by the NumPy sum of its
+    keypoint distances (the oracle) x the margin."""
+    from jaxmocap.body import default_body, keypoints
+    from jaxmocap.body.scale import measure, rename_body, scale_body
+    from jaxmocap.trackers import stereo_pf as sp
+
+    base = default_body()
+    near, far = sp.hand_reach(base)
+    renamed = rename_body(base, "mixamo")
+    assert renamed.chain.link_names != base.chain.link_names
+    np.testing.assert_allclose(sp.hand_reach(renamed), (near, far), rtol=1e-6)
+    ref = measure(base)
+    long = scale_body(base, upper_arm=1.1 * ref["upper_arm"], forearm=1.1 * ref["forearm"])
+    long = getattr(long, "model", long)
+    names = list(long.keypoint_names)
+    kp = np.asarray(keypoints(long, jnp.zeros(long.n_dof)), np.float64)
+    chain = [names.index(k) for k in ("head", "l_shoulder", "l_elbow", "l_wrist", "l_hand")]
+    expect = sp.REACH_MARGIN * np.sum(np.linalg.norm(np.diff(kp[chain], axis=0), axis=1))
+    assert sp.hand_reach(long)[1] == pytest.approx(expect, rel=1e-6) and expect > far
