@@ -263,7 +263,8 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
             for t in range(n)]
     per_frame = (observe_s + warm) / n
     return {"q": q, "valid": valid, "times": np.full(n, per_frame), "diagnostics": rows,
-            "body": body, "first_run_s": observe_first + first, "init_frame": t_init}
+            "body": body, "first_run_s": observe_first + first, "init_frame": t_init,
+            "blobs": (np.asarray(obs.points), ov)}  # the skin points fed into the filter
 
 
 def compute_cell(spec: dict) -> dict:

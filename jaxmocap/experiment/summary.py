@@ -23,7 +23,7 @@ COLUMNS = (  # (header, metric path, format)
 )
 
 
-def _get(m: dict, path) -> float | None:
+def _get(m: dict, path) -> float | int | None:
     for k in path:
         if m is None:
             return None
