@@ -34,7 +34,10 @@ Identities (§III-C uses c_1, c_2, c_3 for left hand, right hand, head; we order
 three largest candidates the highest (world Z up) is the head, and of the two others the hand
 on the subject's left -- the camera's right when the subject faces the cameras -- is the left
 hand. From then on the identities are kept by tracking (a hand crossing to the other side stays
-the same hand). When all three are missing the tracker initialises again.
+the same hand). When all three are missing the tracker initialises again. With the
+plausibility gate of :func:`update` (``reach``; not in the paper) the tracker may start on the
+head alone, and a missing hand is re-acquired from any candidate within reach on its side of
+the head.
 
 Output per frame: ``points3d`` (3, 3) metres and ``valid`` (3,) bool. Invalid entities have
 ``points3d = 0``, Azad's convention for a missing c_i (§III-D), so the distance cue ignores them.
@@ -278,9 +281,17 @@ def update(
     mask_left: np.ndarray,
     mask_right: np.ndarray,
     cams: camlib.Camera | Sequence[camlib.Camera],
+    reach: float | tuple[float, float] | None = None,
 ) -> tuple[BlobState, Float[np.ndarray, "3 3"], Bool[np.ndarray, " 3"]]:
     """One stereo frame: skin masks (h, w) of the left and right image -> new state,
-    ``points3d`` (3, 3) metres (zeros where missing) and ``valid`` (3,)."""
+    ``points3d`` (3, 3) metres (zeros where missing) and ``valid`` (3,).
+
+    ``reach`` (metres; not in the paper): candidates farther than this from the head -- its
+    prediction while it is tracked, the chosen head at initialisation -- cannot be a hand (a
+    skin-coloured prop) and are dropped before association; ``reach = (near, far)`` also
+    drops the candidates other than the head's own (the nearest) closer than ``near`` to it:
+    the neck, seen as a blob of its own under the head, is no hand either."""
+    near_m, reach = (None, reach) if reach is None or np.isscalar(reach) else reach
     p = state.params
     cams = _as_stacked(cams)
     masks = (np.asarray(mask_left), np.asarray(mask_right))
@@ -337,12 +348,18 @@ def update(
     pairs = _greedy(cost)
     cand = np.array([X[i, j] for i, j in pairs]).reshape(-1, 3)
     cand_area = np.array([bl.area[i] + br.area[j] for i, j in pairs])
+    if reach is not None and tracked[HEAD] and len(cand):
+        dist = np.linalg.norm(cand - predicted[HEAD], axis=1)
+        keep = dist <= reach
+        if near_m is not None:
+            keep &= (dist >= near_m) | (np.arange(len(cand)) == np.argmin(dist))
+        cand, cand_area = cand[keep], cand_area[keep]
 
     # association of candidates with entities
     assigned: dict[int, int] = {}  # entity -> candidate
     if not np.any(tracked):
-        if len(cand) >= 3:
-            assigned = _initial_identities(cand, cand_area, cams, p)
+        if len(cand) >= (1 if reach is not None else 3):
+            assigned = _initial_identities(cand, cand_area, cams, p, reach, near_m or 0.0)
     else:
         gate = p.gate + p.gate_growth * state.coast
         live = [e for e in range(3) if tracked[e] and not merged[e]]
@@ -357,6 +374,23 @@ def update(
             dist = np.linalg.norm(state.last_seen[lost][:, None] - cand[free][None], axis=-1)
             dist = np.where(dist <= p.reacquire, dist, np.inf)
             assigned.update({lost[r]: free[c] for r, c in _greedy(dist)})
+        if reach is not None and tracked[HEAD] and not merged[HEAD]:
+            # with the plausibility gate every candidate left is within reach of the head: a
+            # hand missing (or never acquired at a head-only start) takes the largest free one,
+            # on its side of the head (a hand lost far from where it was last seen would
+            # otherwise never come back)
+            right_axis = np.asarray(cams.R[0, 0])
+            for ent in (LEFT_HAND, RIGHT_HAND):
+                if ent in assigned or state.status[ent] != MISSING:
+                    continue
+                free = [c for c in range(len(cand)) if c not in assigned.values()]
+                head_pos = predicted[HEAD]
+                sides = [((cand[c] - head_pos) @ right_axis > 0) == p.subject_faces_cameras
+                         for c in free]
+                mine = [c for c, left in zip(free, sides, strict=True)
+                        if left == (ent == LEFT_HAND)]
+                if mine:
+                    assigned[ent] = max(mine, key=lambda c: cand_area[c])
 
     # linear motion model update
     position, velocity = predicted.copy(), state.velocity.copy()
@@ -408,11 +442,25 @@ def update(
 
 
 def _initial_identities(
-    cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams
+    cand: np.ndarray, area: np.ndarray, cams: camlib.Camera, p: BlobParams,
+    reach: float | None = None, near: float = 0.0,
 ) -> dict[int, int]:
-    """Head = highest (Z) of the three largest candidates; hands by side of the head."""
+    """Head = highest (Z) of the three largest candidates; hands by side of the head. With
+    ``reach``, the hands are the (up to) two largest candidates within reach of the head; a
+    single one is the hand on its side of the head."""
     top3 = np.argsort(-area, kind="stable")[:3]
     head = int(top3[np.argmax(cand[top3, 2])])
+    if reach is not None:
+        within = [int(c) for c in np.argsort(-area, kind="stable")
+                  if c != head and near <= np.linalg.norm(cand[c] - cand[head]) <= reach]
+        if len(within) < 2:
+            out = {HEAD: head}
+            if within:
+                side = (cand[within[0]] - cand[head]) @ np.asarray(cams.R[0, 0])
+                hand = LEFT_HAND if (side > 0) == p.subject_faces_cameras else RIGHT_HAND
+                out[hand] = within[0]
+            return out
+        top3 = np.array([head, *within[:2]])
     hands = [int(c) for c in top3 if c != head]
     right_axis = np.asarray(cams.R[0, 0])  # left camera's image-x axis in the world
     side = [(cand[c] - cand[head]) @ right_axis for c in hands]

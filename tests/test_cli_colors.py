@@ -164,3 +164,32 @@ def test_model_named_by_garment(tmp_path, capsys):
     assert_refused(capsys, "leave out --names", "colors", "--images", i1, "--masks", m1,
                    "--garment", tmp_path / "garment.json", "--names", "a", "b", "c", "d",
                    "--out", tmp_path / "c2.json")
+
+
+def test_pf_colours_from_scribbles(tmp_path, capsys):
+    """`colors --pf`: label 1 skin, 2 shirt -> a pf_colors.json whose classes are the ML
+    Gaussians of the labelled pixels' features (pf.colors.features, variance floors added)."""
+    from jaxmocap.pf import colors as PC
+
+    rng = np.random.default_rng(1)
+    img = np.full((120, 160, 3), 110.0) + rng.normal(0, 3, (120, 160, 3))
+    img[60:120, 65:95] = [40, 70, 190]  # the shirt (the background > 40 px from it is learned)
+    cv2.circle(img, (80, 48), 10, (200, 150, 120), -1)  # the face
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    lab = np.zeros((120, 160), np.uint8)
+    lab[45:52, 77:84] = 1
+    lab[75:95, 70:90] = 2
+    i, m = save(tmp_path / "a", img, lab)
+    out = tmp_path / "pf.json"
+    rc, stdout, err = run_cli(capsys, "colors", "--pf", "--images", i, "--masks", m, "--out",
+                              out)
+    assert rc == 0 and err == [], err
+    c = PC.load_capture_colors(out)
+    f = PC.features(img)
+    for k, cls in ((1, c.skin), (2, c.shirt)):
+        px = f[lab == k].astype(np.float64)
+        np.testing.assert_allclose(np.asarray(cls.mean), px.mean(0), rtol=1e-5)
+        np.testing.assert_allclose(np.asarray(cls.cov),
+                                   np.cov(px.T) + np.diag(PC.MIN_VARIANCE), rtol=1e-4)
+    assert_refused(capsys, "give one of them", "colors", "--pf", "--white-balance",
+                   "--images", i, "--masks", m, "--out", tmp_path / "x.json")

@@ -185,7 +185,10 @@ def test_tracker_input_refusals(tmp_path, capsys):
 
 def test_stereo_pf_end_to_end(tmp_path, capsys):
     """The real particle filter through the command on two rendered frames of the body
-    (tiny images, 20 particles: this checks the wiring, not the accuracy)."""
+    (tiny images, 20 particles: this checks the wiring, not the accuracy). The 64x48 views hold
+    no triangulable head, so the online filter waits (as the offline one does): the frames are
+    written invalid (NaN) and say why; tests/test_stereo_pf.py steps the frame tracker through
+    its initialisation on a drawn scene."""
     from jaxmocap.garment import default_garment
     from jaxmocap.render import render_rgb
 
@@ -210,11 +213,11 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
                               "npz,bvh,c3d")
     assert rc == 0 and err == [], err
     with np.load(out / "poses.npz") as z:
-        assert z["keypoints"].shape == (2, 12, 3) and z["valid"].all()
-        assert np.isfinite(z["q"]).all()
+        assert z["keypoints"].shape == (2, 12, 3) and not z["valid"].any()
+        assert np.isnan(z["q"]).all()
     assert Bvh((out / "poses.bvh").read_text()).nframes == 2
     assert (out / "poses.c3d").stat().st_size > 0
     rows = (out / "diagnostics.csv").read_text().splitlines()
-    assert rows[0] == "frame,read,valid,ess,best_loglik,degenerate,spread_root_m,blobs"
-    ess = [float(r.split(",")[3]) for r in rows[1:]]
-    assert all(1.0 - 1e-6 <= e <= 20 + 1e-6 for e in ess)
+    assert rows[0] == ("frame,read,valid,ess,best_loglik,degenerate,spread_root_m,blobs,"
+                       "waiting_for_head,head_residual_m,calibrating")
+    assert [r.split(",")[8] for r in rows[1:]] == ["1", "1"]  # waiting for a head

@@ -1,5 +1,7 @@
 """Tests of the stereo particle filter's likelihood cues (Azad et al. 2007 §II–III)."""
 
+import dataclasses
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -429,3 +431,34 @@ def test_edge_outside_and_support_cue_in_the_likelihood_vs_reference(setup):
     ref = ref / uvs.shape[2] / (2 * SIGMA**2)
     np.testing.assert_allclose(d, ref, atol=1e-9)
     assert np.sum(ref > 0.05) >= 2  # the tight framing does cut limbs of some particles
+
+
+def test_hand_swap_pairs_hands_by_the_nearer_assignment(setup):
+    """With ``hand_swap`` the distance cue of a pose is the same whichever identities the
+    triangulated hands carry, and equals the unswapped cue (reference: the NumPy sum of
+    squared distances) for identities that match the model; its closed-form Jacobian still
+    equals forward-mode autodiff."""
+    model, cams, obs, lik, s = setup
+    lik2 = dataclasses.replace(lik, hand_swap=True)
+    q = jnp.zeros(model.n_dof).at[np.asarray(lik.dofs)].set(s[0])
+    tr = np.asarray(fk(model.chain, q))
+    idx = keypoint_index(model, cues.DISTANCE_NAMES)
+    f = np.stack([tr[int(model.keypoint_link[i]), :3, :3] @ np.asarray(model.keypoint_offset[i])
+                  + tr[int(model.keypoint_link[i]), :3, 3] for i in idx])
+    c = f + np.array([[0.01, 0, 0], [0.0, 0.02, 0], [0, 0, -0.03]])
+    for valid in ([True, True, True], [True, True, False]):
+        z = dataclasses.replace(obs, points=jnp.asarray(c), valid=jnp.array(valid))
+        zs = dataclasses.replace(obs, points=jnp.asarray(c[[0, 2, 1]]),
+                                 valid=jnp.array(valid)[np.array([0, 2, 1])])
+        ref = -np.sum(np.where(valid, np.sum((f - c) ** 2, -1), 0)) / (2 * 0.05**2)
+        for zz in (z, zs):
+            ll = float(lik2(s[0], zz)) - float(dataclasses.replace(lik2, use_distance=False)(
+                s[0], zz))
+            np.testing.assert_allclose(ll, ref, rtol=1e-9)
+        # without hand_swap the swapped identities cost more
+        assert float(lik(s[0], zs)) < float(lik(s[0], z))
+        r, jac = lik2.distance_linearize(s[0], zs)
+        np.testing.assert_allclose(r, lik2.distance_residual(s[0], zs))
+        np.testing.assert_allclose(np.asarray(jac),
+                                   np.asarray(jax.jacfwd(lik2.distance_residual)(s[0], zs)),
+                                   atol=1e-10)

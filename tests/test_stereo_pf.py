@@ -352,3 +352,75 @@ def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, 
     assert 1 <= changed.sum() <= 5
     with pytest.raises(InputError, match="swivel_fraction"):
         sp.make_params(cams, swivel_fraction=1.5)
+
+
+def test_frame_validity_against_the_true_pose(scene):
+    """The true pose agrees with the triangulated head and hands: valid. The same pose moved
+    by 30 cm, or a frame whose head is not triangulated, cannot be trusted: invalid."""
+    model, cams, frames, qs, kp, params, obs = scene
+    pts, val = np.asarray(obs.points), np.asarray(obs.valid)
+    assert val[:, 0].all()
+    assert sp.frame_validity(params, qs, pts, val).all()
+    moved = qs.copy()
+    moved[:, 1] += 0.3
+    assert not sp.frame_validity(params, moved, pts, val).any()
+    no_head = val.copy()
+    no_head[1, 0] = False
+    np.testing.assert_array_equal(sp.frame_validity(params, qs, pts, no_head),
+                                  [True, False, True, True])
+    # swapped hand identities are paired with the nearer model hands; a hand without a point
+    # leaves the arm unmeasured in depth: invalid (by default both hands are required)
+    assert sp.frame_validity(params, qs, pts[:, [0, 2, 1]], val).all()
+    one_hand = val.copy()
+    one_hand[:, 2] = False
+    assert not sp.frame_validity(params, qs, pts, one_hand).any()
+    assert sp.frame_validity(params, qs, pts, one_hand, min_hands=1).all()
+    res = sp.head_residual(params, moved, pts, val)
+    np.testing.assert_allclose(res, 0.3, atol=0.06)  # the blob centroid is ~3 cm off the centre
+
+
+def test_capture_colours_give_the_blobs_of_the_drawn_scene(scene):
+    """Skin and shirt colours fitted from scribbles on the first frame (a disc on the face, a
+    stroke on the torso) find the head and both hands where the drawn scene has them."""
+    from jaxmocap.pf.colors import fit_capture_colors
+
+    model, cams, frames, qs, kp, params, obs = scene
+    head = keypoint_index(model, ["head", "l_hand", "r_hand"])
+    imgs, skin, shirt = [], [], []
+    yy, xx = np.mgrid[:H, :W]
+    for c, cam in enumerate(cams):
+        uv = np.asarray(camlib.project(cam, jnp.asarray(kp[0, head[0]])))
+        imgs.append(frames[0, c])
+        skin.append((xx - uv[0]) ** 2 + (yy - uv[1]) ** 2 <= 3**2)
+        mask = np.all(frames[0, c] == SHIRT, axis=-1)
+        shirt.append(cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
+    colors = fit_capture_colors(imgs, skin, shirt)
+    p2 = sp.make_params(cams, n_particles=200, dtype=jnp.float64, colors=colors,
+                        plausible_blobs=True)
+    o2 = sp.observe_sequence(p2, frames)
+    assert np.asarray(o2.valid).all()
+    np.testing.assert_allclose(np.asarray(o2.points), kp[:, head], atol=0.06)
+    # the foreground is the shirt as the HSV interval finds it (the drawn shirt colour)
+    fg = np.asarray(o2.foreground) > 0
+    for c in range(2):
+        drawn = np.all(frames[:, c] == SHIRT, axis=-1).astype(np.uint8)
+        inner = np.stack([cv2.erode(m, np.ones((3, 3), np.uint8)) for m in drawn]) > 0
+        outer = np.stack([cv2.dilate(m, np.ones((5, 5), np.uint8)) for m in drawn]) > 0
+        assert fg[:, c][inner].all() and not fg[:, c][~outer].any()
+
+
+def test_online_tracker_waits_for_a_triangulated_head(scene):
+    """The CLI's frame tracker initialises on the first frame with a head, as the offline
+    track() does: frames before it are invalid and say so."""
+    from jaxmocap.commands.track import StereoPFFrameTracker
+
+    model, cams, frames, qs, kp, params, obs = scene
+    tr = StereoPFFrameTracker(cams, 20, 0)
+    blank = np.full_like(frames[0], BACKGROUND)
+    tr.start(blank)
+    r0 = tr.step(blank)
+    assert not r0.valid and r0.diagnostics["waiting_for_head"] == 1.0
+    assert np.isnan(r0.q).all()
+    r1 = tr.step(frames[0])
+    assert r1.diagnostics["waiting_for_head"] == 0.0 and np.isfinite(r1.q).all()
+    assert r1.diagnostics["head_residual_m"] < 0.2

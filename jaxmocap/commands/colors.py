@@ -246,6 +246,22 @@ def _run_model(args, out: Path) -> int:
     return 0
 
 
+def _run_pf(args, out: Path) -> int:
+    """The stereo particle filter's capture colours (:mod:`jaxmocap.pf.colors`): label 1
+    marks skin (the face), label 2 the shirt."""
+    from jaxmocap.pf.colors import fit_capture_colors, save_capture_colors
+
+    images, labels = _read_pairs(args)
+    counts = _check_labels(args.masks, labels, 2, need_all=True)
+    colors = fit_capture_colors(images, [lab == 1 for lab in labels],
+                                [lab == 2 for lab in labels])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_capture_colors(out, colors)
+    print(f"skin: {counts[0]} px, shirt: {counts[1]} px (label 1 skin, 2 shirt)")
+    print(f"wrote {out}")
+    return 0
+
+
 def _run_white_balance(args, out: Path) -> int:
     if not args.colors:
         raise InputError("--white-balance needs --colors colors.json (the colour model)")
@@ -297,6 +313,10 @@ def add_parser(sub) -> None:
                    help="fit the initial white balance W0 per camera instead of the model")
     p.add_argument("--colors", metavar="COLORS_JSON",
                    help="the colour model (required with --white-balance)")
+    p.add_argument("--pf", action="store_true",
+                   help="fit the stereo particle filter's skin and shirt colours of the capture "
+                   "(pf_colors.json for `jaxmocap track --method pf --pf-colors`): label 1 = "
+                   "skin (scribble the face), 2 = shirt")
     from jaxmocap.commands._body import add_body_args
 
     add_body_args(p)
@@ -307,8 +327,13 @@ def run(args: argparse.Namespace) -> int:
     from jaxmocap.io.video import quiet_ffmpeg
 
     quiet_ffmpeg()  # OpenCV's own lines about a corrupt image: we report it in one line
-    default = "white_balance.json" if args.white_balance else "colors.json"
+    if args.pf and args.white_balance:
+        raise InputError("--pf and --white-balance: give one of them")
+    default = "white_balance.json" if args.white_balance else \
+        "pf_colors.json" if args.pf else "colors.json"
     out = check_output_file(args.out or default)
     check_outputs([out], [*args.images, *args.masks, args.colors, getattr(args, "body", None),
                           getattr(args, "garment", None)])
+    if args.pf:
+        return _run_pf(args, out)
     return _run_white_balance(args, out) if args.white_balance else _run_model(args, out)

@@ -243,16 +243,23 @@ class ShirtFrameTracker:
 
 class StereoPFFrameTracker:
     """Azad et al. 2007 through the frame protocol (see :mod:`jaxmocap.trackers.stereo_pf`):
-    automatic initialisation on the first frame, then one filter step per frame.
+    the filter initialises on the first frame with a triangulated head (as the offline
+    ``track``; frames before it are invalid, ``waiting_for_head`` 1), then one step per frame.
 
     Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
     ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
-    covariance), ``blobs`` (head/hands triangulated this frame, 0..3)."""
+    covariance), ``blobs`` (head/hands triangulated this frame, 0..3), ``waiting_for_head``,
+    ``head_residual_m`` (model head to the triangulated head; empty when not triangulated),
+    ``calibrating`` (``pf_colors="auto"``: the first
+    :data:`jaxmocap.pf.colors.AUTO_FRAMES` frames calibrate the capture's colours and are not
+    tracked). A frame is valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says
+    so."""
 
-    diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs")
+    diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs",
+                        "waiting_for_head", "head_residual_m", "calibrating")
 
     def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
-                 body: BodyModel | None = None):
+                 body: BodyModel | None = None, pf_colors: str | None = None):
         from jaxmocap import blobs
         from jaxmocap.segment import HSVInterval, SegmentParams
         from jaxmocap.trackers import stereo_pf
@@ -264,40 +271,64 @@ class StereoPFFrameTracker:
             raise InputError(f"--particles must be between 10 and {MAX_PARTICLES:,}, got "
                              f"{n_particles}")
         self._pf, self._blobs = stereo_pf, blobs
-        segment = None
-        if skin == "synth":
+        segment, colors = None, None
+        self._calibration: list[np.ndarray] | None = None
+        if pf_colors == "auto":
+            self._calibration = []
+        elif pf_colors is not None:
+            from jaxmocap.pf.colors import load_capture_colors
+
+            colors = load_capture_colors(pf_colors)
+        elif skin == "synth":
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
-        self.params = stereo_pf.make_params(cams, model=body, n_particles=n_particles,
-                                            segment=segment)
+        self._make = lambda colors: stereo_pf.make_params(
+            cams, model=body, n_particles=n_particles, segment=segment, colors=colors,
+            plausible_blobs=colors is not None, hand_swap=colors is not None)
+        self.params = self._make(colors)
         self._step = stereo_pf.compile_step(self.params)
         self.body = self.params.model
         self.cams = cams
         self.key = jax.random.PRNGKey(seed)
         self.state = None
-        self._first = None
 
     def start(self, frames: np.ndarray) -> None:
         self.blob_state = self._blobs.init(self._pf.BLOB_PARAMS)
-        obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
-        self.state, est = self._pf.init(self.params, self.key, obs)
-        self._first = (est, obs)
+        self.state = None
 
     def step(self, frames: np.ndarray) -> FrameResult:
-        if self._first is not None:
-            (est, obs), self._first = self._first, None
+        if self._calibration is not None:
+            from jaxmocap.pf.colors import AUTO_FRAMES, calibrate_from_frames
+
+            self._calibration.append(np.asarray(frames[0]))
+            if len(self._calibration) < AUTO_FRAMES:
+                return FrameResult(np.full(self.body.n_dof, np.nan), False, {"calibrating": 1.0})
+            self.params = self._make(calibrate_from_frames(self._calibration))
+            self._step = self._pf.compile_step(self.params)
+            self._calibration = None
+        obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
+        valid_blobs = np.asarray(obs.valid)
+        if self.state is None:
+            if not valid_blobs[0]:  # no triangulated head yet: nothing to anchor on
+                return FrameResult(np.full(self.body.n_dof, np.nan), False,
+                                   {"waiting_for_head": 1.0, "blobs": float(valid_blobs.sum())})
+            self.state, est = self._pf.init(self.params, self.key, obs)
         else:
-            obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
             self.state, est = self._step(self.state, obs)
-        est, parts, valid = jax.device_get((est, self.state.particles.particles,
-                                            obs.valid))
+        est, parts = jax.device_get((est, self.state.particles.particles))
         root = np.asarray(parts[:, :3], np.float64)
+        q = np.asarray(est.q, np.float64)
+        res = self._pf.head_residual(self.params, q[None], np.asarray(obs.points)[None],
+                                     valid_blobs[None])[0]
+        ok = bool(np.all(np.isfinite(q))) and bool(
+            self._pf.frame_validity(self.params, q[None], np.asarray(obs.points)[None],
+                                    valid_blobs[None])[0])
         d = {"ess": float(est.ess), "best_loglik": float(est.best_loglik),
              "degenerate": float(est.degenerate),
              "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
-             "blobs": float(np.sum(valid))}
-        q = np.asarray(est.q, np.float64)
-        return FrameResult(q, bool(np.all(np.isfinite(q))), d)
+             "blobs": float(np.sum(valid_blobs)), "waiting_for_head": 0.0,
+             "head_residual_m": float(res), "calibrating": 0.0}
+        return FrameResult(q, ok, d)
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
         kp = np.asarray(_keypoints_jit(self.body, jnp.asarray(result.q)), np.float64) \
@@ -407,7 +438,11 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
         raise InputError("--garment describes the colour shirt of --method shirt; the particle "
                          "filter (--method pf) segments a single-colour shirt and skin")
     if args.method == "pf":
-        return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin, body)
+        if args.pf_colors and args.skin != "default":
+            raise InputError(f"--pf-colors gives the skin and shirt colours; leave out --skin "
+                             f"{args.skin}")
+        return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin, body,
+                                    args.pf_colors)
     from jaxmocap.color import load_color_model
 
     if not args.colors:
@@ -500,8 +535,14 @@ def add_parser(sub) -> None:
                    "Azad §V)")
     g.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     g.add_argument("--skin", choices=("default", "synth"), default="default",
-                   help="skin colour interval: default, or synth for jaxmocap synth scenes "
-                   "(default: %(default)s)")
+                   help="fixed HSV skin interval without --pf-colors: default (Azad's), or "
+                   "synth for jaxmocap synth scenes (default: %(default)s)")
+    g.add_argument("--pf-colors", metavar="PF_COLORS_JSON|auto",
+                   help="the capture's skin and shirt colours, recommended for real footage: "
+                   "a file from `jaxmocap colors --pf` (scribbled frames of the capture), or "
+                   "auto (calibrated from the first 30 frames of the first camera, which are "
+                   "not tracked); replaces the fixed HSV intervals and turns on the blob "
+                   "plausibility gate and the nearest pairing of the hands")
     p.set_defaults(func=run)
 
 
@@ -509,7 +550,9 @@ def _inputs(args) -> list:
     """Every file or folder the command reads (camera indices are not paths)."""
     srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
     return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
-            getattr(args, "body", None), getattr(args, "garment", None)]
+            getattr(args, "body", None), getattr(args, "garment", None),
+            None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
+                                                                            None)]
 
 
 def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> None:

@@ -38,6 +38,7 @@ PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand
 ISOTROPIC_COV = (2.0, 0.3, 0.5)  # px, blend std, prior std (setup_for_sequence's default)
 SCRIBBLE_FRAMES = 3  # colors = "scribbles": frames of the capture the user scribbles on
 SCRIBBLE_MIN_PIXELS = 20  # a colour with fewer scribbled pixels is scribbled on a later frame
+FACE_SCRIBBLE_PX = 4  # pf skin = "scribbles": radius of the face scribble (a head is ~25 px)
 
 
 def eval_joints(cfg: dict) -> tuple[str, ...]:
@@ -134,6 +135,31 @@ def _scene_colors(seq, W0, n_clusters: int, n_frames: int = SCRIBBLE_FRAMES):
             masks.append(shirt.scribbles(room, shirt.SCRIBBLE_EROSION + 2) > 0)
             Ws.append(np.asarray(W0[c]))
     return fit_scene_colors(images, masks, Ws, n_clusters)
+
+
+def _scribbled_capture_colors(seq, n_frames: int = SCRIBBLE_FRAMES):
+    """The particle filter's skin and shirt colours from a user's scribbles on the capture's
+    first frames (:mod:`jaxmocap.pf.colors`): the shirt's ground-truth colour ids eroded
+    (``shirt.scribbles``), and on the face a disc of radius :data:`FACE_SCRIBBLE_PX` around
+    the projected head keypoint (the ground truth labels no skin)."""
+    import jax.numpy as jnp
+
+    from jaxmocap.camera import project
+    from jaxmocap.pf.colors import fit_capture_colors
+    from jaxmocap.trackers import shirt
+
+    g = seq.groundtruth
+    head = list(g["keypoint_names"]).index("head")
+    images, skin, shirt_m = [], [], []
+    for t in range(min(n_frames, seq.frames.shape[0])):
+        for c, cam in enumerate(seq.cameras):
+            h, w = seq.frames.shape[2:4]
+            u, v = np.asarray(project(cam, jnp.asarray(g["keypoints"][t, head])), np.float64)
+            yy, xx = np.mgrid[:h, :w]
+            images.append(np.asarray(seq.frames[t, c]))
+            skin.append((xx - u) ** 2 + (yy - v) ** 2 <= FACE_SCRIBBLE_PX**2)
+            shirt_m.append(shirt.scribbles(np.asarray(g["colour_ids"][t, c])) > 0)
+    return fit_capture_colors(images, skin, shirt_m)
 
 
 # ----------------------------------------------------------------------------- the trackers
@@ -241,14 +267,22 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     blob = sp.BLOB_PARAMS if opts.pop("blob_params", "tracker") == "tracker" \
         else bloblib.BlobParams()
     lag = int(opts.pop("smooth_lag", 0))
+    validity = opts.pop("validity", True)
     for k in ("step_betas", "init_betas"):
         if k in opts:
             opts[k] = tuple(opts[k])
     kw.update(opts)
-    segment = None
+    segment, colors = None, None
     if skin == "synth":
         segment = SegmentParams(skin=HSVInterval(*(jnp.asarray(v) for v in sp.SYNTH_SKIN_HSV)))
-    params = sp.make_params(list(seq.cameras), model=body, segment=segment, **kw)
+    elif skin == "scribbles":
+        colors = _scribbled_capture_colors(seq)
+    elif skin == "auto":
+        from jaxmocap.pf.colors import calibrate_from_frames
+
+        colors = calibrate_from_frames(seq.frames[:, 0])
+    params = sp.make_params(list(seq.cameras), model=body, segment=segment, colors=colors,
+                            **kw)
     t0 = time.perf_counter()
     obs = sp.observe_sequence(params, seq.frames, blob)  # host image line + blob tracker
     observe_first = time.perf_counter() - t0
@@ -272,16 +306,16 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     est = jax.device_get(est)
     n = seq.frames.shape[0]
     q = np.asarray(est.q, np.float64)
-    valid = np.isfinite(q).all(axis=1)
-    if getattr(est, "valid", None) is not None:  # a filter that reports its own validity
-        valid = valid & np.asarray(est.valid, bool)
     ov = np.asarray(obs.valid)
+    valid = sp.frame_validity(params, q, np.asarray(obs.points), ov) if validity \
+        else np.isfinite(q).all(axis=1)
     rows = [{"ess": float(est.ess[t]), "best_loglik": float(est.best_loglik[t]),
              "degenerate": float(est.degenerate[t]), "blobs": float(ov[t].sum())}
             for t in range(n)]
     per_frame = (observe_s + warm) / n
     return {"q": q, "valid": valid, "times": np.full(n, per_frame), "diagnostics": rows,
-            "body": body, "first_run_s": observe_first + first, "init_frame": t_init}
+            "body": body, "first_run_s": observe_first + first, "init_frame": t_init,
+            "blobs": (np.asarray(obs.points), ov)}  # the skin points fed into the filter
 
 
 def compute_cell(spec: dict) -> dict:
@@ -377,4 +411,21 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
         "first_frame_s": float(result.get("first_run_s", times[0])),
         "wall_s": float(result["wall_s"]),
     }
+    m["world"] = _world_metrics(gt_folder, frame_err, valid, good_cm, result)
     return m, frame_err
+
+
+def _world_metrics(gt_folder: str, frame_err, valid, good_cm: float, result: dict):
+    """:func:`jaxmocap.experiment.world_metrics.world_metrics` of the cell (None without
+    visibility ground truth)."""
+    from jaxmocap.camera import load_cameras
+    from jaxmocap.experiment.world_metrics import RECOVER_CM, world_metrics
+
+    with np.load(Path(gt_folder) / "groundtruth.npz") as z:
+        gt = {k: z[k] for k in ("occluded_fraction", "visible", "keypoints", "keypoint_names")
+              if k in z.files}
+    cam_file = Path(gt_folder) / "cameras.json"
+    cams = load_cameras(cam_file)[0] if cam_file.is_file() else None
+    return world_metrics(gt, frame_err, np.asarray(valid, bool), recover_cm=RECOVER_CM,
+                         good_cm=good_cm, cameras=cams,
+                         blobs=result.get("blobs"))

@@ -13,6 +13,13 @@ machine instead of each oversubscribing it (docs/results/experiments.md measures
 folder as the driver (:func:`jaxmocap._config.enable_compilation_cache`, ``JAXMOCAP_CACHE_DIR``
 passed on), so a tracker compiled once on this machine is read from disk by every worker.
 
+**Configuration affinity.** A worker's first cell of a configuration traces that tracker
+(the persistent cache skips XLA's compilation, not tracing and lowering): 28-33 s against
+3-7 s for each further 80-frame cell (docs/results/experiments.md). Cells of one configuration
+are therefore sent to one worker, configurations dealt to the workers in turn
+(:func:`affinity`), as a loose restriction: an idle worker still steals work, and a cell of a
+worker that died runs elsewhere.
+
 **Failures.** A cell that raises is retried ``retries`` times (Dask ``retries=``), then
 reported; a worker process that dies mid-cell (killed, out of memory) has its cell rescheduled
 on another worker by the scheduler (``distributed.scheduler.allowed-failures`` times).
@@ -99,6 +106,18 @@ def client_for(workers: int, scheduler: str | None, cluster_kwargs: dict | None 
     return client, cluster
 
 
+def affinity(specs: list[dict], workers: list[str]) -> dict[str, str]:
+    """Configuration name -> worker address: configurations in order of first appearance,
+    dealt round-robin over ``workers`` (sorted, so the same cluster gives the same deal)."""
+    order: dict[str, str] = {}
+    addrs = sorted(workers)
+    for spec in specs:
+        name = spec["config"]["name"]
+        if name not in order and addrs:
+            order[name] = addrs[len(order) % len(addrs)]
+    return order
+
+
 def run_on_cluster(specs: list[dict], fn: Callable[[dict], dict],
                    accept: Callable, workers: int, scheduler: str | None, retries: int,
                    cluster_kwargs: dict) -> None:
@@ -110,10 +129,15 @@ def run_on_cluster(specs: list[dict], fn: Callable[[dict], dict],
 
     client, cluster = client_for(workers, scheduler, cluster_kwargs)
     try:
+        if cluster is not None:
+            client.wait_for_workers(max(1, workers), timeout="120s")
+        where = affinity(specs, list(client.scheduler_info()["workers"]))
         futures = {}
         for spec in specs:
+            addr = where.get(spec["config"]["name"])
             f = client.submit(guarded, fn, spec, key=f"cell-{spec['cell']}", retries=retries,
-                              pure=False)
+                              pure=False, workers=None if addr is None else [addr],
+                              allow_other_workers=True)
             futures[f.key] = (f, spec)
         for fut in as_completed([f for f, _ in futures.values()]):
             spec = futures[fut.key][1]

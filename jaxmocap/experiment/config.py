@@ -37,9 +37,14 @@ Relative paths are relative to the configuration file. Tracker options:
   body and DOFs (``n_particles`` or its alias ``particles``, ``swivel_fraction``, ``guided``,
   ``use_distance``, ``sigma_g``, ...), plus ``azad`` (Azad's filter,
   :data:`~jaxmocap.trackers.stereo_pf.AZAD_FILTER`, under the other options), ``skin``
-  (``"synth"`` the renderer's skin interval (default) or ``"default"``), ``blob_params``
-  (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``) and
-  ``smooth_lag``.
+  (``"synth"`` the renderer's skin interval (default), ``"default"`` Azad's HSV intervals,
+  ``"scribbles"`` the capture's skin and shirt colours (:mod:`jaxmocap.pf.colors`) fitted
+  from scribbles on its first frames -- the shirt's ground-truth colour ids eroded, a disc on
+  the face around the projected head keypoint -- or ``"auto"`` calibrated from the first
+  frames without labels, :func:`jaxmocap.pf.colors.calibrate_from_frames`), ``blob_params``
+  (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``),
+  ``smooth_lag`` and ``validity`` (default true: frames flagged by
+  :func:`~jaxmocap.trackers.stereo_pf.frame_validity`; false: every finite frame is valid).
 
 **Dataset**: a folder written by ``jaxmocap synth`` (``scene.json``, ``cameras.json``,
 ``groundtruth.npz``, videos / PNG folders), or a folder whose sub-folders are such folders.
@@ -84,9 +89,10 @@ CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
                "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
-            "smooth_lag": (int,)}
+            "smooth_lag": (int,), "validity": (bool,)}
 SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db", "scene_colors"}
-PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype"}
+PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype", "colors"}
+PF_SKINS = ("synth", "default", "scribbles", "auto")
 PATH_OPTIONS = ("covariances", "db", "colors", "white_balance")
 
 
@@ -206,9 +212,9 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
         n = out.get("particles", out.get("n_particles", 2))
         if n < 2:
             raise ExperimentError(f"{where}.options.particles: expected >= 2, got {n}")
-        if out.get("skin", "synth") not in ("synth", "default"):
-            raise ExperimentError(f"{where}.options.skin: expected 'synth' or 'default', "
-                                  f"got {out['skin']!r}")
+        if out.get("skin", "synth") not in PF_SKINS:
+            raise ExperimentError(f"{where}.options.skin: expected one of "
+                                  f"{', '.join(PF_SKINS)}, got {out['skin']!r}")
         if out.get("blob_params", "tracker") not in ("tracker", "azad"):
             raise ExperimentError(f"{where}.options.blob_params: expected 'tracker' or "
                                   f"'azad', got {out['blob_params']!r}")

@@ -16,11 +16,14 @@ COLUMNS = (  # (header, metric path, format)
     ("valid", ("valid_share",), "{:.0%}"),
     ("bad flagged invalid", ("validity", "bad_flagged_invalid"), "{:.0%}"),
     ("good flagged valid", ("validity", "good_flagged_valid"), "{:.0%}"),
+    ("recovered <= 5 frames", ("world", "recovered_in_time"), "{:.0%}"),
+    ("cm, head + hands in view", ("world", "mean_cm_skin_in_view"), "{:.2f}"),
+    ("frames with a blob off the body", ("world", "frames_blob_off_body"), "{:.1f}"),
     ("ms/frame", ("ms_per_frame",), "{:.1f}"),
 )
 
 
-def _get(m: dict, path) -> float | None:
+def _get(m: dict, path) -> float | int | None:
     for k in path:
         if m is None:
             return None

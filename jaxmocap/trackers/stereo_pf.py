@@ -87,8 +87,21 @@ from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
 from jaxmocap.pf import guided as pf_guided
+from jaxmocap.pf.colors import CaptureColors
+from jaxmocap.pf.colors import masks as color_masks
 from jaxmocap.pf.cues import Observation, StereoLikelihood
-from jaxmocap.segment import SegmentParams, segment_cv
+from jaxmocap.segment import Segmentation, SegmentParams, segment_cv
+from jaxmocap.trackers.stereo_pf_checks import (  # noqa: F401 (re-exported)
+    NECK_FRACTION,
+    REACH_MARGIN,
+    VALID_HAND_M,
+    VALID_HEAD_M,
+    VALID_MIN_HANDS,
+    _residuals,
+    frame_validity,
+    hand_reach,
+    head_residual,
+)
 
 __all__ = [
     "AZAD_FILTER",
@@ -98,6 +111,9 @@ __all__ = [
     "SYNTH_SKIN_HSV",
     "BLOB_PARAMS",
     "anchor_frame",
+    "frame_validity",
+    "hand_reach",
+    "head_residual",
     "compile_step",
     "StereoEstimate",
     "StereoPFParams",
@@ -160,8 +176,6 @@ SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
 
 
 SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint role, hand keypoint)
-
-
 def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     """Rx(a0) Ry(a1) Rz(a2): the model's 3-DOF ball joints (x, y, z revolute links)."""
     return so3_exp(jnp.array([1.0, 0.0, 0.0], a.dtype) * a[0]) @ (
@@ -275,6 +289,10 @@ class StereoPFParams(eqx.Module):
     fallback_root: Float[Array, " 3"]
     n_particles: int = eqx.field(static=True)
     guided_init: bool = eqx.field(static=True, default=False)
+    # the capture's colour model (jaxmocap.pf.colors) instead of the HSV intervals; None: Azad's
+    colors: CaptureColors | None = None
+    # blob plausibility (hand_reach): (near, far) head-to-hand distances, m; None: off
+    reach: tuple[float, float] | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -319,6 +337,10 @@ def make_params(
     guided_damping: float = pf_guided.GUIDED_DAMPING,
     guided_init: bool = GUIDED_INIT,
     swivel_fraction: float = SWIVEL_FRACTION,
+    colors: CaptureColors | None = None,
+    plausible_blobs: bool = False,
+    hand_swap: bool = False,
+    init_yaw: float = INIT_YAW,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -337,6 +359,14 @@ def make_params(
     support map to the observation). ``swivel_fraction``: the fraction of the particles
     whose elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`;
     default :data:`SWIVEL_FRACTION`; 0 disables). Azad's filter: ``**AZAD_FILTER``.
+    ``colors``: the capture's skin and shirt colour model (:mod:`jaxmocap.pf.colors`) used for
+    the skin map and the foreground instead of ``segment``'s HSV intervals.
+    ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
+    (:func:`hand_reach`, by keypoint roles) before they reach the distance cue.
+    ``hand_swap``: each particle pairs its hands with the triangulated ones in the nearer
+    pairing (:class:`~jaxmocap.pf.cues.StereoLikelihood`), robust to swapped blob identities.
+    ``init_yaw``: the initial prior's turn about the vertical, uniform in +-``init_yaw`` rad
+    (default :data:`INIT_YAW`, a subject facing the cameras; pi: any facing).
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -366,7 +396,7 @@ def make_params(
         sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
         points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
         use_region=use_region, sigma_s=jnp.asarray(sigma_s, dtype), use_support=use_support,
-        support_all=support_all,
+        support_all=support_all, hand_swap=hand_swap,
         edge_outside=None if edge_outside is None else float(edge_outside),
     )  # fmt: skip
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
@@ -423,12 +453,14 @@ def make_params(
         init_betas=jnp.asarray(init_betas, dtype),
         step_betas=jnp.asarray(step_betas, dtype),
         head_rest=head_rest.astype(dtype),
-        init_yaw=jnp.asarray(INIT_YAW, dtype),
+        init_yaw=jnp.asarray(init_yaw, dtype),
         init_tilt=jnp.asarray(INIT_TILT, dtype),
         init_root_std=jnp.asarray(INIT_ROOT_STD, dtype),
         fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
         n_particles=int(n_particles),
         guided_init=bool(guided and guided_init),
+        colors=colors,
+        reach=hand_reach(model) if plausible_blobs else None,
     )
 
 
@@ -582,6 +614,16 @@ def support_map(
     return m.astype(np.float32)
 
 
+def _segment(params: StereoPFParams, image: np.ndarray) -> Segmentation:
+    """Azad's image line on one image; with ``params.colors`` the skin map and the foreground
+    come from the capture's colour model (:func:`jaxmocap.pf.colors.masks`)."""
+    if params.colors is None:
+        return segment_cv(params.segment, image)
+    skin, shirt = color_masks(params.colors, image)
+    seg = segment_cv(params.segment, image, foreground=shirt)
+    return Segmentation(skin, seg.foreground, seg.edges)
+
+
 def observe(
     params: StereoPFParams,
     frame_pair: UInt8[np.ndarray, "2 h w 3"],
@@ -597,9 +639,11 @@ def observe(
             f"stereo_pf: frame_pair: expected uint8 (2, {cams.height}, {cams.width}, 3) RGB, "
             f"got {frame_pair.dtype} {frame_pair.shape}"
         )
-    seg = [segment_cv(params.segment, frame_pair[i]) for i in range(2)]
+    seg = [_segment(params, frame_pair[i]) for i in range(2)]
     if blob_obs is None:
-        blob_state, points, valid = bloblib.update(blob_state, seg[0].skin, seg[1].skin, cams)
+        blob_state, points, valid = bloblib.update(
+            blob_state, seg[0].skin, seg[1].skin, cams, reach=params.reach
+        )
     else:
         points, valid = blob_obs
     dt = params.prior_lower.dtype
