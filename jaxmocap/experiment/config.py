@@ -28,7 +28,7 @@ Relative paths are relative to the configuration file. Tracker options:
   ``colors`` / ``white_balance`` (files of ``jaxmocap colors``; ``colors = "scribbles"``: fitted
   from scribbles on the sequence's own first frames (its ground-truth colour ids eroded, as a
   user scribbles a capture: needed for footage of another renderer); default: the set-up of
-  :func:`jaxmocap.trackers.shirt.setup_for_sequence` from the dataset's first-frame colour ids)
+  :func:`jaxmocap.trackers.shirt.setup_for_sequence` from the dataset's first-frame colour ids),
   ``background`` (OpenCV MOG2 masks, as ``shirt.run(background=True)``) and
   ``scene_clusters`` (k > 0: Gaussians of the room from the scribble frames' non-shirt pixels,
   ``make_params(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
