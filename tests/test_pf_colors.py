@@ -279,24 +279,30 @@ def test_adaptation_follows_a_face_whose_colour_changes(rng):
     x0, y0, x1, y1 = TORSO
     body = (xx >= x0 - 4) & (xx <= x1 + 4) & (yy >= HEAD[1] - HEAD[2] - 4) & (yy <= y1 + 4)
     end = np.array([190.0, 105.0, 70.0])  # redder and ~0.5 darker in log brightness
-    colors = fixed
-    used = []
-    for k in range(1, 21):
-        rgb = np.asarray(SKIN_RGB) + (end - np.asarray(SKIN_RGB)) * k / 20
-        img = shifted_scene(rng, rgb)
-        colors, n_sk, n_sh = PC.adapt_capture_colors(colors, [img], [head_region], [body])
-        used.append((n_sk, n_sh))
-    assert all(n_sk > 0 and n_sh > 0 for n_sk, n_sh in used)
     img = shifted_scene(rng, end)
     f = PC.features(img)
     assert np.median(fixed.skin.mahalanobis_sq(f[inner])) > 30  # far outside the fixed class
     s_fixed, _ = PC.masks(fixed, img)
-    s_adapt, sh_adapt = PC.masks(colors, img)
     assert s_fixed[inner].mean() < 0.2  # the fixed model lost the face
-    assert s_adapt[inner].mean() > 0.95  # the adapted one has it
-    assert not s_adapt[prop].any() and s_adapt[~head].mean() < 0.002
-    inner_t = cv2.erode(torso.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    assert sh_adapt[inner_t].mean() > 0.95 and sh_adapt[~torso].mean() < 0.01
+    frames = [shifted_scene(rng, np.asarray(SKIN_RGB) + (end - np.asarray(SKIN_RGB)) * k / 20)
+              for k in range(1, 21)]
+    for spread in (None, 1.0):  # free covariance; covariance never wider than the fitted one
+        colors, used = fixed, []
+        for frame in frames:
+            colors, n_sk, n_sh = PC.adapt_capture_colors(
+                colors, [frame], [head_region], [body], rate=0.3, shirt_rate=0.3,
+                reference=spread and fixed, max_spread=spread or 1.0)  # time constant ~3 frames
+            used.append((n_sk, n_sh))
+        assert all(n_sk > 0 and n_sh > 0 for n_sk, n_sh in used)
+        s_adapt, sh_adapt = PC.masks(colors, img)
+        assert s_adapt[inner].mean() > 0.95  # the adapted one has the face
+        assert not s_adapt[prop].any() and s_adapt[~head].mean() < 0.002
+        inner_t = cv2.erode(torso.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        assert sh_adapt[inner_t].mean() > 0.95 and sh_adapt[~torso].mean() < 0.01
+        if spread:  # the cap: no direction wider than the fitted class's
+            li = np.linalg.inv(np.linalg.cholesky(np.asarray(fixed.skin.cov)))
+            w = np.linalg.eigvalsh(li @ np.asarray(colors.skin.cov) @ li.T)
+            assert w.max() <= 1.0 + 1e-9
     # an occluder of the wall's colour covering the head: no candidate passes the guards
     occluded = shifted_scene(rng, WALL_RGB)
     after, n_sk, _ = PC.adapt_capture_colors(colors, [occluded], [head_region], None)

@@ -478,7 +478,8 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
             drifted[t, c][m] = np.round(rgb).astype(np.uint8)
     o_fixed = sp.observe_sequence(p_off, drifted)
     assert not np.asarray(o_fixed.valid)[-1, 0]  # the fixed model lost the head
-    p_on = sp.make_params(cams, adapt_colors=True, adapt_rate=0.5, adapt_shirt_rate=0.0, **kw)
+    p_on = sp.make_params(cams, adapt_colors=True, adapt_rate=0.5, adapt_shirt_rate=0.0,
+                         adapt_spread=2.0, **kw)  # fast: the drift spans 3 frames
     o_on, log = observe_adaptive(p_on, key, drifted)
     assert np.asarray(o_on.valid)[:, 0].all(), log
     head = keypoint_index(model, ["head"])[0]

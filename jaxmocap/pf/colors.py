@@ -215,14 +215,15 @@ def masks(colors: CaptureColors, image: np.ndarray) -> tuple[np.ndarray, np.ndar
 # skin class in one frame where the head turns under a lamp (pf_03, frame 23: r 0.33 -> 0.40,
 # log brightness -0.6), while an occluder passing in front of the head sits at d^2 ~100 and a
 # log ratio vs the background of ~-50: the gates below accept the first and refuse the second.
-ADAPT_RATE = 0.3  # weight of one frame's pixels in the running mean / covariance (the cap)
+ADAPT_RATE = 0.1  # weight of one frame's pixels in the running mean / covariance (the cap;
+# dev split: 0.3 was worse, 48.4 vs 35.7 cm, with the spread cap at 1)
 ADAPT_SKIN_GATE = 2 * SKIN_THRESHOLD  # candidates' d^2 to the current skin class
 ADAPT_SHIRT_GATE = SHIRT_THRESHOLD  # ... to the current shirt class: its own pixels (a wider
 # gate took the walls inside the body's box on the dev split: the shirt class covered the image)
 ADAPT_MIN_LOG_RATIO = SKIN_LOG_RATIO - 5.0  # candidates' log p(skin) - log p(background)
-ADAPT_MAX_SPREAD = 2.0  # the adapted class's spread along any axis <= this x the fitted one's
-# (dev split: without it the face's shading and the neck widened the brightness spread 3x and
-# the skin class took the room)
+ADAPT_MAX_SPREAD = 1.0  # the adapted class's spread along any axis <= this x the fitted one's
+# (dev split: without a cap the face's shading and the neck widened the brightness spread 3x
+# and the skin class took the room; 1: the classes move, they do not widen)
 ADAPT_MIN_PX = 20  # fewer candidate pixels than this: the class is left as it is
 
 
