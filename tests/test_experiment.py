@@ -223,6 +223,8 @@ def test_worker_environment_holds_threads_to_one():
     ("config = 3\n", "config: expected a non-empty list"),
     ("[experiment]\ngood_cm = 20\n[[config]]\nname='a'\nmethod='pf'\n", "good_cm 20 > bad_cm"),
     ("[[config]\n", "not valid TOML"),
+    ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nadapt_colors=true\n",
+     "options.adapt_colors: adapts the capture's colours"),
 ])
 def test_bad_configs_fail_in_one_line(tmp_path, text, expect):
     path = tmp_path / "configs.toml"

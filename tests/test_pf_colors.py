@@ -236,3 +236,75 @@ def test_hand_reach_by_roles_on_a_renamed_and_a_scaled_body():
     chain = [names.index(k) for k in ("head", "l_shoulder", "l_elbow", "l_wrist", "l_hand")]
     expect = sp.REACH_MARGIN * np.sum(np.linalg.norm(np.diff(kp[chain], axis=0), axis=1))
     assert sp.hand_reach(long)[1] == pytest.approx(expect, rel=1e-6) and expect > far
+
+
+def test_adapt_class_is_the_moment_matched_mixture(rng):
+    """Oracle: adapting the class of sample A with sample B at weight |B| / (|A| + |B|) gives
+    the Gaussian of A and B pooled (mean, covariance up to the 1/(n-1) of np.cov)."""
+    a = rng.normal([0.35, 0.33, 5.0], [0.01, 0.02, 0.2], (4000, 3))
+    b = rng.normal([0.40, 0.31, 4.6], [0.02, 0.01, 0.1], (2000, 3))
+    zero = (0.0, 0.0, 0.0)
+    ca = PC.fit_class(a, zero)
+    mixed = PC.adapt_class(ca, b, len(b) / (len(a) + len(b)), zero)
+    pooled = PC.fit_class(np.concatenate([a, b]), zero)
+    np.testing.assert_allclose(np.asarray(mixed.mean), np.asarray(pooled.mean), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(mixed.cov), np.asarray(pooled.cov), rtol=2e-3,
+                               atol=1e-9)
+    same = PC.adapt_class(ca, b, 0.0, zero)  # rate 0: unchanged
+    np.testing.assert_array_equal(np.asarray(same.mean), np.asarray(ca.mean))
+
+
+def shifted_scene(rng, skin_rgb):
+    """The scene with the face in another colour (a lamp on the face only: grey-world balance
+    does not absorb it)."""
+    img = np.zeros((H, W, 3), np.float64) + WALL_RGB
+    img += np.linspace(-15, 15, W)[None, :, None]
+    x0, y0, x1, y1 = TORSO
+    cv2.rectangle(img, (x0, y0), (x1, y1), SHIRT_RGB, -1)
+    cv2.circle(img, HEAD[:2], HEAD[2], tuple(float(c) for c in skin_rgb), -1)
+    cv2.circle(img, PROP[:2], PROP[2], SKIN_RGB, -1)
+    return np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_adaptation_follows_a_face_whose_colour_changes(rng):
+    """The face turns from SKIN_RGB to a dimmer, redder colour over 20 frames (the dev split's
+    face under a spot lamp: r +0.07, log brightness -0.6). The fixed model loses it; the
+    model adapted each frame from the head's pixels keeps it, and the wall and the far prop
+    stay rejected. An occluder of the wall's colour in front of the head is not learned."""
+    fixed = fitted(rng)
+    head, prop, torso = truth()
+    inner = cv2.erode(head.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    yy, xx = np.mgrid[:H, :W]
+    head_region = (xx - HEAD[0]) ** 2 + (yy - HEAD[1]) ** 2 <= (HEAD[2] - 2) ** 2
+    x0, y0, x1, y1 = TORSO
+    body = (xx >= x0 - 4) & (xx <= x1 + 4) & (yy >= HEAD[1] - HEAD[2] - 4) & (yy <= y1 + 4)
+    end = np.array([190.0, 105.0, 70.0])  # redder and ~0.5 darker in log brightness
+    img = shifted_scene(rng, end)
+    f = PC.features(img)
+    assert np.median(fixed.skin.mahalanobis_sq(f[inner])) > 30  # far outside the fixed class
+    s_fixed, _ = PC.masks(fixed, img)
+    assert s_fixed[inner].mean() < 0.2  # the fixed model lost the face
+    frames = [shifted_scene(rng, np.asarray(SKIN_RGB) + (end - np.asarray(SKIN_RGB)) * k / 20)
+              for k in range(1, 21)]
+    for spread in (None, 1.0):  # free covariance; covariance never wider than the fitted one
+        colors, used = fixed, []
+        for frame in frames:
+            colors, n_sk, n_sh = PC.adapt_capture_colors(
+                colors, [frame], [head_region], [body], rate=0.3, shirt_rate=0.3,
+                reference=spread and fixed, max_spread=spread or 1.0)  # time constant ~3 frames
+            used.append((n_sk, n_sh))
+        assert all(n_sk > 0 and n_sh > 0 for n_sk, n_sh in used)
+        s_adapt, sh_adapt = PC.masks(colors, img)
+        assert s_adapt[inner].mean() > 0.95  # the adapted one has the face
+        assert not s_adapt[prop].any() and s_adapt[~head].mean() < 0.002
+        inner_t = cv2.erode(torso.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        assert sh_adapt[inner_t].mean() > 0.95 and sh_adapt[~torso].mean() < 0.01
+        if spread:  # the cap: no direction wider than the fitted class's
+            li = np.linalg.inv(np.linalg.cholesky(np.asarray(fixed.skin.cov)))
+            w = np.linalg.eigvalsh(li @ np.asarray(colors.skin.cov) @ li.T)
+            assert w.max() <= 1.0 + 1e-9
+    # an occluder of the wall's colour covering the head: no candidate passes the guards
+    occluded = shifted_scene(rng, WALL_RGB)
+    after, n_sk, _ = PC.adapt_capture_colors(colors, [occluded], [head_region], None)
+    assert n_sk == 0
+    np.testing.assert_array_equal(np.asarray(after.skin.mean), np.asarray(colors.skin.mean))

@@ -424,3 +424,65 @@ def test_online_tracker_waits_for_a_triangulated_head(scene):
     r1 = tr.step(frames[0])
     assert r1.diagnostics["waiting_for_head"] == 0.0 and np.isfinite(r1.q).all()
     assert r1.diagnostics["head_residual_m"] < 0.2
+
+
+def _scene_colors(scene):
+    """Skin and shirt colours from scribbles on frame 0 (a disc on the face, the eroded
+    shirt), as in test_capture_colours_give_the_blobs_of_the_drawn_scene."""
+    from jaxmocap.pf.colors import fit_capture_colors
+
+    model, cams, frames, _, kp, _, _ = scene
+    head = keypoint_index(model, ["head"])[0]
+    imgs, skin, shirt = [], [], []
+    yy, xx = np.mgrid[:H, :W]
+    for c, cam in enumerate(cams):
+        uv = np.asarray(camlib.project(cam, jnp.asarray(kp[0, head])))
+        imgs.append(frames[0, c])
+        skin.append((xx - uv[0]) ** 2 + (yy - uv[1]) ** 2 <= 3**2)
+        mask = np.all(frames[0, c] == SHIRT, axis=-1)
+        shirt.append(cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
+    return fit_capture_colors(imgs, skin, shirt)
+
+
+def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scene):
+    """adapt_colors off: track() is observe_sequence + init + run, bit for bit; on with rates
+    0: the same observations. On: the skin of frames 1-3 drifts toward a darker, redder colour
+    (a lamp on the subject only); the fixed model loses the head on the last frame, the adapted
+    one (updated from the head the filter agrees with) still triangulates it."""
+    from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
+
+    model, cams, frames, qs, kp, _, _ = scene
+    colors = _scene_colors(scene)
+    kw = dict(n_particles=200, dtype=jnp.float64, colors=colors, plausible_blobs=True)
+    p_off = sp.make_params(cams, **kw)
+    assert p_off.adapt is None
+    key = jax.random.key(0)
+    obs = sp.observe_sequence(p_off, frames)
+    state, _ = sp.init(p_off, key, jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs))
+    _, ref = sp.run(p_off, state, obs)
+    np.testing.assert_array_equal(sp.track(p_off, key, frames).q, ref.q)
+    p_zero = sp.make_params(cams, adapt_colors=True, adapt_rate=0.0, adapt_shirt_rate=0.0, **kw)
+    o_zero, log = observe_adaptive(p_zero, key, frames)
+    for a, b in zip(jax.tree.leaves(o_zero), jax.tree.leaves(obs), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert log["confident"].sum() >= 2  # the filter agrees with the triangulated head
+    with pytest.raises(InputError, match="adapt_colors"):
+        sp.make_params(cams, adapt_colors=True)
+
+    end = np.array([205.0, 125.0, 85.0])
+    drifted = frames.copy()
+    for t in range(1, len(frames)):
+        rgb = np.asarray(SKIN) + (end - np.asarray(SKIN)) * t / (len(frames) - 1)
+        for c in range(2):
+            m = np.all(frames[t, c] == SKIN, axis=-1)
+            drifted[t, c][m] = np.round(rgb).astype(np.uint8)
+    o_fixed = sp.observe_sequence(p_off, drifted)
+    assert not np.asarray(o_fixed.valid)[-1, 0]  # the fixed model lost the head
+    p_on = sp.make_params(cams, adapt_colors=True, adapt_rate=0.5, adapt_shirt_rate=0.0,
+                         adapt_spread=2.0, **kw)  # fast: the drift spans 3 frames
+    o_on, log = observe_adaptive(p_on, key, drifted)
+    assert np.asarray(o_on.valid)[:, 0].all(), log
+    head = keypoint_index(model, ["head"])[0]
+    np.testing.assert_allclose(np.asarray(o_on.points)[:, 0], kp[:, head], atol=0.06)
+    est = sp.track(p_on, key, drifted)
+    assert np.isfinite(np.asarray(est.q)).all()

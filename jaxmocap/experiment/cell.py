@@ -283,14 +283,22 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         colors = calibrate_from_frames(seq.frames[:, 0])
     params = sp.make_params(list(seq.cameras), model=body, segment=segment, colors=colors,
                             **kw)
+    key = jax.random.key(seed)
+    if params.adapt is None:
+        def observe():  # host image line + blob tracker
+            return sp.observe_sequence(params, seq.frames, blob)
+    else:  # ... with the colour model re-fitted on line (the filter alongside)
+        from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
+
+        def observe():
+            return observe_adaptive(params, key, seq.frames, blob)[0]
     t0 = time.perf_counter()
-    obs = sp.observe_sequence(params, seq.frames, blob)  # host image line + blob tracker
+    obs = observe()
     observe_first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sp.observe_sequence(params, seq.frames, blob)  # again, warm: the steady-state time
+    observe()  # again, warm: the steady-state time
     observe_s = time.perf_counter() - t0
     t_init = sp.anchor_frame(obs)  # offline: initialise on the first frame with a head
-    key = jax.random.key(seed)
 
     def filt():
         state, _ = sp.init(params, key, jax.tree.map(lambda a: a[t_init], obs))

@@ -215,6 +215,10 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
         if out.get("skin", "synth") not in PF_SKINS:
             raise ExperimentError(f"{where}.options.skin: expected one of "
                                   f"{', '.join(PF_SKINS)}, got {out['skin']!r}")
+        if out.get("adapt_colors") and out.get("skin", "synth") not in ("scribbles", "auto"):
+            raise ExperimentError(f"{where}.options.adapt_colors: adapts the capture's colours; "
+                                  "expected skin = 'scribbles' or 'auto', got "
+                                  f"{out.get('skin', 'synth')!r}")
         if out.get("blob_params", "tracker") not in ("tracker", "azad"):
             raise ExperimentError(f"{where}.options.blob_params: expected 'tracker' or "
                                   f"'azad', got {out['blob_params']!r}")

@@ -87,7 +87,7 @@ from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
 from jaxmocap.pf import guided as pf_guided
-from jaxmocap.pf.colors import CaptureColors
+from jaxmocap.pf.colors import ADAPT_MAX_SPREAD, ADAPT_RATE, CaptureColors
 from jaxmocap.pf.colors import masks as color_masks
 from jaxmocap.pf.cues import Observation, StereoLikelihood
 from jaxmocap.segment import Segmentation, SegmentParams, segment_cv
@@ -293,6 +293,9 @@ class StereoPFParams(eqx.Module):
     colors: CaptureColors | None = None
     # blob plausibility (hand_reach): (near, far) head-to-hand distances, m; None: off
     reach: tuple[float, float] | None = eqx.field(static=True, default=None)
+    # on-line colour adaptation (jaxmocap.trackers.stereo_pf_adapt): (skin rate, shirt rate)
+    # of one frame's pixels, spread cap; None: the colour model stays as fitted
+    adapt: tuple[float, float, float] | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -341,6 +344,10 @@ def make_params(
     plausible_blobs: bool = False,
     hand_swap: bool = False,
     init_yaw: float = INIT_YAW,
+    adapt_colors: bool = False,
+    adapt_rate: float = ADAPT_RATE,
+    adapt_shirt_rate: float = ADAPT_RATE,
+    adapt_spread: float = ADAPT_MAX_SPREAD,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -367,6 +374,12 @@ def make_params(
     pairing (:class:`~jaxmocap.pf.cues.StereoLikelihood`), robust to swapped blob identities.
     ``init_yaw``: the initial prior's turn about the vertical, uniform in +-``init_yaw`` rad
     (default :data:`INIT_YAW`, a subject facing the cameras; pi: any facing).
+    ``adapt_colors``: re-fit ``colors``' skin and shirt classes on line from the tracked head
+    and body on the frames where the filter agrees with the triangulated head
+    (:mod:`jaxmocap.trackers.stereo_pf_adapt`; one frame weighs ``adapt_rate`` /
+    ``adapt_shirt_rate``, 0 leaves that class fixed; a class's spread stays within
+    ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
+    with the filter alongside.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -380,6 +393,13 @@ def make_params(
             f"stereo_pf.make_params: dofs: expected indices < {model.n_dof} including the root "
             f"DOFs 0..5, got {dofs.tolist()}"
         )
+    if adapt_colors and colors is None:
+        raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
+                         "(colors=...); the HSV intervals are not adapted")
+    if not (0.0 <= adapt_rate <= 1.0 and 0.0 <= adapt_shirt_rate <= 1.0 and adapt_spread > 0):
+        raise InputError("stereo_pf.make_params: adapt_rate / adapt_shirt_rate / adapt_spread: "
+                         f"expected in [0, 1] / [0, 1] / > 0, got {adapt_rate} / "
+                         f"{adapt_shirt_rate} / {adapt_spread}")
     if n_particles < 2:
         raise InputError(f"stereo_pf.make_params: n_particles: expected >= 2, got {n_particles}")
     default_q = (
@@ -461,6 +481,8 @@ def make_params(
         guided_init=bool(guided and guided_init),
         colors=colors,
         reach=hand_reach(model) if plausible_blobs else None,
+        adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
+        else None,
     )
 
 
@@ -758,8 +780,16 @@ def track(
 ) -> StereoEstimate:
     """Track a whole stereo sequence: observations on the host, automatic initialisation on
     the :func:`anchor_frame` (a few frames at most), then the filter over frames 0..T-1 in one
-    ``lax.scan`` (``smooth_lag``: see :func:`run`). Estimates (T, ...)."""
-    obs = observe_sequence(params, frames, blob_params)
+    ``lax.scan`` (``smooth_lag``: see :func:`run`). Estimates (T, ...). With
+    ``params.adapt`` the observations come from
+    :func:`jaxmocap.trackers.stereo_pf_adapt.observe_adaptive` (the colour model re-fitted on
+    line); the filter over them is the same."""
+    if params.adapt is not None:
+        from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
+
+        obs, _ = observe_adaptive(params, key, frames, blob_params)
+    else:
+        obs = observe_sequence(params, frames, blob_params)
     t0 = anchor_frame(obs)
     state, _ = init(params, key, jax.tree.map(lambda a: a[t0], obs))
     _, est = run(params, state, obs, smooth_lag)
