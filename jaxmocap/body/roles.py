@@ -569,13 +569,10 @@ _ROLE_FILE_KEYS = ("version", "links", "torso_geoms", "limb_geoms", "skin_geoms"
 
 def read_roles_file(path: str | os.PathLike) -> dict:
     """The validated contents of a roles file (format in docs/USER_GUIDE.md)."""
+    from jaxmocap.io.preflight import read_json
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: roles file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
+    data = read_json(path, "a roles file, format in docs/USER_GUIDE.md")
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a JSON object with 'links' etc.")
     unknown = [k for k in data if k not in _ROLE_FILE_KEYS]

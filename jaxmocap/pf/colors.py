@@ -323,13 +323,10 @@ def save_capture_colors(path: str | os.PathLike, colors: CaptureColors) -> Path:
 
 def load_capture_colors(path: str | os.PathLike) -> CaptureColors:
     """Read a ``jaxmocap.pf_colors`` file; one-line :class:`InputError` on a bad field."""
+    from jaxmocap.io.preflight import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file (expected a jaxmocap.pf_colors JSON)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
+    doc = read_json(path, "a jaxmocap.pf_colors JSON from `jaxmocap colors --pf`")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(f"{path}: field 'format': expected {FORMAT!r} (from `jaxmocap colors "
                          "--pf`)")
