@@ -193,3 +193,118 @@ def test_pf_colours_from_scribbles(tmp_path, capsys):
                                    np.cov(px.T) + np.diag(PC.MIN_VARIANCE), rtol=1e-4)
     assert_refused(capsys, "give one of them", "colors", "--pf", "--white-balance",
                    "--images", i, "--masks", m, "--out", tmp_path / "x.json")
+
+
+def shaded_shirt(rng, room=False):
+    """The four bands under a brightness ramp 0.55..1.45 along the rows (a lamp's falloff);
+    ``room``: label 255 on two wall strips left and right of the bands, of a dull yellow near
+    the shirt's yellow (the failure of spot-lit rooms: walls that pass as a shirt colour)."""
+    img, lab = shirt(rng)
+    ramp = np.linspace(0.55, 1.45, H)[:, None, None]
+    img = np.clip(np.round(img.astype(float) * ramp), 0, 255).astype(np.uint8)
+    if room:
+        wall = np.clip(np.round(np.array([192.0, 180, 48]) * ramp[:, 0]
+                                + rng.normal(0, 3, (H, 3))), 0, 255)
+        img[:, 0] = img[:, -1] = wall.astype(np.uint8)
+        lab[:, 0] = lab[:, -1] = 255
+    return img, lab
+
+
+def test_shading_model_recorded_and_narrower(tmp_path, capsys):
+    """`--shading 0.5 4` fits the model for the shading-invariant distance: the file records
+    the range, the model equals the API's fit, and its brightness spread is a fraction of the
+    plain ML fit's (which holds the ramp)."""
+    from jaxmocap.color import fit_color_model, load_color_model
+
+    rng = np.random.default_rng(3)
+    img, lab = shaded_shirt(rng)
+    i, m = save(tmp_path / "a", img, lab)
+    plain, shaded = tmp_path / "plain.json", tmp_path / "shaded.json"
+    assert run_cli(capsys, "colors", "--images", i, "--masks", m, "--out", plain)[0] == 0
+    rc, stdout, err = run_cli(capsys, "colors", "--images", i, "--masks", m, "--shading", "0.5",
+                              "4", "--out", shaded)
+    assert rc == 0 and err == [], err
+    assert "shading-invariant distance, brightness 0.5..4" in stdout
+    assert json.loads(shaded.read_text())["shading"] == [0.5, 4.0]
+    assert "shading" not in json.loads(plain.read_text())
+    a, b = load_color_model(plain), load_color_model(shaded)
+    assert a.shading is None and b.shading == (0.5, 4.0)
+    ref = fit_color_model([img], [lab.astype(np.int32)], 4, gain=(0.5, 4.0))
+    np.testing.assert_allclose(np.asarray(b.cov), np.asarray(ref.cov), rtol=1e-5)
+    for k in range(4):  # variance along the colour's own direction: the shading's
+        u = COLOURS[k] / np.linalg.norm(COLOURS[k])
+        assert u @ np.asarray(b.cov[k]) @ u < 0.2 * (u @ np.asarray(a.cov[k]) @ u)
+    bad = json.loads(shaded.read_text())
+    bad["shading"] = [2, 4]
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(Exception, match=r"bad.json: shading: expected \(lo, hi\) with 0 < lo"):
+        load_color_model(tmp_path / "bad.json")
+    assert_refused(capsys, "--shading: expected (lo, hi) with 0 < lo <= 1 <= hi", "colors",
+                   "--images", i, "--masks", m, "--shading", "1.5", "4", "--out",
+                   tmp_path / "x.json", leaves=[tmp_path / "x.json"])
+    assert_refused(capsys, "--shading applies to the shirt's colour model", "colors", "--pf",
+                   "--images", i, "--masks", m, "--shading", "0.5", "4", "--out",
+                   tmp_path / "x.json", leaves=[tmp_path / "x.json"])
+
+
+def test_room_colours_in_white_balance(tmp_path, capsys):
+    """`--white-balance --room-label 255`: the room's Gaussians (white-balanced by each
+    camera's W) are stored beside W, equal the API's fit of the same pixels, and make the
+    tracker's classification call the wall background while the bands stay classified."""
+    import jax.numpy as jnp
+
+    from jaxmocap.color import classify, fit_scene_colors, load_color_model
+    from jaxmocap.commands.colors import load_room_colors
+
+    rng = np.random.default_rng(4)
+    img, lab = shaded_shirt(rng)
+    i0, m0 = save(tmp_path / "ref", img, lab)
+    model = tmp_path / "colors.json"
+    assert run_cli(capsys, "colors", "--images", i0, "--masks", m0, "--shading", "0.5", "4",
+                   "--out", model)[0] == 0
+    cams = [save(tmp_path / f"cam{c}", *shaded_shirt(rng, room=True)) for c in range(2)]
+    out = tmp_path / "wb.json"
+    rc, stdout, err = run_cli(capsys, "colors", "--white-balance", "--colors", model,
+                              "--images", *[c[0] for c in cams], "--masks",
+                              *[c[1] for c in cams], "--room-label", "255", "--room-colors",
+                              "2", "--out", out)
+    assert rc == 0 and err == [], err
+    assert f"room: 2 colours from {4 * H} px (label 255)" in stdout
+    Wb = load_white_balance(out, ["cam0", "cam1"])
+    room = load_room_colors(out)
+    images = [cv2.imread(c[0])[..., ::-1] for c in cams]
+    masks = [cv2.imread(c[1], cv2.IMREAD_UNCHANGED) == 255 for c in cams]
+    ref = fit_scene_colors(images, masks, list(Wb), 2)
+    def by_red(m):
+        m = np.asarray(m.mean)
+        return m[np.argsort(m[:, 0])]
+
+    np.testing.assert_allclose(by_red(room), by_red(ref), atol=1e-3)
+    color = load_color_model(model)
+    ids, _ = classify(color, jnp.asarray(Wb[0]), jnp.asarray(images[0]), gain=color.shading,
+                      background=room)
+    ids0, _ = classify(color, jnp.asarray(Wb[0]), jnp.asarray(images[0]), gain=color.shading)
+    ids, ids0, lab0 = np.asarray(ids), np.asarray(ids0), cv2.imread(cams[0][1], 0)
+    walls = np.s_[:, [0, -1]]
+    assert (ids0[walls] > 0).mean() > 0.5  # without the room: the wall passes as yellow
+    assert (ids[walls] == 0).mean() > 0.8
+    for k in (1, 2, 3):  # colours unlike the wall: classified as without the room
+        np.testing.assert_array_equal(ids[lab0 == k], ids0[lab0 == k])
+        assert (ids[lab0 == k] == k).mean() > 0.95
+    # the yellow band, a few sd from the wall, loses part of its pixels to it (the trade-off)
+    assert 0.3 < (ids[lab0 == 4] == 4).mean() < (ids0[lab0 == 4] == 4).mean()
+    plain = tmp_path / "plain_wb.json"
+    assert run_cli(capsys, "colors", "--white-balance", "--colors", model, "--images",
+                   cams[0][0], "--masks", m0, "--names", "cam0", "--out", plain)[0] == 0
+    assert load_room_colors(plain) is None
+    assert_refused(capsys, "--room-label 3: labels 1..4 are the shirt's colours", "colors",
+                   "--white-balance", "--colors", model, "--images", cams[0][0], "--masks",
+                   cams[0][1], "--room-label", "3", "--out", tmp_path / "x.json",
+                   leaves=[tmp_path / "x.json"])
+    assert_refused(capsys, f"{2 * H} pixels carry the room label 255, need >= 160", "colors",
+                   "--white-balance", "--colors", model, "--images", cams[0][0], "--masks",
+                   cams[0][1], "--room-label", "255", "--out", tmp_path / "x.json",
+                   leaves=[tmp_path / "x.json"])
+    assert_refused(capsys, "give it with --white-balance", "colors", "--images", i0, "--masks",
+                   m0, "--room-label", "255", "--out", tmp_path / "x.json",
+                   leaves=[tmp_path / "x.json"])

@@ -221,3 +221,53 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
     assert rows[0] == ("frame,read,valid,ess,best_loglik,degenerate,spread_root_m,blobs,"
                        "waiting_for_head,head_residual_m,calibrating")
     assert [r.split(",")[8] for r in rows[1:]] == ["1", "1"]  # waiting for a head
+
+
+def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
+    """The shirt tracker of `jaxmocap track` takes the shading-invariant distance from a
+    colors.json fitted with --shading, the room colours from white_balance.json, and the
+    validity rule from --validity; said in one line each; the paper's set-up otherwise."""
+    from jaxmocap.cli import build_parser
+    from jaxmocap.color import ColorModel, save_color_model
+    from jaxmocap.commands.colors import save_white_balance
+    from jaxmocap.garment import default_garment
+    from jaxmocap.posedb import SamplingConfig, build_database
+
+    body = default_body()
+    garment = default_garment(body)
+    db = build_database(SamplingConfig(size=20), body, garment, progress=False)
+    monkeypatch.setattr("jaxmocap.posedb.load_or_build", lambda **kw: db)
+    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-0.3, 0.3)]
+    mean = jnp.asarray(garment.colours) * 200 + 20
+    cov = jnp.stack([jnp.eye(3) * 50.0] * garment.n_colours)
+    save_color_model(tmp_path / "plain.json", ColorModel(mean, cov, garment.colour_names))
+    save_color_model(tmp_path / "shaded.json", ColorModel(mean, cov, garment.colour_names,
+                                                          shading=(0.5, 4.0)))
+    room = ColorModel(jnp.asarray([[120.0, 110, 100], [60, 60, 70]]),
+                      jnp.stack([jnp.eye(3) * 30.0] * 2), ("room0", "room1"))
+    save_white_balance(tmp_path / "wb.json", {"cam0": np.eye(3), "cam1": np.eye(3)}, room)
+    save_white_balance(tmp_path / "wb0.json", {"cam0": np.eye(3), "cam1": np.eye(3)})
+
+    def tracker(*extra):
+        args = build_parser().parse_args(["track", "--cameras", "c.json", "0", "1",
+                                          *map(str, extra)])
+        t = track_cmd._make_tracker(args, cams, ["cam0", "cam1"])
+        return t.params, capsys.readouterr().err
+
+    p, err = tracker("--colors", tmp_path / "plain.json", "--white-balance", tmp_path / "wb0.json")
+    assert p.shading is None and p.scene_colors is None and err == ""
+    from jaxmocap.trackers import shirt
+
+    assert (p.min_agreement, p.min_patches, p.gate_min_fraction) == (
+        shirt.MIN_AGREEMENT, shirt.MIN_VALID_PATCHES, shirt.GATE_MIN_FRACTION)
+    p, err = tracker("--colors", tmp_path / "shaded.json", "--white-balance",
+                     tmp_path / "wb.json", "--validity", "footage")
+    assert p.shading == (0.5, 4.0)
+    np.testing.assert_allclose(np.asarray(p.scene_colors.mean), np.asarray(room.mean))
+    np.testing.assert_allclose(np.asarray(p.scene_colors.cov), np.asarray(room.cov))
+    assert (p.min_agreement, p.min_patches, p.gate_min_fraction) == (0.2, 20, 0.0)
+    assert "brightness 0.5..4" in err and "2 room colours of" in err
+    save_cameras(tmp_path / "cameras.json", cams)
+    assert_refused(capsys, "--validity footage is the shirt tracker's rule", "track",
+                   "--method", "pf", "--cameras", tmp_path / "cameras.json", "0", "1",
+                   "--validity", "footage", "--out", tmp_path / "o")

@@ -18,7 +18,10 @@ labelled pixels ("scribbles"): a list of images with label masks, label 0 = unla
     }
 
 ``colors[i]`` is colour id ``i + 1``; ``mean`` has 3 finite numbers, ``cov`` is a finite,
-symmetric (to 1e-6 relative) positive-definite 3 x 3 matrix. Loading validates every field and
+symmetric (to 1e-6 relative) positive-definite 3 x 3 matrix. An optional top-level
+``"shading": [lo, hi]`` says the model was fitted for the shading-invariant colour distance
+(``fit_color_model(gain=(lo, hi))``; :mod:`jaxmocap.color.classify`), the range its user
+(``jaxmocap track``) classifies with. Loading validates every field and
 raises :class:`ColorModelError` with a one-line message naming the file, colour and field.
 """
 
@@ -54,6 +57,8 @@ class ColorModel(eqx.Module):
     mean: Float[Array, "k 3"]
     cov: Float[Array, "k 3 3"]
     names: tuple[str, ...] = eqx.field(static=True, default=())
+    # (lo, hi) when fitted for the shading-invariant distance (``fit_color_model(gain=)``)
+    shading: tuple[float, float] | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         k = self.mean.shape[0]
@@ -64,6 +69,8 @@ class ColorModel(eqx.Module):
             )
         if self.names and len(self.names) != k:
             raise ValueError(f"ColorModel: {len(self.names)} names for {k} colours")
+        if self.shading is not None and shading_problem(self.shading) is not None:
+            raise ValueError(f"ColorModel: shading {shading_problem(self.shading)}")
 
     @property
     def n_colors(self) -> int:
@@ -130,8 +137,20 @@ def fit_color_model(
         means.append(mu)
         covs.append(cov)
     return ColorModel(
-        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names)
+        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names),
+        shading=None if gain is None else (float(gain[0]), float(gain[1])),
     )
+
+
+def shading_problem(shading) -> str | None:
+    """What makes ``shading`` unusable as a brightness range (lo, hi), or None."""
+    try:
+        lo, hi = (float(g) for g in shading)
+    except (TypeError, ValueError):
+        return f"expected two numbers (lo, hi), got {shading!r}"
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= 1 <= hi):
+        return f"expected (lo, hi) with 0 < lo <= 1 <= hi, got ({lo:g}, {hi:g})"
+    return None
 
 
 def _fail(path, where: str, msg: str) -> ColorModelError:
@@ -211,8 +230,15 @@ def load_color_model(path: str | os.PathLike) -> ColorModel:
         if not isinstance(name, str):
             raise _fail(path, f"colors[{k}].name", f"expected a string, got {name!r}")
         names.append(name)
+    shading = data.get("shading")
+    if shading is not None:
+        problem = shading_problem(shading)
+        if problem:
+            raise _fail(path, "shading", problem)
+        shading = (float(shading[0]), float(shading[1]))
     return ColorModel(
-        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names)
+        mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)), names=tuple(names),
+        shading=shading,
     )
 
 
@@ -231,6 +257,8 @@ def save_color_model(path: str | os.PathLike, model: ColorModel) -> Path:
             for k, n in enumerate(names)
         ],
     }
+    if model.shading is not None:
+        data["shading"] = list(model.shading)
     from jaxmocap.io.atomic import write_text  # one atomic-write mechanism for the package
 
     write_text(path, json.dumps(data, indent=2) + "\n")
@@ -270,6 +298,7 @@ __all__ = [
     "fit_color_model",
     "load_color_model",
     "save_color_model",
+    "shading_problem",
     "validate_color_model",
     "log_cholesky",
     "cov_from_log_cholesky",

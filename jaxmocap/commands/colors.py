@@ -11,6 +11,14 @@ photo's size where pixel value ``k`` marks colour ``k`` (1..K) and 0 marks "no l
      "cameras": {"cam0": [[w00, w01, w02], [w10, ...], [...]], "cam1": ...}}
 
 ``W`` maps a camera's RGB (0..255) to the colour model's: ``W rgb_observed ~ mu_k``.
+
+With ``--room-label V`` the same scribbled frames also mark the room (label ``V``, any value
+above the shirt's colours): its colours, white-balanced by each camera's ``W``, are clustered
+into ``--room-colors`` Gaussians (:func:`jaxmocap.color.fit_scene_colors`) stored as
+``"room": [{"name", "mean", "cov"}, ...]``; ``jaxmocap track`` then classifies a pixel nearer
+one of them than every shirt colour as background. With ``--shading LO HI`` the colour model
+is fitted for the shading-invariant colour distance (for footage under spot lamps; not in the
+paper) and ``colors.json`` records the range.
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ __all__ = [
     "MIN_SCRIBBLE_PIXELS",
     "WhiteBalanceFileError",
     "add_parser",
+    "load_room_colors",
     "load_white_balance",
     "read_label_mask",
     "read_rgb",
@@ -62,6 +71,10 @@ EPILOG = """examples:
   # initial white balance of each camera from one scribbled frame of the capture
   jaxmocap colors --white-balance --colors colors.json --images cam0.png cam1.png \\
       --masks cam0_labels.png cam1_labels.png --out white_balance.json
+  # footage under spot lamps: a shading-invariant model, and the room scribbled as label 255
+  jaxmocap colors --shading 0.5 4 --images shirt1.png --masks shirt1_labels.png --out colors.json
+  jaxmocap colors --white-balance --colors colors.json --images cam0.png cam1.png \\
+      --masks cam0_labels.png cam1_labels.png --room-label 255 --out white_balance.json
 """
 
 
@@ -166,11 +179,51 @@ def white_balance_problem(W: np.ndarray) -> str | None:
     return None
 
 
-def save_white_balance(path: str | os.PathLike, W: dict[str, np.ndarray]) -> Path:
-    """Write ``white_balance.json`` (module docstring) atomically."""
+def save_white_balance(path: str | os.PathLike, W: dict[str, np.ndarray],
+                       room: ColorModel | None = None) -> Path:
+    """Write ``white_balance.json`` (module docstring) atomically; ``room``: the room's
+    Gaussians in the model's space (``--room-label``)."""
     doc = {"format": WB_FORMAT, "version": WB_VERSION,
            "cameras": {n: np.asarray(w, np.float64).tolist() for n, w in W.items()}}
+    if room is not None:
+        doc["room"] = [{"name": n, "mean": np.asarray(m, np.float64).tolist(),
+                        "cov": np.asarray(c, np.float64).tolist()}
+                       for n, m, c in zip(room.names, room.mean, room.cov, strict=True)]
     return write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def load_room_colors(path: str | os.PathLike) -> ColorModel | None:
+    """The room's Gaussians of ``white_balance.json`` (``--room-label``), or None without."""
+    from jaxmocap.io.preflight import read_json
+
+    path = Path(path)
+    doc = read_json(path, "a white_balance.json of `jaxmocap colors --white-balance`",
+                    WhiteBalanceFileError)
+    room = doc.get("room") if isinstance(doc, dict) else None
+    if room is None:
+        return None
+    if not isinstance(room, list) or not room:
+        raise WhiteBalanceFileError(f"{path}: field 'room': expected a non-empty list of "
+                                    "colours with mean and cov")
+    means, covs = [], []
+    for j, c in enumerate(room):
+        try:
+            m = np.asarray(c["mean"], np.float64)
+            v = np.asarray(c["cov"], np.float64)
+        except (TypeError, KeyError, ValueError):
+            m = v = np.zeros(0)
+        ok = m.shape == (3,) and v.shape == (3, 3) and np.all(np.isfinite(m)) and \
+            np.all(np.isfinite(v)) and np.allclose(v, v.T, rtol=1e-6, atol=1e-9) and \
+            np.all(np.linalg.eigvalsh(0.5 * (v + v.T)) > 0)
+        if not ok:
+            raise WhiteBalanceFileError(f"{path}: field 'room[{j}]': expected a finite mean of "
+                                        "3 numbers and a symmetric positive-definite 3x3 cov")
+        means.append(m)
+        covs.append(0.5 * (v + v.T))
+    import jax.numpy as jnp
+
+    return ColorModel(mean=jnp.asarray(np.stack(means)), cov=jnp.asarray(np.stack(covs)),
+                      names=tuple(f"room{j}" for j in range(len(means))))
 
 
 def load_white_balance(path: str | os.PathLike, names: list[str]) -> np.ndarray:
@@ -232,7 +285,8 @@ def _run_model(args, out: Path) -> int:
     if args.names and len(args.names) != n:
         raise InputError(f"--names: {len(args.names)} names for {n} colours")
     counts = _check_labels(args.masks, labels, n, need_all=True)
-    model = fit_color_model(images, labels, n, tuple(args.names or ()))
+    model = fit_color_model(images, labels, n, tuple(args.names or ()),
+                            gain=None if args.shading is None else tuple(args.shading))
     out.parent.mkdir(parents=True, exist_ok=True)
     save_color_model(out, model)
     names = model.names or tuple(f"color{k + 1}" for k in range(n))
@@ -242,6 +296,9 @@ def _run_model(args, out: Path) -> int:
         print(f"colour {k + 1} {names[k]}: {counts[k]} px, mean RGB "
               f"({mean[k, 0]:.0f}, {mean[k, 1]:.0f}, {mean[k, 2]:.0f}), sd "
               f"({sd[0]:.1f}, {sd[1]:.1f}, {sd[2]:.1f})")
+    if model.shading is not None:
+        print(f"fitted for the shading-invariant distance, brightness {model.shading[0]:g}.."
+              f"{model.shading[1]:g} (recorded in {out.name}; `jaxmocap track` uses it)")
     print(f"wrote {out}")
     return 0
 
@@ -270,8 +327,11 @@ def _run_white_balance(args, out: Path) -> int:
     names = args.names or [f"cam{i}" for i in range(len(images))]
     if len(names) != len(images) or len(set(names)) != len(names):
         raise InputError(f"--names: need {len(images)} distinct camera names, got {names}")
+    room_masks = _room_masks(args, labels, model.n_colors)
     W = {}
     for name, mp, img, lab in zip(names, args.masks, images, labels, strict=True):
+        if room_masks is not None:
+            lab = np.where(lab == args.room_label, 0, lab)
         counts = _check_labels([mp], [lab], model.n_colors, need_all=False)
         usable = int((counts >= MIN_SCRIBBLE_PIXELS).sum())
         if usable < MIN_COLORS_FOR_W:
@@ -285,9 +345,34 @@ def _run_white_balance(args, out: Path) -> int:
                              f"{problem}; check that label k marks colour k of {args.colors}")
         print(f"{name}: W from {usable} colours, diag ({W[name][0, 0]:.3f}, "
               f"{W[name][1, 1]:.3f}, {W[name][2, 2]:.3f})")
-    save_white_balance(out, W)
+    room = None
+    if room_masks is not None:
+        from jaxmocap.color import fit_scene_colors
+
+        room = fit_scene_colors(images, room_masks, [W[n] for n in names], args.room_colors)
+        print(f"room: {room.n_colors} colours from {sum(int(m.sum()) for m in room_masks)} px "
+              f"(label {args.room_label})")
+    save_white_balance(out, W, room)
     print(f"wrote {out}")
     return 0
+
+
+def _room_masks(args, labels: list[np.ndarray], n_colors: int) -> list[np.ndarray] | None:
+    """The room pixels (label ``--room-label``) of each mask, checked before any fitting."""
+    if args.room_label is None:
+        return None
+    if args.room_label <= n_colors:
+        raise InputError(f"--room-label {args.room_label}: labels 1..{n_colors} are the shirt's "
+                         f"colours of {args.colors}; mark the room with a larger value (e.g. "
+                         "255)")
+    masks = [lab == args.room_label for lab in labels]
+    need = 10 * args.room_colors
+    have = sum(int(m.sum()) for m in masks)
+    if have < need:
+        raise InputError(f"--masks: {have} pixels carry the room label {args.room_label}, need "
+                         f">= {need} for {args.room_colors} room colours: scribble more of the "
+                         "room (walls, floor, props) or lower --room-colors")
+    return masks
 
 
 def add_parser(sub) -> None:
@@ -317,6 +402,16 @@ def add_parser(sub) -> None:
                    help="fit the stereo particle filter's skin and shirt colours of the capture "
                    "(pf_colors.json for `jaxmocap track --method pf --pf-colors`): label 1 = "
                    "skin (scribble the face), 2 = shirt")
+    p.add_argument("--shading", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="fit the colour model for the shading-invariant colour distance: a "
+                   "pixel is compared with each colour at its best brightness in LO..HI (0 < "
+                   "LO <= 1 <= HI; e.g. 0.5 4 under spot lamps; not in the paper)")
+    p.add_argument("--room-label", type=int_range(1, 65535, "16-bit label values"),
+                   metavar="V", help="with --white-balance: label V in the masks marks the room "
+                   "(walls, floor, props); its colours become background for `jaxmocap track`")
+    p.add_argument("--room-colors", type=int_range(1, 64), default=16, metavar="N",
+                   help="Gaussians of the room's colours with --room-label (default: "
+                   "%(default)s)")
     from jaxmocap.commands._body import add_body_args
 
     add_body_args(p)
@@ -329,6 +424,18 @@ def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()  # OpenCV's own lines about a corrupt image: we report it in one line
     if args.pf and args.white_balance:
         raise InputError("--pf and --white-balance: give one of them")
+    if args.shading is not None and (args.pf or args.white_balance):
+        raise InputError("--shading applies to the shirt's colour model; leave it out with "
+                         f"{'--pf' if args.pf else '--white-balance'}")
+    if args.shading is not None:
+        from jaxmocap.color.model import shading_problem
+
+        problem = shading_problem(args.shading)
+        if problem:
+            raise InputError(f"--shading: {problem}")
+    if args.room_label is not None and not args.white_balance:
+        raise InputError("--room-label marks the room in the capture's scribbled frames: give "
+                         "it with --white-balance")
     default = "white_balance.json" if args.white_balance else \
         "pf_colors.json" if args.pf else "colors.json"
     out = check_output_file(args.out or default)
