@@ -46,9 +46,9 @@ def main() -> int:
     ap.add_argument("--db-size", type=int, default=80_000)
     ap.add_argument("--shading", nargs=2, type=float, default=(0.5, 4.0))
     args = ap.parse_args()
+    from jaxmocap.body import load_body
     from jaxmocap.experiment.cell import scribble_frames
     from jaxmocap.garment import load_garment
-    from jaxmocap.body import load_body
     from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers.shirt import SCRIBBLE_EROSION, scribbles
 
