@@ -80,3 +80,32 @@ def test_blobs_off_body_counts_points_far_from_head_and_hands():
 def test_world_metrics_none_without_visibility_ground_truth():
     assert wm.world_metrics({"keypoints": np.zeros((2, 4, 3))}, np.zeros(2), np.ones(2, bool),
                             recover_cm=10.0, good_cm=5.0) is None
+
+
+def test_lamp_events_switch_and_dimming():
+    """A switch is a one-frame event, a dimming the run of its changing frames; a flicker
+    smaller than LAMP_CHANGE is none. Errors are averaged over the windows around each."""
+    T = 60
+    lv = np.ones((T, 2))
+    lv[20:, 0] = 0.0  # lamp 0 switched off at frame 20
+    lv[35:46, 1] = np.linspace(0.95, 0.45, 11)  # lamp 1 dimmed over frames 35..45
+    lv[46:, 1] = 0.45
+    lv[52, 1] = 0.5  # a 0.05 flicker at 52 and back at 53: no event
+    ev = wm.lamp_events(lv)
+    assert ev == [(20, 20), (35, 45)]
+    err = np.full(T, 2.0)
+    err[20:24] = 40.0  # lost for 4 frames after the switch
+    valid = np.ones(T, bool)
+    valid[20:23] = False
+    out = wm.lamp_change_errors(err, valid, ev, recover_cm=10.0, window=10)
+    assert out[0]["cm_before"] == 2.0
+    assert out[0]["cm_after"] == (4 * 40.0 + 6 * 2.0) / 10
+    assert out[0]["valid_after"] == 0.7
+    assert out[0]["frames_to_recover"] == 4  # frame 24
+    assert out[1]["frames"] == [35, 45] and out[1]["frames_to_recover"] == 0
+    gt = {"occluded_fraction": np.zeros((T, 1)), "visible": np.ones((T, 1), bool),
+          "keypoints": np.zeros((T, 4, 3)), "keypoint_names": np.array(NAMES),
+          "lamp_levels": lv}
+    m = wm.world_metrics(gt, err, valid, recover_cm=10.0, good_cm=5.0)
+    assert m["lamp_cm_before"] == 2.0
+    assert m["lamp_cm_after"] == ((4 * 40.0 + 6 * 2.0) / 10 + 2.0) / 2

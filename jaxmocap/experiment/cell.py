@@ -430,8 +430,8 @@ def _world_metrics(gt_folder: str, frame_err, valid, good_cm: float, result: dic
     from jaxmocap.experiment.world_metrics import RECOVER_CM, world_metrics
 
     with np.load(Path(gt_folder) / "groundtruth.npz") as z:
-        gt = {k: z[k] for k in ("occluded_fraction", "visible", "keypoints", "keypoint_names")
-              if k in z.files}
+        gt = {k: z[k] for k in ("occluded_fraction", "visible", "keypoints", "keypoint_names",
+                                "lamp_levels") if k in z.files}
     cam_file = Path(gt_folder) / "cameras.json"
     cams = load_cameras(cam_file)[0] if cam_file.is_file() else None
     return world_metrics(gt, frame_err, np.asarray(valid, bool), recover_cm=RECOVER_CM,

@@ -17,6 +17,8 @@ COLUMNS = (  # (header, metric path, format)
     ("bad flagged invalid", ("validity", "bad_flagged_invalid"), "{:.0%}"),
     ("good flagged valid", ("validity", "good_flagged_valid"), "{:.0%}"),
     ("recovered <= 5 frames", ("world", "recovered_in_time"), "{:.0%}"),
+    ("cm, 10 frames before a lamp change", ("world", "lamp_cm_before"), "{:.2f}"),
+    ("cm, 10 frames after it", ("world", "lamp_cm_after"), "{:.2f}"),
     ("cm, head + hands in view", ("world", "mean_cm_skin_in_view"), "{:.2f}"),
     ("frames with a blob off the body", ("world", "frames_blob_off_body"), "{:.1f}"),
     ("ms/frame", ("ms_per_frame",), "{:.1f}"),

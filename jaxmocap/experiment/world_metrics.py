@@ -15,6 +15,12 @@ Issues 17 and 18 ask for numbers that a mean error hides:
   images (``MARGIN_PX`` from the border) and no camera's view of the body is occluded by more
   than ``CLEAR``. Self-occlusion (a hand behind the torso) is not modelled: the ground truth
   holds no per-keypoint depth test;
+* **lamp changes** (issue 17 item 2: "measured frame by frame across the switch"): a lamp
+  event is a run of frames over which some lamp's level (``lamp_levels``) keeps changing (a
+  switch: one frame; a dimming: tens) by at least ``LAMP_CHANGE`` in all; reported per event
+  as the mean error over the ``LAMP_WINDOW`` frames before it and the ``LAMP_WINDOW`` frames
+  from its last changing frame on, the share of those frames flagged valid, and the frames
+  from the change's end until the tracker is back (valid and within ``recover_cm``);
 * **blobs off the body** (issue 18: "never a blob on a static prop in the tracked set"): frames
   in which a triangulated skin point the tracker fed into its filter lies more than
   ``OFF_BODY_M`` from every ground-truth head and hand keypoint. Static props in the test world
@@ -33,6 +39,8 @@ CLEAR = 0.05  # share hidden at most for the shirt to count as visible again
 MARGIN_PX = 2.0
 OFF_BODY_M = 0.3
 SKIN_KEYPOINTS = ("head", "l_hand", "r_hand")
+LAMP_CHANGE = 0.3  # total level change (0..1) of a lamp that makes a lamp event
+LAMP_WINDOW = 10  # frames before / after a lamp event averaged
 
 
 def occlusion_events(occluded: np.ndarray, visible: np.ndarray) -> list[tuple[int, int, int]]:
@@ -68,6 +76,47 @@ def recovery(frame_err: np.ndarray, valid: np.ndarray, events, recover_cm: float
         out.append({"occluded": [int(start), int(end)],
                     "visible_again": None if again < 0 else int(again),
                     "frames_to_recover": back})
+    return out
+
+
+def lamp_events(levels: np.ndarray, min_change: float = LAMP_CHANGE) -> list[tuple[int, int]]:
+    """(first, last) frame of each run of frames whose lamp levels differ from the previous
+    frame's, kept when some lamp changed by at least ``min_change`` over the run; ``levels``
+    (T, n_lamps)."""
+    levels = np.asarray(levels, float)
+    moving = np.r_[False, (np.abs(np.diff(levels, axis=0)) > 1e-9).any(axis=1)]
+    events, t, n = [], 0, len(moving)
+    while t < n:
+        if not moving[t]:
+            t += 1
+            continue
+        start = t
+        while t < n and moving[t]:
+            t += 1
+        if np.abs(levels[t - 1] - levels[start - 1]).max() >= min_change:
+            events.append((start, t - 1))
+    return events
+
+
+def lamp_change_errors(frame_err: np.ndarray, valid: np.ndarray, events, recover_cm: float,
+                       window: int = LAMP_WINDOW) -> list[dict]:
+    """Per lamp event: mean error (cm) over the ``window`` frames before and from its last
+    changing frame on, the share of the latter flagged valid, and the frames from there until
+    the tracker is back (valid and within ``recover_cm``; None if never)."""
+    def mean(x):
+        x = x[np.isfinite(x)]
+        return float(x.mean()) if x.size else None
+
+    out = []
+    for start, end in events:
+        before = frame_err[max(0, start - window):start]
+        after = slice(end, min(len(frame_err), end + window))
+        ok = valid[end:] & np.isfinite(frame_err[end:]) & (frame_err[end:] < recover_cm)
+        hit = np.flatnonzero(ok)
+        out.append({"frames": [int(start), int(end)], "cm_before": mean(before),
+                    "cm_after": mean(frame_err[after]),
+                    "valid_after": float(valid[after].mean()),
+                    "frames_to_recover": int(hit[0]) if hit.size else None})
     return out
 
 
@@ -119,6 +168,12 @@ def world_metrics(gt: dict, frame_err: np.ndarray, valid: np.ndarray, *, recover
          # share of events back within RECOVER_FRAMES (None: no occlusion in the sequence)
          "recovered_in_time": (None if not rec else float(np.mean(
              [f is not None and f <= RECOVER_FRAMES for f in frames])))}
+    if "lamp_levels" in gt:
+        lamps = lamp_change_errors(frame_err, valid, lamp_events(gt["lamp_levels"]), recover_cm)
+        m["lamp_changes"] = lamps
+        for key in ("cm_before", "cm_after"):
+            m[f"lamp_{key}"] = (None if not lamps or any(e[key] is None for e in lamps)
+                                else float(np.mean([e[key] for e in lamps])))
     names = [str(n) for n in gt["keypoint_names"]]
     if cameras is not None and all(k in names for k in SKIN_KEYPOINTS):
         inview = skin_in_view(np.asarray(gt["keypoints"]), names, cameras, occ)
