@@ -17,8 +17,7 @@ import numpy as np
 
 
 def lamp_rows(results: Path, data: Path) -> list[dict]:
-    from jaxmocap.experiment.world_metrics import (RECOVER_CM, lamp_change_errors,
-                                                   lamp_events)
+    from jaxmocap.experiment.world_metrics import RECOVER_CM, lamp_change_errors, lamp_events
 
     rows = []
     for cell in sorted((results / "cells").iterdir()):
