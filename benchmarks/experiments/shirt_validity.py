@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+JOINTS = ["head", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist",
+          "r_wrist", "l_hand", "r_hand"]  # issue 17's joints (world_shirt.toml)
+
 
 def _crop_stats(shirt, params, state, frames, colour_ids):
     """Step 1 on the tracker's crops with ``state``'s white balance, scored against the
@@ -253,6 +256,73 @@ def yaw_table(dataset: str, folder: str, bins=(0, 30, 60, 90, 120, 180)) -> dict
     return out
 
 
+def database_views(dataset: str, joints: list[str], bins=(0, 30, 60, 90, 120, 180)) -> dict:
+    """The database and its 10-NN blend on the views of the dev sequences, step 1 left out
+    (deliverable 3): each camera's ground-truth colour-id map normalised to the tiny map
+    (:func:`jaxmocap.posedb.tiny_from_classified`) queries the sequence's database; the
+    blended pose's joint angles (10-NN, and the nearest pose alone) are put on the
+    ground-truth root and scored (cm, ``joints``), binned by the subject's yaw to that camera
+    (0 = facing it, 90 = side-on, 180 = back)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.camera import load_cameras
+    from jaxmocap.experiment import cell
+    from jaxmocap.experiment.config import dataset_sequences
+    from jaxmocap.posedb import load_or_build
+    from jaxmocap.posedb._search import estimate_pose, tiny_from_classified
+
+    cfg = {"body": "sequence", "garment": "sequence", "options": {}}
+    rows = []
+    for s in dataset_sequences(dataset):
+        body = cell._body(cfg, s.folder)
+        garment = cell._garment(cfg, body, s.folder)
+        db = load_or_build(None, body, garment, progress=False)
+        with np.load(Path(s.folder) / "groundtruth.npz") as z:
+            gq, kp, names, cids = z["q"], z["keypoints"], list(z["keypoint_names"]), z["colour_ids"]
+        cams = load_cameras(Path(s.folder) / "cameras.json")[0]
+        ip = [list(body.keypoint_names).index(j) for j in joints]
+        ig = [names.index(j) for j in joints]
+
+        @jax.jit
+        def query(ids, q_true, db=db, body=body):
+            q10, nb = estimate_pose(db, tiny_from_classified(ids))
+            q1 = db.poses[nb.index[0]].astype(q_true.dtype)
+            out = []
+            for q in (q10.astype(q_true.dtype), q1):
+                out.append(keypoints(body, jnp.concatenate([q_true[:6], q[6:]])))
+            return jnp.stack(out)
+
+        lat = kp[:, names.index("l_shoulder")] - kp[:, names.index("r_shoulder")]
+        fwd = np.cross(lat, [0.0, 0.0, 1.0])[:, :2]
+        for c, cam in enumerate(cams):
+            centre = -np.asarray(cam.R).T @ np.asarray(cam.t)
+            to_cam = centre[None, :2] - kp[:, names.index("neck"), :2]
+            cos = np.sum(fwd * to_cam, 1) / (np.linalg.norm(fwd, axis=1)
+                                             * np.linalg.norm(to_cam, axis=1))
+            yaw = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+            for t in range(len(gq)):
+                if (cids[t, c] > 0).sum() < 200:
+                    continue
+                k = np.asarray(query(jnp.asarray(cids[t, c].astype(np.int32)),
+                                     jnp.asarray(gq[t])))
+                e = np.linalg.norm(k[:, ip] - kp[t, ig][None], axis=-1).mean(1) * 100
+                rows.append((yaw[t], e[0], e[1]))
+        print(s.name, len(rows), flush=True)
+    rows = np.array(rows)
+    out = []
+    for lo, hi in zip(bins[:-1], bins[1:], strict=True):
+        m = (rows[:, 0] >= lo) & (rows[:, 0] < hi)
+        if m.any():
+            out.append({"yaw": f"{lo}-{hi}", "views": int(m.sum()),
+                        "blend_median_cm": round(float(np.median(rows[m, 1])), 1),
+                        "blend_mean_cm": round(float(np.mean(rows[m, 1])), 1),
+                        "nearest_median_cm": round(float(np.median(rows[m, 2])), 1)})
+            print(out[-1])
+    return {"bins": out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -268,11 +338,18 @@ def main() -> None:
     y = sub.add_parser("yaw")
     y.add_argument("dataset")
     y.add_argument("folder")
+    v = sub.add_parser("database")
+    v.add_argument("dataset")
+    v.add_argument("--out")
     a = ap.parse_args()
     if a.cmd == "run":
         run(a.dataset, a.config, a.name, a.out, a.only, a.set)
     elif a.cmd == "yaw":
         yaw_table(a.dataset, a.folder)
+    elif a.cmd == "database":
+        res = database_views(a.dataset, JOINTS)
+        if a.out:
+            Path(a.out).write_text(json.dumps(res, indent=1))
     else:
         calibrate(a.folder)
 

@@ -381,6 +381,8 @@ def make_params(
     for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
         if v is not None and not 0 <= v <= 1:
             raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
+    if report_patches is not None and report_patches < 0:
+        raise ValueError(f"make_params: report_patches must be None or >= 0, got {report_patches}")
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         scene_colors, pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
