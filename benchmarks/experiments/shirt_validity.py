@@ -3,6 +3,8 @@
     python -m benchmarks.experiments.shirt_validity run /work/tw_dev_shirt \\
         benchmarks/experiments/world_shirt.toml robust --out /work/res_shirtval_sig
     python -m benchmarks.experiments.shirt_validity calibrate /work/res_shirtval_sig
+    python -m benchmarks.experiments.shirt_validity yaw /work/tw_dev_shirt /work/res_shirtval_sig
+    python -m benchmarks.experiments.shirt_validity database /work/tw_dev_shirt --out x.json
 
 ``run`` tracks every sequence of a dataset folder with one configuration of an experiment
 file (the experiment's own set-up, :func:`jaxmocap.experiment.cell._track_shirt`) and writes
@@ -18,7 +20,10 @@ give).
 
 ``calibrate`` fits the validity rule on those files (module :mod:`jaxmocap.trackers.shirt`,
 ``make_params(validity=...)``): for each rule the share of the frames > 15 cm off flagged
-invalid and of the frames < 5 cm off flagged valid.
+invalid and of the frames < 5 cm off flagged valid. ``yaw`` bins ``run``'s per-frame error by
+the subject's yaw to the cameras (:func:`yaw_table`); ``database`` scores the database query
+on the ground-truth maps of every view, by yaw (:func:`database_views`). Results:
+docs/results/shirt.md ("A validity flag from the final pose").
 """
 
 from __future__ import annotations
