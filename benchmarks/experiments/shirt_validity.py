@@ -18,11 +18,12 @@ that crop, one ``W`` for the crop (``oracle_global``) and one per vertical half
 (``oracle_halves``): how much a better global or a spatially varying white balance could
 give).
 
-``calibrate`` fits the validity rule on those files (module :mod:`jaxmocap.trackers.shirt`,
-``make_params(validity=...)``): for each rule the share of the frames > 15 cm off flagged
-invalid and of the frames < 5 cm off flagged valid. ``yaw`` bins ``run``'s per-frame error by
-the subject's yaw to the cameras (:func:`yaw_table`); ``database`` scores the database query
-on the ground-truth maps of every view, by yaw (:func:`database_views`). Results:
+``calibrate`` searches the reported validity rule on those files (``shirt.make_params(
+report_patches=, max_residual=, min_recall=)``): for each rule the share of the frames
+> 15 cm off flagged invalid and of the frames < 5 cm off flagged valid. ``yaw`` bins
+``run``'s per-frame error by the subject's yaw to the cameras (:func:`yaw_table`);
+``database`` scores the database query on the ground-truth maps of every view, by yaw
+(:func:`database_views`). Results:
 docs/results/shirt.md ("A validity flag from the final pose").
 """
 
