@@ -203,6 +203,39 @@ def test_step_with_shading_and_scene_colours(setup):
                           shading=(2.0, 4.0))
 
 
+def test_frame_signals_and_the_calibrated_validity_checks(setup):
+    """Issue 17's validity signals of a tracked frame of the own renderer: the centroid
+    residual equals the one recomputed from the model's centroids at the output pose
+    (``model_centroids``, an independent render on the output windows) and is small, most
+    rendered shirt pixels carry their colour in step 1; with ``max_residual=0`` (no real pose
+    reaches it) the same frame is reported invalid while everything measured, and the state
+    (which follows the tracker's own rule), stays bitwise equal."""
+    p, model = setup["params"], setup["model"]
+    state0 = shirt.init(p, setup["W0"], jnp.zeros(model.n_dof))
+    st, out = shirt.step(p, state0, setup["frames"])
+    sig = jax.device_get(out.signals)
+    mc = jax.device_get(shirt.model_centroids(p, out.q, out.window))
+    use = np.asarray(out.visible) & np.asarray(mc.valid)
+    d = np.linalg.norm(np.asarray(out.centroids) - np.asarray(mc.xy), axis=-1)
+    ref = np.array([d[i][use[i]].mean() for i in range(2)]) / np.asarray(out.window)[:, 2]
+    np.testing.assert_allclose(sig.residual, ref, rtol=1e-4, atol=1e-6)
+    assert bool(out.valid) and np.all(sig.residual < 0.03), sig.residual
+    assert np.all(sig.recall > 0.5) and np.all(sig.coverage > 0.5), sig
+    assert float(sig.root_jump) == 0.0  # first frame: after a loss
+    strict = dataclasses.replace(p, max_residual=0.0, min_recall=0.0)
+    st2, out2 = shirt.step(strict, shirt.init(strict, setup["W0"], jnp.zeros(model.n_dof)),
+                           setup["frames"])
+    assert not bool(out2.valid) and bool(st2.valid)
+    for a, b in zip(jax.tree.leaves(st), jax.tree.leaves(st2), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(jax.tree.leaves(out.signals), jax.tree.leaves(out2.signals), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(out.centroids), np.asarray(out2.centroids))
+    with pytest.raises(ValueError, match="max_residual"):
+        shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
+                          max_residual=2.0)
+
+
 def test_invalid_inputs(setup):
     p = setup["params"]
     state = shirt.init(p, setup["W0"], jnp.zeros(p.body.n_dof))

@@ -242,6 +242,8 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
             d[f"fraction_{n}"] = float(out.fraction[c])
             d[f"reference_used_{n}"] = float(out.used_reference[c])
             d[f"reference_added_{n}"] = float(out.added_reference[c])
+            d[f"residual_{n}"] = float(out.signals.residual[c])  # the validity signals
+            d[f"recall_{n}"] = float(out.signals.recall[c])
         rows.append(d)
     return {"q": np.stack(qs), "valid": np.asarray(valid), "times": np.asarray(times),
             "diagnostics": rows, "body": body}
