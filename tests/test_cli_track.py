@@ -265,7 +265,14 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
     assert p.shading == (0.5, 4.0)
     np.testing.assert_allclose(np.asarray(p.scene_colors.mean), np.asarray(room.mean))
     np.testing.assert_allclose(np.asarray(p.scene_colors.cov), np.asarray(room.cov))
-    assert (p.min_agreement, p.min_patches, p.gate_min_fraction) == (0.2, 20, 0.0)
+    import tomllib
+    from pathlib import Path
+
+    toml = Path(__file__).parents[1] / "benchmarks" / "experiments" / "world_shirt.toml"
+    validated = next(c for c in tomllib.loads(toml.read_text())["config"]
+                     if c["name"] == "validated")["options"]
+    for k, v in track_cmd.VALIDITY["footage"].items():  # the rule the experiment measured
+        assert getattr(p, k) == v == validated[k], k
     assert "brightness 0.5..4" in err and "2 room colours of" in err
     save_cameras(tmp_path / "cameras.json", cams)
     assert_refused(capsys, "--validity footage is the shirt tracker's rule", "track",
