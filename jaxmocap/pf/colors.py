@@ -238,10 +238,11 @@ def _class_maps_compiled(blurred, mean_skin, prec_skin, mean_shirt, prec_shirt, 
 
 
 def _class_maps(colors: CaptureColors, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_class_maps_numpy` through :func:`_class_maps_compiled` (5x faster on a 320x240
-    image; decisions differ only for pixels within float32 rounding of a threshold: 0 of
-    6.1 M on 40 frames of a test-world sequence, ``benchmarks/bench_pf_colors.py``). The
-    precisions and the skin class's normaliser are computed in float64 on the host."""
+    """:func:`_class_maps_numpy` through :func:`_class_maps_compiled` (~10x faster on a
+    320x240 image; decisions differ only for pixels within float32 rounding of a threshold or
+    a histogram bin edge: 1 of 12.3 M on 40 frame pairs of a test-world sequence, 0 of 12.3 M
+    on the synthetic clip, ``benchmarks/bench_pf_colors.py``). The precisions and the skin
+    class's normaliser are computed in float64 on the host."""
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise InputError(
