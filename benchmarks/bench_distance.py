@@ -186,7 +186,7 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
         Row(kernel, "scipy.ndimage.distance_transform_edt (loop)", sp_ms, sp_min, 20),
         Row(
             kernel,
-            "jaxmocap.distance.edt (jit, blocked fori)",
+            "jaxmocap.distance.edt (jit, column-span row pass)",
             jx_ms,
             jx_min,
             50,
