@@ -402,6 +402,54 @@ def edt_in_step(s: dict, reps: int) -> dict:
     return res
 
 
+def compile_by_stage(s: dict) -> dict:
+    """Cold trace + lowering and XLA compile time (s) of the shipped step and of each stage as
+    its own program, on a steady frame's inputs (no persistent cache: this script does not
+    enable it). The stages share sub-programs (a round renders, transforms and solves), so
+    their sum exceeds the step's; the step's own split says where its compile goes."""
+    p, state0, frames = s["params"], s["state"], s["frames"]
+    dt = state0.q.dtype
+    res: dict = {"load_average_at_start": list(os.getloadavg())}
+
+    def timed(fn, *args):
+        t0 = time.perf_counter()
+        lowered = eqx.filter_jit(fn).lower(*args)
+        t1 = time.perf_counter()
+        lowered.compile()
+        t2 = time.perf_counter()
+        return {"trace_lower_s": round(t1 - t0, 2), "compile_s": round(t2 - t1, 2)}
+
+    st = state0
+    views = eqx.filter_jit(lambda p, st, fr: S.locate_and_classify(p, st, fr, None))(p, st, frames)
+    db = eqx.filter_jit(lambda p, v: S.database_pose(p, v, dt))(p, views)
+    q_g = eqx.filter_jit(lambda p, db: S.global_placement(p, db, dt))(p, db)
+    ctx = eqx.filter_jit(S.round_context)(p, st, views, db.okq, q_g)
+    hits = eqx.filter_jit(S.render_views)(p, ctx, q_g)
+    fal = jnp.array(False)
+    starts, plain = jnp.stack([q_g, st.q]), jnp.stack([fal, fal])
+    out = {}
+    out["whole step (_step)"] = timed(lambda p, st, fr: S._step(p, st, fr, None), p, st, frames)
+    out["1 locate_and_classify"] = timed(
+        lambda p, st, fr: S.locate_and_classify(p, st, fr, None), p, st, frames
+    )
+    out["2 database_pose"] = timed(lambda p, v: S.database_pose(p, v, dt), p, views)
+    out["3 global_placement"] = timed(lambda p, db: S.global_placement(p, db, dt), p, db)
+    out["4a render_views"] = timed(S.render_views, p, ctx, q_g)
+    out["4c pose_assisted_centroids, both crops"] = timed(
+        lambda p, ctx, hits: [S.pose_assisted_centroids(p, ctx, hits[i], i, fal)
+                              for i in range(p.n_cams)], p, ctx, hits)  # fmt: skip
+    out["4 ik_round"] = timed(S.ik_round, p, ctx, q_g, hits)
+    out["5 first_round, one start"] = timed(S.first_round, p, ctx, q_g, fal)
+    out["5v first_round, 2 starts under vmap"] = timed(
+        lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl),
+        p, ctx, starts, plain,
+    )  # fmt: skip
+    out["6 choose_start"] = timed(S.choose_start, p, st, ctx)
+    res["programs"] = out
+    res["load_average_at_end"] = list(os.getloadavg())
+    return res
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--setup", default=None)
@@ -409,8 +457,19 @@ def main():
     ap.add_argument("--edt", action="store_true",
                     help="only the EDT inside the step, session 8 vs previous (key 'edt_in_step' "
                          "of the JSON; the rest of the JSON is kept)")  # fmt: skip
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="only the cold compile time per program (key 'compile_by_stage')",
+    )
     a = ap.parse_args()
     s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
+    if a.compile:
+        res = json.loads(OUT.read_text()) if OUT.exists() else {}
+        res["compile_by_stage"] = {"machine": machine(), **compile_by_stage(s)}
+        OUT.write_text(json.dumps(res, indent=1))
+        print(json.dumps(res["compile_by_stage"], indent=1))
+        return
     if a.edt:
         res = json.loads(OUT.read_text()) if OUT.exists() else {}
         res["edt_in_step"] = {"machine": machine(), **edt_in_step(s, a.reps)}

@@ -155,6 +155,8 @@ def test_vmap_members_with_different_spans(rng):
     np.testing.assert_allclose(got, want, atol=TOL, rtol=0)
     nested = jax.vmap(jax.vmap(lambda m: edt(m[None])[0]))(jnp.asarray(batch))
     np.testing.assert_allclose(np.asarray(nested), want, atol=TOL, rtol=0)
+    inner = jax.vmap(edt, in_axes=1, out_axes=1)(jnp.asarray(batch.swapaxes(0, 1)))
+    np.testing.assert_allclose(np.asarray(inner).swapaxes(0, 1), want, atol=TOL, rtol=0)
     x = jnp.asarray(rng.random((h, w)))
 
     def cost(x):  # the distances enter like Wang's C * d term: constants for the gradient
