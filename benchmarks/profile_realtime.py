@@ -434,17 +434,29 @@ def compile_by_stage(s: dict) -> dict:
     )
     out["2 database_pose"] = timed(lambda p, v: S.database_pose(p, v, dt), p, views)
     out["3 global_placement"] = timed(lambda p, db: S.global_placement(p, db, dt), p, db)
-    out["4a render_views"] = timed(S.render_views, p, ctx, q_g)
+    # (new lambdas: a function jitted above would come from the in-memory cache)
+    out["4a render_views"] = timed(lambda p, ctx, q: S.render_views(p, ctx, q), p, ctx, q_g)
     out["4c pose_assisted_centroids, both crops"] = timed(
         lambda p, ctx, hits: [S.pose_assisted_centroids(p, ctx, hits[i], i, fal)
                               for i in range(p.n_cams)], p, ctx, hits)  # fmt: skip
-    out["4 ik_round"] = timed(S.ik_round, p, ctx, q_g, hits)
-    out["5 first_round, one start"] = timed(S.first_round, p, ctx, q_g, fal)
+    meas = [S.pose_assisted_centroids(p, ctx, hits[i], i, fal) for i in range(p.n_cams)]
+    c_obs, v_obs = jnp.stack([m.xy for m in meas]), jnp.stack([m.valid for m in meas])
+    out["4e solve_ik (robust), one start"] = timed(
+        lambda p, ctx, c, v, q: solve_ik(p.body.chain, p.cams, p.anchors, c, v, ctx.q_g, ctx.q_h,
+                                         ctx.cov, q, robust=p.robust),
+        p, ctx, c_obs, v_obs, q_g,
+    )  # fmt: skip
+    out["4 ik_round"] = timed(lambda *a: S.ik_round(*a), p, ctx, q_g, hits)
+    out["5 first_round, one start"] = timed(lambda *a: S.first_round(*a), p, ctx, q_g, fal)
     out["5v first_round, 2 starts under vmap"] = timed(
         lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl),
         p, ctx, starts, plain,
     )  # fmt: skip
-    out["6 choose_start"] = timed(S.choose_start, p, st, ctx)
+    out["6 choose_start"] = timed(lambda *a: S.choose_start(*a), p, st, ctx)
+    q1, co, vo, h1, _ = eqx.filter_jit(S.choose_start)(p, st, ctx)
+    out["7 more_rounds(1)"] = timed(
+        lambda p, ctx, carry: S.more_rounds(p, ctx, 1, carry), p, ctx, (q1, co, vo, h1)
+    )
     res["programs"] = out
     res["load_average_at_end"] = list(os.getloadavg())
     return res
