@@ -208,11 +208,23 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     return rows, summary
 
 
+def _interleaved(fns, n: int = 5, rounds: int = 6) -> list[tuple[float, float]]:
+    """Median and min ms of each of ``fns`` over ``rounds`` rounds of ``n`` calls each, the
+    functions taking turns round by round."""
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(rounds):
+        for k, fn in enumerate(fns):
+            med, mn = time_call(fn, n=n, warmup=1)
+            times[k] += [med, mn]
+    return [(float(np.median(t[0::2])), float(np.min(t[1::2]))) for t in times]
+
+
 def _patch_masks(n_poses: int, seed: int = 1) -> np.ndarray:
     """The colour-shirt tracker's EDT input: per pose and camera, the 20 patch masks of the
     bundled body's shirt rendered on the 128x128 working crop (a square of side ``CROP_FACTOR``
     x s centred on the shirt's pixels, s = the side of a square of the shirt's area, as the
-    search's region is placed; the shirt covers ~15% of the crop), two 640x480 cameras of ``bench_shirt``. Shape (n_poses * 2, P, 128, 128)."""
+    search's region is placed; the shirt covers ~15% of the crop), two 640x480 cameras of
+    ``bench_shirt``. Shape (n_poses * 2, P, 128, 128)."""
     from benchmarks.bench_shirt import _cameras
     from jaxmocap.body import default_body
     from jaxmocap.garment import default_garment
@@ -263,23 +275,24 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     got = np.stack([np.asarray(edt(m)) for m in mj])
     err = float(np.abs(got - ref)[present].max())  # OpenCV's value for an absent patch differs
     assert np.all(got[~present] == 2 * n)
-    cv_ms, cv_min = time_call(cv, n=20)
-    jx_ms, jx_min = time_call(lambda: [edt(m) for m in mj], n=20)
     pv_comp = time_compile(lambda: _previous_edt(mj[0]))
-    pv_ms, pv_min = time_call(lambda: [_previous_edt(m) for m in mj], n=20)
+    # the three interleaved in rounds (a shared machine's load changes within a run)
+    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min) = _interleaved(
+        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj]]
+    )
     note = (
         f"{n_poses} poses x 2 cameras; column span of a present patch median "
         f"{np.median(spans[present]):.0f}, widest per call median "
         f"{np.median(spans.max(1)):.0f}, max {spans.max()} of {n}"
     )
     rows = [
-        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 20,
-            None, note),
+        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 30,
+            None, note + "; median of 6 interleaved rounds' medians"),
         Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass), one call per camera",
-            jx_ms / pairs, jx_min / pairs, 20, comp,
+            jx_ms / pairs, jx_min / pairs, 30, comp,
             f"max abs err vs cv2 {err:.1e} px (present patches); cv2/this {cv_ms / jx_ms:.2f}x"),
         Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
-            pv_ms / pairs, pv_min / pairs, 20, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
+            pv_ms / pairs, pv_min / pairs, 30, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
     ]  # fmt: skip
     summary = (
         f"{kernel}: jaxmocap {jx_ms / pairs:.3f} ms vs cv2 {cv_ms / pairs:.3f} ms "
