@@ -1,8 +1,12 @@
 """Exact EDT: jaxmocap.distance vs cv2.distanceTransform (DIST_L2, DIST_MASK_PRECISE) and SciPy.
 
-20 masks of 40x40 (the pose database's tiny id maps) and of 160x160 (a shirt crop), float32
-(the user default). Also a naive JAX formulation (one broadcast min over all candidates per
-1D pass), which motivated the blocked fori_loop form of the library.
+20 masks of 40x40 (the pose database's tiny id maps) and of 160x160 (blobs plus scattered
+pixels: every mask spans the image), float32 (the user default); and the masks the colour-shirt
+tracker transforms: the 20 patch masks of the bundled body's shirt rendered in each camera's
+128x128 working crop (two 640x480 cameras, several poses), one call per camera as in
+``color.pose_assisted.patch_distance_maps``. Also the library's previous formulation (row pass
+over all w candidate columns, column pass by associative scans) and a naive JAX formulation (one
+broadcast min over all candidates per 1D pass).
 Run: python benchmarks/bench_distance.py
 """
 
@@ -16,6 +20,34 @@ from scipy import ndimage
 
 from benchmarks._common import Row, sized, time_call, time_compile, write_results
 from jaxmocap.distance import edt, id_map_distances
+
+
+def _previous_edt_sq(masks):
+    """The library before issue 21's session 8: column pass by associative scans on the
+    transposed stack, row pass brute force over all w columns (blocks of 4)."""
+    _, h, w = masks.shape
+    bound = h + w
+    mt = jnp.swapaxes(masks, 1, 2)
+    i = jnp.arange(h, dtype=jnp.int32).reshape(1, 1, h)
+    above = jax.lax.associative_scan(jnp.maximum, jnp.where(mt, i, -2 * bound), axis=2)
+    below = jax.lax.associative_scan(jnp.minimum, jnp.where(mt, i, 3 * bound), axis=2, reverse=True)
+    g = jnp.minimum(jnp.minimum(i - above, below - i), bound).astype(jnp.float32)
+    big = jnp.float32(jnp.finfo(jnp.float32).max / 4)
+    fp = jnp.pad(jnp.swapaxes(g * g, 1, 2), ((0, 0), (0, 0), (0, -w % 4)), constant_values=big)
+    j = jnp.arange(w, dtype=jnp.float32)
+
+    def body(b, out):
+        block = jax.lax.dynamic_slice_in_dim(fp, b * 4, 4, axis=-1)
+        k0 = (b * 4).astype(jnp.float32)
+        for q in range(4):
+            out = jnp.minimum(out, block[..., q : q + 1] + jnp.square(j - (k0 + q)))
+        return out
+
+    d2 = jax.lax.fori_loop(0, fp.shape[-1] // 4, body, jnp.full(masks.shape, big))
+    return jnp.minimum(d2, jnp.float32(bound**2))
+
+
+_previous_edt = jax.jit(lambda m: jnp.sqrt(_previous_edt_sq(m)))
 
 
 def _naive_1d(f):  # out_j = min_k f_k + (j - k)^2 along the last axis, one broadcast reduce
@@ -144,6 +176,8 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     )
     sp_ms, sp_min = time_call(lambda: [ndimage.distance_transform_edt(s) for s in src], n=20)
     jx_ms, jx_min = time_call(lambda: edt(mj))
+    pv_comp = time_compile(lambda: _previous_edt(mj))
+    pv_ms, pv_min = time_call(lambda: _previous_edt(mj))
     nv_comp = time_compile(lambda: _naive_edt(mj))
     n_naive = 10 if side > 100 else 50
     nv_ms, nv_min = time_call(lambda: _naive_edt(mj), n=n_naive)
@@ -152,32 +186,133 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
         Row(kernel, "scipy.ndimage.distance_transform_edt (loop)", sp_ms, sp_min, 20),
         Row(
             kernel,
-            "jaxmocap.distance.edt (jit, blocked fori)",
+            "jaxmocap.distance.edt (jit, column-span row pass)",
             jx_ms,
             jx_min,
             50,
             comp,
             f"max abs err vs cv2 {err:.1e} px",
         ),
+        Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
+            pv_ms, pv_min, 50, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
         Row(kernel, "naive JAX (jit, broadcast min)", nv_ms, nv_min, n_naive, nv_comp),
-    ]
+    ]  # fmt: skip
     if side > 100:
         rows += _alternatives(masks, ref, kernel, cv_ms)
     summary = (
         f"{kernel}: jaxmocap {jx_ms:.3f} ms vs cv2 {cv_ms:.3f} ms "
         f"(cv2/jax = {cv_ms / jx_ms:.2f}x), vs SciPy {sp_ms:.3f} ms "
-        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), naive JAX {nv_ms:.2f} ms"
+        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), previous library {pv_ms:.3f} ms, "
+        f"naive JAX {nv_ms:.2f} ms"
+    )
+    return rows, summary
+
+
+def _interleaved(fns, n: int = 5, rounds: int = 6) -> list[tuple[float, float]]:
+    """Median and min ms of each of ``fns`` over ``rounds`` rounds of ``n`` calls each, the
+    functions taking turns round by round."""
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(rounds):
+        for k, fn in enumerate(fns):
+            med, mn = time_call(fn, n=n, warmup=1)
+            times[k] += [med, mn]
+    return [(float(np.median(t[0::2])), float(np.min(t[1::2]))) for t in times]
+
+
+def _patch_masks(n_poses: int, seed: int = 1) -> np.ndarray:
+    """The colour-shirt tracker's EDT input: per pose and camera, the 20 patch masks of the
+    bundled body's shirt rendered on the 128x128 working crop (a square of side ``CROP_FACTOR``
+    x s centred on the shirt's pixels, s = the side of a square of the shirt's area, as the
+    search's region is placed; the shirt covers ~15% of the crop), two 640x480 cameras of
+    ``bench_shirt``. Shape (n_poses * 2, P, 128, 128)."""
+    from benchmarks.bench_shirt import _cameras
+    from jaxmocap.body import default_body
+    from jaxmocap.garment import default_garment
+    from jaxmocap.render import render_ids, render_uv
+    from jaxmocap.trackers.shirt import CROP_FACTOR, WORK_SIZE
+    from jaxmocap.trackers.shirt_image import crop_uv, crop_window
+
+    model = default_body()
+    garment = default_garment(model)
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(model.chain.lower)[6:], np.asarray(model.chain.upper)[6:]
+    ids = np.arange(1, garment.n_patches + 1)[:, None, None]
+    full = jax.jit(lambda q, cam: render_ids(model, garment, q, cam).patch)
+    crop = jax.jit(lambda q, cam, win: render_uv(model, garment, q, cam, crop_uv(win, WORK_SIZE)))
+    out = []
+    for _ in range(n_poses):
+        q = np.zeros(model.n_dof, np.float32)
+        q[2] = 0.85
+        q[6:] = np.clip(rng.uniform(-0.6, 0.6, model.n_dof - 6), lo, hi)
+        for cam in _cameras(640, 480):
+            ys, xs = np.nonzero(np.asarray(full(jnp.asarray(q), cam)) > 0)
+            side = np.sqrt(xs.size)
+            win = crop_window(jnp.float32(xs.mean()), jnp.float32(ys.mean()), jnp.float32(side),
+                              CROP_FACTOR)  # fmt: skip
+            out.append(np.asarray(crop(jnp.asarray(q), cam, win).patch)[None] == ids)
+    return np.stack(out)
+
+
+def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
+    masks = _patch_masks(n_poses)  # (n_poses * 2, P, n, n): one call per camera
+    n_calls, P, n = masks.shape[0], masks.shape[1], masks.shape[-1]
+    present = masks.any((2, 3))
+    occupied = masks.any(2)  # (calls, P, n): columns holding a patch pixel
+    first, last = occupied.argmax(-1), n - 1 - occupied[..., ::-1].argmax(-1)
+    spans = np.where(present, last - first + 1, 0)  # column span per patch (0: absent)
+    src = [[(~m).astype(np.uint8) for m in cam] for cam in masks]
+    kernel = f"EDT {P}x{n}x{n} patch masks per camera, rendered shirt (per frame pair)"
+    mj = [jnp.asarray(m) for m in masks]
+    pairs = n_calls / 2
+
+    def cv():
+        return [
+            cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for c in src for s in c
+        ]
+
+    ref = np.stack(cv()).reshape(masks.shape)
+    comp = time_compile(lambda: edt(mj[0]))
+    got = np.stack([np.asarray(edt(m)) for m in mj])
+    err = float(np.abs(got - ref)[present].max())  # OpenCV's value for an absent patch differs
+    assert np.all(got[~present] == 2 * n)
+    pv_comp = time_compile(lambda: _previous_edt(mj[0]))
+    # the three interleaved in rounds (a shared machine's load changes within a run)
+    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min) = _interleaved(
+        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj]]
+    )
+    note = (
+        f"{n_poses} poses x 2 cameras; column span of a present patch median "
+        f"{np.median(spans[present]):.0f}, widest per call median "
+        f"{np.median(spans.max(1)):.0f}, max {spans.max()} of {n}"
+    )
+    rows = [
+        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 30,
+            None, note + "; median of 6 interleaved rounds' medians"),
+        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass), one call per camera",
+            jx_ms / pairs, jx_min / pairs, 30, comp,
+            f"max abs err vs cv2 {err:.1e} px (present patches); cv2/this {cv_ms / jx_ms:.2f}x"),
+        Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
+            pv_ms / pairs, pv_min / pairs, 30, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
+    ]  # fmt: skip
+    summary = (
+        f"{kernel}: jaxmocap {jx_ms / pairs:.3f} ms vs cv2 {cv_ms / pairs:.3f} ms "
+        f"(cv2/jax = {cv_ms / jx_ms:.2f}x), previous library {pv_ms / pairs:.3f} ms "
+        f"(previous/now = {pv_ms / jx_ms:.2f}x); {note}"
     )
     return rows, summary
 
 
 def main() -> None:
     rng = np.random.default_rng(0)
+    load0 = os.getloadavg()[0]
     rows, summary = [], []
     for side in sized(full=(40, 160), quick=(40,)):
         r, s = _bench_size(rng, side)
         rows += r
         summary.append(s)
+    r, s = _bench_patches(sized(full=6, quick=1))
+    rows += r
+    summary.append(s)
 
     # Wang §5.2 step 3: d_xy(r^b, k) for every id of a 40x40 tiny id map (16 ids)
     n_ids = 16
@@ -203,7 +338,10 @@ def main() -> None:
     summary.append(
         f"{kernel}: jaxmocap {jx_ms:.3f} ms vs cv2 {cv_ms:.3f} ms (cv2/jax = {cv_ms / jx_ms:.2f}x)"
     )
-    summary.append(f"Load average at the end of the run: {os.getloadavg()[0]:.2f} (2 cores).")
+    summary.append(
+        f"Load average (1 min) at the start {load0:.2f}, at the end {os.getloadavg()[0]:.2f} "
+        "(2 cores)."
+    )
     path = write_results("bench_distance", rows, summary)
     print(path.read_text())
 

@@ -327,12 +327,167 @@ def stereo_profile(reps: int) -> dict:
     return out
 
 
+def edt_in_step(s: dict, reps: int) -> dict:
+    """The EDT of issue 21's session 8 against the library's previous formulation
+    (``bench_distance._previous_edt_sq``) inside the shipped step, same run: stage 4b
+    (2 x 20 patch masks of a steady frame's render) beside ``cv2.distanceTransform``, and the
+    steady / fresh / reacquisition step with each EDT (alternating calls), with the largest
+    difference between their outputs (the transform is exact, so 0 is expected)."""
+    import cv2
+
+    from benchmarks.bench_distance import _previous_edt_sq
+    from jaxmocap.color import pose_assisted
+
+    p, state0, frames = s["params"], s["state"], s["frames"]
+    dt = state0.q.dtype
+    P = p.garment.n_patches
+    new_edt = pose_assisted.edt
+
+    def previous_edt(masks, dtype=None):
+        return jnp.sqrt(_previous_edt_sq(masks).astype(dtype or jnp.result_type(float)))
+
+    res: dict = {"load_average_at_start": list(os.getloadavg())}
+    st, _ = S.step(p, state0, frames)
+    states = {"reacquisition": state0, "fresh": st}
+    for _ in range(p.reacquire_frames):
+        st, _ = S.step(p, st, frames)
+    states["steady"] = st
+    views = eqx.filter_jit(lambda p, st, fr: S.locate_and_classify(p, st, fr, None))(p, st, frames)
+    db = eqx.filter_jit(lambda p, v: S.database_pose(p, v, dt))(p, views)
+    q_g = eqx.filter_jit(lambda p, db: S.global_placement(p, db, dt))(p, db)
+    ctx = eqx.filter_jit(S.round_context)(p, st, views, db.okq, q_g)
+    hits = eqx.filter_jit(S.render_views)(p, ctx, q_g)
+    patches = [h.patch for h in hits]
+    stages = {}
+    for name, fn in (("session 8", new_edt), ("previous", previous_edt)):
+        pose_assisted.edt = fn
+        f = jax.jit(lambda ps, fn=fn: [patch_distance_maps(x, P, dt) for x in ps])
+        stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops: {name}"] = _t(
+            lambda f=f: f(patches), reps * 2
+        )
+    src = [(np.asarray(x) != k).astype(np.uint8) for x in patches for k in range(1, P + 1)]
+    stages[f"4b' cv2.distanceTransform (PRECISE), the same {2 * P} masks"] = _t(
+        lambda: [cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for m in src],
+        reps * 2,
+    )
+    res["stage_4b"] = stages
+    # the whole step with each EDT: two jitted programs (the EDT is looked up at trace time)
+    steps, outs = {}, {}
+    for name, fn in (("session 8", new_edt), ("previous", previous_edt)):
+        pose_assisted.edt = fn
+        f = eqx.filter_jit(lambda p, st, fr: S._step(p, st, fr, None))
+        jax.block_until_ready(f(p, state0, frames)[1].q)
+        steps[name], outs[name] = f, {k: f(p, v, frames) for k, v in states.items()}
+    pose_assisted.edt = new_edt
+    timing = {k: {} for k in states}
+    for _ in range(3):  # alternate the two programs to spread the machine's load over both
+        for k, v in states.items():
+            for name, f in steps.items():
+                timing[k].setdefault(name, []).append(_t(lambda f=f, v=v: f(p, v, frames), reps))
+    res["step"] = {
+        k: {name: {"median_ms": float(np.median([r["median_ms"] for r in rs])),
+                   "min_ms": float(np.min([r["min_ms"] for r in rs]))}
+            for name, rs in by.items()}
+        for k, by in timing.items()
+    }  # fmt: skip
+    res["max_abs_output_difference"] = {
+        k: max(
+            float(np.max(np.abs(np.asarray(a, float) - np.asarray(b, float))))
+            for a, b in zip(jax.tree.leaves(outs["session 8"][k]),
+                            jax.tree.leaves(outs["previous"][k]), strict=True)
+        )
+        for k in states
+    }  # fmt: skip
+    res["load_average_at_end"] = list(os.getloadavg())
+    return res
+
+
+def compile_by_stage(s: dict) -> dict:
+    """Cold trace + lowering and XLA compile time (s) of the shipped step and of each stage as
+    its own program, on a steady frame's inputs (no persistent cache: this script does not
+    enable it). The stages share sub-programs (a round renders, transforms and solves), so
+    their sum exceeds the step's; the step's own split says where its compile goes."""
+    p, state0, frames = s["params"], s["state"], s["frames"]
+    dt = state0.q.dtype
+    res: dict = {"load_average_at_start": list(os.getloadavg())}
+
+    def timed(fn, *args):
+        t0 = time.perf_counter()
+        lowered = eqx.filter_jit(fn).lower(*args)
+        t1 = time.perf_counter()
+        lowered.compile()
+        t2 = time.perf_counter()
+        return {"trace_lower_s": round(t1 - t0, 2), "compile_s": round(t2 - t1, 2)}
+
+    st = state0
+    views = eqx.filter_jit(lambda p, st, fr: S.locate_and_classify(p, st, fr, None))(p, st, frames)
+    db = eqx.filter_jit(lambda p, v: S.database_pose(p, v, dt))(p, views)
+    q_g = eqx.filter_jit(lambda p, db: S.global_placement(p, db, dt))(p, db)
+    ctx = eqx.filter_jit(S.round_context)(p, st, views, db.okq, q_g)
+    hits = eqx.filter_jit(S.render_views)(p, ctx, q_g)
+    fal = jnp.array(False)
+    starts, plain = jnp.stack([q_g, st.q]), jnp.stack([fal, fal])
+    out = {}
+    out["whole step (_step)"] = timed(lambda p, st, fr: S._step(p, st, fr, None), p, st, frames)
+    out["1 locate_and_classify"] = timed(
+        lambda p, st, fr: S.locate_and_classify(p, st, fr, None), p, st, frames
+    )
+    out["2 database_pose"] = timed(lambda p, v: S.database_pose(p, v, dt), p, views)
+    out["3 global_placement"] = timed(lambda p, db: S.global_placement(p, db, dt), p, db)
+    # (new lambdas: a function jitted above would come from the in-memory cache)
+    out["4a render_views"] = timed(lambda p, ctx, q: S.render_views(p, ctx, q), p, ctx, q_g)
+    out["4c pose_assisted_centroids, both crops"] = timed(
+        lambda p, ctx, hits: [S.pose_assisted_centroids(p, ctx, hits[i], i, fal)
+                              for i in range(p.n_cams)], p, ctx, hits)  # fmt: skip
+    meas = [S.pose_assisted_centroids(p, ctx, hits[i], i, fal) for i in range(p.n_cams)]
+    c_obs, v_obs = jnp.stack([m.xy for m in meas]), jnp.stack([m.valid for m in meas])
+    out["4e solve_ik (robust), one start"] = timed(
+        lambda p, ctx, c, v, q: solve_ik(p.body.chain, p.cams, p.anchors, c, v, ctx.q_g, ctx.q_h,
+                                         ctx.cov, q, robust=p.robust),
+        p, ctx, c_obs, v_obs, q_g,
+    )  # fmt: skip
+    out["4 ik_round"] = timed(lambda *a: S.ik_round(*a), p, ctx, q_g, hits)
+    out["5 first_round, one start"] = timed(lambda *a: S.first_round(*a), p, ctx, q_g, fal)
+    out["5v first_round, 2 starts under vmap"] = timed(
+        lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl),
+        p, ctx, starts, plain,
+    )  # fmt: skip
+    out["6 choose_start"] = timed(lambda *a: S.choose_start(*a), p, st, ctx)
+    q1, co, vo, h1, _ = eqx.filter_jit(S.choose_start)(p, st, ctx)
+    out["7 more_rounds(1)"] = timed(
+        lambda p, ctx, carry: S.more_rounds(p, ctx, 1, carry), p, ctx, (q1, co, vo, h1)
+    )
+    res["programs"] = out
+    res["load_average_at_end"] = list(os.getloadavg())
+    return res
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--setup", default=None)
     ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--edt", action="store_true",
+                    help="only the EDT inside the step, session 8 vs previous (key 'edt_in_step' "
+                         "of the JSON; the rest of the JSON is kept)")  # fmt: skip
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="only the cold compile time per program (key 'compile_by_stage')",
+    )
     a = ap.parse_args()
     s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
+    if a.compile:
+        res = json.loads(OUT.read_text()) if OUT.exists() else {}
+        res["compile_by_stage"] = {"machine": machine(), **compile_by_stage(s)}
+        OUT.write_text(json.dumps(res, indent=1))
+        print(json.dumps(res["compile_by_stage"], indent=1))
+        return
+    if a.edt:
+        res = json.loads(OUT.read_text()) if OUT.exists() else {}
+        res["edt_in_step"] = {"machine": machine(), **edt_in_step(s, a.reps)}
+        OUT.write_text(json.dumps(res, indent=1))
+        print(json.dumps(res["edt_in_step"], indent=1))
+        return
     res = {"machine": machine(), "load_average_at_start": list(os.getloadavg())}
     res["floors"] = floors(a.reps)
     res["stereo"] = stereo_profile(a.reps)

@@ -45,7 +45,9 @@ GROUPS = {
     "Wang et al. 2011 colour-shirt tracker": (
         "bench_color", "bench_distance", "bench_render", "bench_posedb", "bench_ik", "bench_shirt",
     ),
-    "Azad et al. 2007 stereo particle filter": ("bench_segment", "bench_pf", "bench_stereo_pf"),
+    "Azad et al. 2007 stereo particle filter": (
+        "bench_segment", "bench_pf", "bench_stereo_pf", "bench_pf_colors",
+    ),
     "Shared building blocks": ("bench_camera", "bench_fk", "bench_synth"),
     "Scaling curves": ("bench_scaling",),
 }  # fmt: skip

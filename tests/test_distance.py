@@ -109,3 +109,60 @@ def test_input_validation():
         edt(jnp.zeros((1, 1, 4200), bool))
     with pytest.raises((ValueError, TypeError), match="h w|\\(h, w\\)"):
         id_map_distances(jnp.zeros((2, 4, 4), jnp.int32), 3)
+
+
+def _span_stack(h: int, w: int) -> np.ndarray:
+    """Masks whose column spans differ widely inside one stack (the row pass runs to the
+    widest): two pixels at the far ends of a row (span w), a short bar, a single pixel in the
+    last column, a full-height column, a patch-like blob, and an empty mask."""
+    ends = np.zeros((h, w), bool)
+    ends[1, 0] = ends[h - 2, w - 1] = True
+    bar = np.zeros((h, w), bool)
+    bar[h // 3, w // 2 : w // 2 + 5] = True
+    last = np.zeros((h, w), bool)
+    last[h // 2, w - 1] = True
+    column = np.zeros((h, w), bool)
+    column[:, 3] = True
+    yy, xx = np.mgrid[:h, :w]
+    blob = (yy - 0.7 * h) ** 2 + (xx - 0.3 * w) ** 2 < 9.0
+    return np.stack([ends, bar, last, column, blob, np.zeros((h, w), bool)])
+
+
+@pytest.mark.parametrize("shape", [(23, 37), (37, 23), (16, 16)])
+def test_edt_column_spans(shape):
+    """Spans from 1 column to the full width (and 0) in one stack: each exact vs OpenCV."""
+    h, w = shape
+    masks = _span_stack(h, w)
+    d = np.asarray(edt(jnp.asarray(masks)))
+    np.testing.assert_allclose(d[:-1], _cv2_to_nearest_true(masks[:-1]), atol=TOL, rtol=0)
+    np.testing.assert_array_equal(d[-1], empty_distance(h, w))
+    # one mask alone gives the same as inside the stack (the loop count is the stack's max)
+    for k in (1, 2, 4):
+        np.testing.assert_array_equal(np.asarray(edt(jnp.asarray(masks[k : k + 1])))[0], d[k])
+    # all empty: the row pass runs zero times
+    np.testing.assert_array_equal(np.asarray(edt(jnp.zeros((2, h, w), bool))), h + w)
+
+
+def test_vmap_members_with_different_spans(rng):
+    """vmap folds the batch into the stack: a member with a narrow span next to one spanning
+    the image, nested vmap, jit, and a gradient through a cost that uses the distances."""
+    h, w = 14, 19
+    s = _span_stack(h, w)
+    batch = np.stack([s[[1, 2, 4]], s[[0, 3, 5]]])  # (2, 3, h, w): spans 5/1/~6 vs w/1/0
+    want = np.stack([_scipy_to_nearest_true(b) for b in batch])
+    want[1, 2] = h + w
+    got = np.asarray(jax.jit(jax.vmap(edt))(jnp.asarray(batch)))
+    np.testing.assert_allclose(got, want, atol=TOL, rtol=0)
+    nested = jax.vmap(jax.vmap(lambda m: edt(m[None])[0]))(jnp.asarray(batch))
+    np.testing.assert_allclose(np.asarray(nested), want, atol=TOL, rtol=0)
+    inner = jax.vmap(edt, in_axes=1, out_axes=1)(jnp.asarray(batch.swapaxes(0, 1)))
+    np.testing.assert_allclose(np.asarray(inner).swapaxes(0, 1), want, atol=TOL, rtol=0)
+    x = jnp.asarray(rng.random((h, w)))
+
+    def cost(x):  # the distances enter like Wang's C * d term: constants for the gradient
+        return jnp.sum(x * edt((x > 0.9)[None])[0])
+
+    np.testing.assert_allclose(
+        np.asarray(jax.grad(cost)(x)), _scipy_to_nearest_true(np.asarray(x > 0.9)[None])[0],
+        atol=TOL,
+    )  # fmt: skip

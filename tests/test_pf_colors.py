@@ -308,3 +308,46 @@ def test_adaptation_follows_a_face_whose_colour_changes(rng):
     after, n_sk, _ = PC.adapt_capture_colors(colors, [occluded], [head_region], None)
     assert n_sk == 0
     np.testing.assert_array_equal(np.asarray(after.skin.mean), np.asarray(colors.skin.mean))
+
+
+def _near_a_boundary(colors, img, rel=1e-4):
+    """Pixels whose direct (float64) distances lie within ``rel`` of a decision boundary, or
+    with a feature within ``rel`` bins of a background-histogram bin edge."""
+    f = PC.features(img)
+    d_skin, d_shirt = colors.skin.mahalanobis_sq(f), colors.shirt.mahalanobis_sq(f)
+    near = np.abs(d_skin - colors.skin_threshold) < rel * colors.skin_threshold
+    near |= np.abs(d_shirt - colors.shirt_threshold) < rel * colors.shirt_threshold
+    near |= np.abs(d_skin - d_shirt) < rel * np.maximum(d_skin, 1.0)
+    if colors.background is not None:
+        lr = PC._skin_log_ratio(colors, f, d_skin) - colors.skin_log_ratio
+        near |= np.abs(lr) < rel * np.maximum(np.abs(-0.5 * d_skin), 1.0)
+        for k in range(3):
+            lo, hi, n = PC.HIST_LOW[k], PC.HIST_HIGH[k], PC.HIST_BINS[k]
+            u = (f[..., k].astype(np.float64) - lo) / (hi - lo) * n
+            near |= np.abs(u - np.round(u)) < rel
+    return near
+
+
+@pytest.mark.parametrize("gains", [(1.0, 1.0, 1.0), (1.25, 1.0, 0.7), (0.6, 0.7, 0.95)])
+def test_compiled_masks_agree_with_the_direct_evaluation(rng, gains):
+    """The fused XLA evaluation (float32) against the NumPy one (float64 distances), with and
+    without the background histogram, on a skin-coloured wall beside the torso (where the
+    histogram decides) under three lamps: the same maps except for pixels within rounding of
+    a threshold."""
+    skin_s, shirt_s = scribbles()
+    base = scene(rng)
+    base[:, 110:] = np.clip(np.asarray(SKIN_RGB) * 0.8 + rng.normal(0, 6.0, base[:, 110:].shape),
+                            0, 255)  # fmt: skip
+    c = PC.fit_capture_colors([base], [skin_s], [shirt_s])
+    img = np.clip(base * np.asarray(gains), 0, 255).astype(np.uint8)
+    for colors in (c, PC.CaptureColors(c.skin, c.shirt, None)):
+        direct = PC.masks(colors, img, compiled=False)
+        fast = PC.masks(colors, img)
+        assert direct[0].any() and direct[1].any() and (~direct[0]).any()
+        near = _near_a_boundary(colors, img)
+        for a, b in zip(direct, fast, strict=True):
+            assert a.dtype == b.dtype == bool and a.shape == b.shape == (H, W)
+            assert not np.any((a != b) & ~near)
+            assert (a != b).mean() < 1e-3
+    with pytest.raises(InputError, match="uint8"):
+        PC.masks(c, img.astype(np.float32))
