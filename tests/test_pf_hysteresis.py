@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
-from test_pf_colors import H, SKIN_RGB, W, scene, scribbles
+from test_pf_colors import SKIN_RGB, H, W, scene, scribbles
 
 from jaxmocap.errors import InputError
 from jaxmocap.pf import colors as PC
