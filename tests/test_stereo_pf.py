@@ -5,8 +5,8 @@ arm capsules of the body model are filled as polygons of their projected outline
 head and hands as skin discs, over a grey background; 320x240 pairs (Azad §V), 11 cm baseline.
 """
 
+import argparse
 import dataclasses
-import types
 
 import cv2
 import equinox as eqx
@@ -441,8 +441,8 @@ def test_online_tracker_takes_the_capture_colours_and_skin_grow(scene, tmp_path)
     seg = sp._segment(tr.params, frames[0, 0])
     np.testing.assert_array_equal(seg.skin, hysteresis_masks(tr.params.colors, frames[0, 0],
                                                              4)[0])
-    args = types.SimpleNamespace(method="pf", garment=None, pf_colors=None, skin="default",
-                                 pf_skin_grow=4, body=None, particles=20, seed=0)
+    args = argparse.Namespace(method="pf", garment=None, pf_colors=None, skin="default",
+                               pf_skin_grow=4, body=None, particles=20, seed=0)
     with pytest.raises(InputError, match="needs --pf-colors"):
         _make_tracker(args, cams, ["0", "1"])
 

@@ -551,8 +551,9 @@ def add_parser(sub) -> None:
     g.add_argument("--pf-skin-grow", metavar="PX", type=int_range(0, 20, "a few pixels"),
                    default=0,
                    help="with --pf-colors: grow the skin map by up to PX pixels into a relaxed "
-                   "skin map (hysteresis: the shaded rim of small hands; 4 measured best on the "
-                   "dev split, docs/results/stereo_pf.md; default: %(default)s, off)")
+                   "skin map (hysteresis: the shaded rim of small hands; 4 px: better on the "
+                   "dev split, not on the test split, docs/results/stereo_pf.md; default: "
+                   "%(default)s, off)")
     p.set_defaults(func=run)
 
 

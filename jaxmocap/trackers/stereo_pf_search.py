@@ -39,7 +39,7 @@ and 4 seed px 27.5, the head only 27.7 -- within the seed spread. Of the hands t
 added only 27 of 65 (11 of 34 with the tighter gate) were within 8 cm of the true hand: where
 the blob line finds no hand the filter's own arm is usually off too, and the window then holds
 the shirt's rim or the neck, not the hand. A lost head found again: median 4 cm from the true
-head on pf_09, 7-12 cm on the others (``docs/results/stereo_pf.md``).
+head on pf_09, 4-12 cm on the others (``docs/results/stereo_pf.md``).
 """
 
 from __future__ import annotations
