@@ -250,6 +250,7 @@ def test_read_npz_and_database_loader(kit):
     (["track", "--particles", "5"], "argument --particles: must be between 10 and"),
     (["track", "--max-frames", "0"], "argument --max-frames: must be >= 1"),
     (["track", "--fps", "-3"], "argument --fps: must be a positive number"),
+    (["track", "--pf-skin-grow", "30"], "argument --pf-skin-grow: must be between 0 and 20"),
     (["track", "--fps", "nan"], "argument --fps: must be a positive number"),
     (["calibrate", "--board", "7x5", "--square", "0.08", "--min-views", "0"],
      "argument --min-views: must be >= 3"),

@@ -225,6 +225,12 @@ def test_worker_environment_holds_threads_to_one():
     ("[[config]\n", "not valid TOML"),
     ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nadapt_colors=true\n",
      "options.adapt_colors: adapts the capture's colours"),
+    ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nsearch='hand'\n",
+     "options.search: expected one of off, head, hands, all"),
+    ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nsearch='all'\n",
+     "options.search: searches with the capture's colours"),
+    ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nskin_grow='4'\n",
+     "options.skin_grow: expected a value like 0"),
 ])
 def test_bad_configs_fail_in_one_line(tmp_path, text, expect):
     path = tmp_path / "configs.toml"

@@ -5,6 +5,7 @@ arm capsules of the body model are filled as polygons of their projected outline
 head and hands as skin discs, over a grey background; 320x240 pairs (Azad §V), 11 cm baseline.
 """
 
+import argparse
 import dataclasses
 
 import cv2
@@ -424,6 +425,26 @@ def test_online_tracker_waits_for_a_triangulated_head(scene):
     r1 = tr.step(frames[0])
     assert r1.diagnostics["waiting_for_head"] == 0.0 and np.isfinite(r1.q).all()
     assert r1.diagnostics["head_residual_m"] < 0.2
+
+
+def test_online_tracker_takes_the_capture_colours_and_skin_grow(scene, tmp_path):
+    """`track --pf-colors FILE --pf-skin-grow 4`: the frame tracker's skin map is the
+    hysteresis map of the colours (pf.colors.hysteresis_masks); without colours refused."""
+    from jaxmocap.commands.track import StereoPFFrameTracker, _make_tracker
+    from jaxmocap.pf.colors import hysteresis_masks, save_capture_colors
+
+    model, cams, frames, *_ = scene
+    colors = _scene_colors(scene)
+    path = save_capture_colors(tmp_path / "pf_colors.json", colors)
+    tr = StereoPFFrameTracker(cams, 20, 0, pf_colors=str(path), skin_grow=4)
+    assert tr.params.skin_grow == 4 and tr.params.reach is not None
+    seg = sp._segment(tr.params, frames[0, 0])
+    np.testing.assert_array_equal(seg.skin, hysteresis_masks(tr.params.colors, frames[0, 0],
+                                                             4)[0])
+    args = argparse.Namespace(method="pf", garment=None, pf_colors=None, skin="default",
+                               pf_skin_grow=4, body=None, particles=20, seed=0)
+    with pytest.raises(InputError, match="needs --pf-colors"):
+        _make_tracker(args, cams, ["0", "1"])
 
 
 def _scene_colors(scene):

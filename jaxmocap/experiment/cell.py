@@ -270,6 +270,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         else bloblib.BlobParams()
     lag = int(opts.pop("smooth_lag", 0))
     validity = opts.pop("validity", True)
+    search = opts.pop("search", "off")
     for k in ("step_betas", "init_betas"):
         if k in opts:
             opts[k] = tuple(opts[k])
@@ -286,7 +287,15 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     params = sp.make_params(list(seq.cameras), model=body, segment=segment, colors=colors,
                             **kw)
     key = jax.random.key(seed)
-    if params.adapt is None:
+    if search != "off":  # ... with the prediction-guided search (the filter alongside)
+        from jaxmocap.trackers import stereo_pf_search as pfs
+
+        heads, hands = search in ("head", "all"), search in ("hands", "all")
+        sparams = pfs.SearchParams(entities=(heads, hands, hands))
+
+        def observe():
+            return pfs.observe_search(params, key, seq.frames, blob, sparams)[0]
+    elif params.adapt is None:
         def observe():  # host image line + blob tracker
             return sp.observe_sequence(params, seq.frames, blob)
     else:  # ... with the colour model re-fitted on line (the filter alongside)

@@ -89,7 +89,8 @@ CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
                "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
-            "smooth_lag": (int,), "validity": (bool,)}
+            "smooth_lag": (int,), "validity": (bool,), "search": (str,)}
+PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf_search: the entities searched
 SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db", "scene_colors"}
 PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype", "colors"}
 PF_SKINS = ("synth", "default", "scribbles", "auto")
@@ -219,6 +220,15 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
             raise ExperimentError(f"{where}.options.adapt_colors: adapts the capture's colours; "
                                   "expected skin = 'scribbles' or 'auto', got "
                                   f"{out.get('skin', 'synth')!r}")
+        if out.get("search", "off") not in PF_SEARCH:
+            raise ExperimentError(f"{where}.options.search: expected one of "
+                                  f"{', '.join(PF_SEARCH)}, got {out['search']!r}")
+        if out.get("search", "off") != "off" and out.get("skin", "synth") not in ("scribbles",
+                                                                                 "auto"):
+            raise ExperimentError(f"{where}.options.search: searches with the capture's "
+                                  "colours; expected skin = 'scribbles' or 'auto'")
+        if out.get("search", "off") != "off" and out.get("adapt_colors"):
+            raise ExperimentError(f"{where}.options: give search or adapt_colors, not both")
         if out.get("blob_params", "tracker") not in ("tracker", "azad"):
             raise ExperimentError(f"{where}.options.blob_params: expected 'tracker' or "
                                   f"'azad', got {out['blob_params']!r}")

@@ -87,7 +87,7 @@ from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues
 from jaxmocap.pf import guided as pf_guided
-from jaxmocap.pf.colors import ADAPT_MAX_SPREAD, ADAPT_RATE, CaptureColors
+from jaxmocap.pf.colors import ADAPT_MAX_SPREAD, ADAPT_RATE, CaptureColors, hysteresis_masks
 from jaxmocap.pf.colors import masks as color_masks
 from jaxmocap.pf.cues import Observation, StereoLikelihood
 from jaxmocap.segment import Segmentation, SegmentParams, segment_cv
@@ -296,6 +296,8 @@ class StereoPFParams(eqx.Module):
     # on-line colour adaptation (jaxmocap.trackers.stereo_pf_adapt): (skin rate, shirt rate)
     # of one frame's pixels, spread cap; None: the colour model stays as fitted
     adapt: tuple[float, float, float] | None = eqx.field(static=True, default=None)
+    # hysteresis skin (pf.colors.hysteresis_masks): px grown into the relaxed skin map; 0: off
+    skin_grow: int = eqx.field(static=True, default=0)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -348,6 +350,7 @@ def make_params(
     adapt_rate: float = ADAPT_RATE,
     adapt_shirt_rate: float = ADAPT_RATE,
     adapt_spread: float = ADAPT_MAX_SPREAD,
+    skin_grow: int = 0,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -379,7 +382,8 @@ def make_params(
     (:mod:`jaxmocap.trackers.stereo_pf_adapt`; one frame weighs ``adapt_rate`` /
     ``adapt_shirt_rate``, 0 leaves that class fixed; a class's spread stays within
     ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
-    with the filter alongside.
+    with the filter alongside. ``skin_grow`` (px, needs ``colors``): the skin map grown into
+    a relaxed skin map by up to this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`).
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -393,6 +397,9 @@ def make_params(
             f"stereo_pf.make_params: dofs: expected indices < {model.n_dof} including the root "
             f"DOFs 0..5, got {dofs.tolist()}"
         )
+    if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
+        raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
+                         f"capture's colours (colors=...), got {skin_grow!r}")
     if adapt_colors and colors is None:
         raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
                          "(colors=...); the HSV intervals are not adapted")
@@ -483,6 +490,7 @@ def make_params(
         reach=hand_reach(model) if plausible_blobs else None,
         adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
         else None,
+        skin_grow=int(skin_grow),
     )
 
 
@@ -641,7 +649,10 @@ def _segment(params: StereoPFParams, image: np.ndarray) -> Segmentation:
     come from the capture's colour model (:func:`jaxmocap.pf.colors.masks`)."""
     if params.colors is None:
         return segment_cv(params.segment, image)
-    skin, shirt = color_masks(params.colors, image)
+    if params.skin_grow > 0:
+        skin, shirt, _ = hysteresis_masks(params.colors, image, params.skin_grow)
+    else:
+        skin, shirt = color_masks(params.colors, image)
     seg = segment_cv(params.segment, image, foreground=shirt)
     return Segmentation(skin, seg.foreground, seg.edges)
 
