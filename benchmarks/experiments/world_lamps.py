@@ -42,11 +42,11 @@ def markdown(rows: list[dict]) -> str:
     def f(v, fmt="{:.1f}"):
         return "-" if v is None else fmt.format(v)
 
-    lines = ["| sequence | config | lamp change (frames) | cm, 10 before | cm, 10 after | "
-             "valid after | frames to be back |", "|---|---|---|---|---|---|---|"]
+    lines = ["| sequence | config | seed | lamp change (frames) | cm, 10 before | cm, 10 after | "
+             "valid after | frames to be back |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         a, b = r["frames"]
-        lines.append(f"| {r['sequence']} | {r['config']} | {a}" + ("" if a == b else f"–{b}")
+        lines.append(f"| {r['sequence']} | {r['config']} | {r['seed']} | {a}" + ("" if a == b else f"–{b}")
                      + f" | {f(r['cm_before'])} | {f(r['cm_after'])} | "
                      f"{f(r['valid_after'], '{:.0%}')} | {f(r['frames_to_recover'], '{}')} |")
     return "\n".join(lines) + "\n"
