@@ -231,6 +231,20 @@ def test_frame_signals_and_the_calibrated_validity_checks(setup):
     for a, b in zip(jax.tree.leaves(out.signals), jax.tree.leaves(out2.signals), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_array_equal(np.asarray(out.centroids), np.asarray(out2.centroids))
+    # a rule that passes everything: the flag follows whether the output pose is this
+    # frame's solution. The tracker's own gate made impossible (agreement > 1): with
+    # hold_invalid the output is the held pose and never reported valid; without, the
+    # frame's own estimate is output and the rule reports it
+    lenient = dict(min_agreement=1.1, gate_min_fraction=0.0, report_patches=0,
+                   max_residual=1.0, min_recall=0.0)
+    for hold in (True, False):
+        pl = dataclasses.replace(p, hold_invalid=hold, **lenient)
+        st3, out3 = shirt.step(pl, shirt.init(pl, setup["W0"], jnp.zeros(model.n_dof)),
+                               setup["frames"])
+        assert not bool(st3.valid)
+        assert bool(out3.valid) == (not hold)
+        same = np.array_equal(np.asarray(out3.q), np.asarray(st3.q))  # the held (initial) q
+        assert same == hold
     with pytest.raises(ValueError, match="max_residual"):
         shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
                           max_residual=2.0)

@@ -689,13 +689,15 @@ def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> 
 
 
 def reported_validity(
-    params: ShirtParams, ctx: RoundContext, v_obs, signals: FrameSignals, valid
+    params: ShirtParams, ctx: RoundContext, v_obs, signals: FrameSignals, valid, own
 ) -> Array:
     """The ``valid`` flag reported for the frame: ``valid`` (the tracker's own, which also
     decides what the state keeps) unless ``make_params`` set a reporting rule: then
     ``report_patches`` centroids measured and, in every camera that found the shirt, the
     final pose's centroid residual at most ``max_residual`` and its recall at least
-    ``min_recall`` (:class:`FrameSignals`; calibrated on ground truth, issue 17)."""
+    ``min_recall`` (:class:`FrameSignals`; calibrated on ground truth, issue 17), and the
+    output pose is this frame's own solution (``own``: the signals describe it; a held pose,
+    ``hold_invalid``, is never reported valid by them)."""
     if params.report_patches is None and params.max_residual is None \
             and params.min_recall is None:
         return valid
@@ -705,7 +707,7 @@ def reported_validity(
         ok = ok & jnp.all((signals.residual <= params.max_residual) | ~ctx.okq)
     if params.min_recall is not None:
         ok = ok & jnp.all((signals.recall >= params.min_recall) | ~ctx.okq)
-    return ok
+    return ok & own
 
 
 def frame_signals(
@@ -787,15 +789,16 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
     new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
     if params.hold_invalid:
-        q_out = q_star
+        q_out, own = q_star, valid
     else:  # this frame's estimate where there was something to fit (else it is unconstrained)
         measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
-        q_out = jnp.where(measured & near_placement(ctx, q_sol), q_sol, state.q)
+        own = measured & near_placement(ctx, q_sol)
+        q_out = jnp.where(own, q_sol, state.q)
     signals = frame_signals(params, state, ctx, db, q_sol, c_obs, v_obs, hits)
     out = ShirtOutput(
         q=q_out,
         q_blend=q_g,
-        valid=reported_validity(params, ctx, v_obs, signals, valid),
+        valid=reported_validity(params, ctx, v_obs, signals, valid, own),
         window=jnp.stack(views.windows),
         fraction=jnp.stack([c.fraction for c in views.cls]),
         used_reference=jnp.stack([c.used_reference for c in views.cls]),
