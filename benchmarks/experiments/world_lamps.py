@@ -46,7 +46,8 @@ def markdown(rows: list[dict]) -> str:
              "valid after | frames to be back |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         a, b = r["frames"]
-        lines.append(f"| {r['sequence']} | {r['config']} | {r['seed']} | {a}" + ("" if a == b else f"–{b}")
+        span = f"{a}" + ("" if a == b else f"–{b}")
+        lines.append(f"| {r['sequence']} | {r['config']} | {r['seed']} | {span}"
                      + f" | {f(r['cm_before'])} | {f(r['cm_after'])} | "
                      f"{f(r['valid_after'], '{:.0%}')} | {f(r['frames_to_recover'], '{}')} |")
     return "\n".join(lines) + "\n"

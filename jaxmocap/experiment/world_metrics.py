@@ -43,23 +43,26 @@ LAMP_CHANGE = 0.3  # total level change (0..1) of a lamp that makes a lamp event
 LAMP_WINDOW = 10  # frames before / after a lamp event averaged
 
 
+def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index of each maximal run of True in ``flags``."""
+    edges = np.diff(np.r_[0, np.asarray(flags, np.int8), 0])
+    return list(zip(np.flatnonzero(edges == 1).tolist(),
+                    (np.flatnonzero(edges == -1) - 1).tolist(), strict=True))
+
+
 def occlusion_events(occluded: np.ndarray, visible: np.ndarray) -> list[tuple[int, int, int]]:
     """(first occluded frame, last occluded frame, visible-again frame or -1) per event, from
-    ``occluded`` (T, n_cams) shares and ``visible`` (T, n_cams) flags (module docstring)."""
+    ``occluded`` (T, n_cams) shares and ``visible`` (T, n_cams) flags (module docstring); a
+    loss before the shirt was visible again belongs to the event before it."""
     lost = (occluded >= OCCLUDED).any(axis=1) | ~visible.all(axis=1)
     clear = (occluded <= CLEAR).all(axis=1) & visible.all(axis=1)
-    events, t, n = [], 0, len(lost)
-    while t < n:
-        if not lost[t]:
-            t += 1
+    events, resume = [], 0
+    for start, end in _runs(lost):
+        if start < resume:
             continue
-        start = t
-        while t < n and lost[t]:
-            t += 1
-        end = t - 1
-        again = next((u for u in range(t, n) if clear[u]), -1)
+        again = next((u for u in range(end + 1, len(lost)) if clear[u]), -1)
         events.append((start, end, again))
-        t = max(t, again) if again >= 0 else n
+        resume = again if again >= 0 else len(lost)
     return events
 
 
@@ -85,17 +88,8 @@ def lamp_events(levels: np.ndarray, min_change: float = LAMP_CHANGE) -> list[tup
     (T, n_lamps)."""
     levels = np.asarray(levels, float)
     moving = np.r_[False, (np.abs(np.diff(levels, axis=0)) > 1e-9).any(axis=1)]
-    events, t, n = [], 0, len(moving)
-    while t < n:
-        if not moving[t]:
-            t += 1
-            continue
-        start = t
-        while t < n and moving[t]:
-            t += 1
-        if np.abs(levels[t - 1] - levels[start - 1]).max() >= min_change:
-            events.append((start, t - 1))
-    return events
+    return [(a, b) for a, b in _runs(moving)
+            if np.abs(levels[b] - levels[a - 1]).max() >= min_change]
 
 
 def lamp_change_errors(frame_err: np.ndarray, valid: np.ndarray, events, recover_cm: float,

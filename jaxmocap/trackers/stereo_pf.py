@@ -600,6 +600,22 @@ def _filter_step_lineage(params: StereoPFParams, state: TrackerState, obs: Obser
     return TrackerState(ps, k_next), (_estimate(params, est), lineage)
 
 
+def online_frame(params: StereoPFParams, key: PRNGKeyArray, step, state, seen: list, obs):
+    """One frame of an on-line filter over observations made frame by frame (each may depend
+    on the previous estimate): before the first frame with a triangulated head ``(None,
+    None)``; on it :func:`init` there, then ``step`` from frame 0 over ``seen`` (the
+    observations so far, ending with ``obs``), as :func:`run` after its init on the anchor
+    frame; afterwards one ``step``. Returns ``(state, estimate)``."""
+    if state is None:
+        if not np.asarray(obs.valid)[0]:
+            return None, None
+        state, _ = init(params, key, obs)
+        for o in seen:
+            state, est = step(state, o)
+        return state, est
+    return step(state, obs)
+
+
 @eqx.filter_jit
 def run(
     params: StereoPFParams,

@@ -99,15 +99,10 @@ def observe_adaptive(
                                      blob_state)
         out.append(obs)
         valid = np.asarray(obs.valid)
-        if state is None:
-            if not valid[0]:
-                log["skin_mean"][t] = np.asarray(colors.skin.mean)
-                continue
-            state, _ = sp.init(params, key, obs)
-            for o in out:  # the filter from frame 0, as run() after init on the anchor frame
-                state, est = step(state, o)
-        else:
-            state, est = step(state, obs)
+        state, est = sp.online_frame(params, key, step, state, out, obs)
+        if est is None:
+            log["skin_mean"][t] = np.asarray(colors.skin.mean)
+            continue
         q = np.asarray(est.q)
         if np.all(np.isfinite(q)):
             kp = np.asarray(kp_fn(jnp.asarray(q)), np.float64)

@@ -231,14 +231,9 @@ def observe_search(
             dt = obs.points.dtype
             obs = dataclasses.replace(obs, points=jnp.asarray(pts, dt), valid=jnp.asarray(val))
         out.append(obs)
-        if state is None:
-            if not np.asarray(obs.valid)[0]:
-                continue
-            state, _ = sp.init(params, key, obs)
-            for o in out:  # the filter from frame 0, as run() after init on the anchor frame
-                state, est = step(state, o)
-        else:
-            state, est = step(state, obs)
+        state, est = sp.online_frame(params, key, step, state, out, obs)
+        if est is None:
+            continue
         q = np.asarray(est.q)
         if np.all(np.isfinite(q)):
             history = (history + [np.asarray(kp_fn(jnp.asarray(q)), np.float64)])[-2:]
