@@ -53,6 +53,8 @@ def main() -> int:
     from jaxmocap.trackers.shirt import SCRIBBLE_EROSION, scribbles
 
     seq_dir, out = Path(args.sequence), Path(args.out)
+    if seq_dir.resolve() in out.resolve().parents or seq_dir.resolve() == out.resolve():
+        ap.error(f"{args.out}: inside the sequence {args.sequence}; write elsewhere")
     out.mkdir(parents=True, exist_ok=False)  # never over an earlier run
     seq = load_dataset(seq_dir)
     body = load_body(seq_dir / "body.urdf")

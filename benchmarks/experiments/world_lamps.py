@@ -59,6 +59,11 @@ def main() -> int:
     ap.add_argument("data")
     ap.add_argument("--out", help="write OUT.md and OUT.json")
     args = ap.parse_args()
+    if args.out:
+        out = Path(args.out).resolve()
+        for inp in (Path(args.results).resolve(), Path(args.data).resolve()):
+            if inp == out.parent or inp in out.parents:
+                ap.error(f"--out {args.out}: inside the input {inp}; write elsewhere")
     rows = lamp_rows(Path(args.results), Path(args.data))
     md = markdown(rows)
     print(md)

@@ -77,6 +77,7 @@ from jaxmocap.color import (
 )
 from jaxmocap.color.classify import THRESHOLD
 from jaxmocap.color.illumination import MIN_CLASSIFIED_FRACTION
+from jaxmocap.color.model import shading_problem
 from jaxmocap.color.pose_assisted import (
     POSE_THRESHOLD,
     PRIOR_SCALE,
@@ -374,10 +375,10 @@ def make_params(
         raise ValueError(f"make_params: work_size must be >= 16, got {work_size}")
     sc = tuple(int(s) for s in scales) if scales is not None else scales_for_width(cams.width)
     if shading is not None:
+        problem = shading_problem(shading)
+        if problem:
+            raise ValueError(f"make_params: shading: {problem}")
         shading = tuple(float(g) for g in shading)
-        if len(shading) != 2 or not 0 < shading[0] <= 1 <= shading[1]:
-            raise ValueError(f"make_params: shading must be (lo, hi) with 0 < lo <= 1 <= hi, "
-                             f"got {shading}")
     for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
         if v is not None and not 0 <= v <= 1:
             raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
