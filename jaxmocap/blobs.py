@@ -56,6 +56,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxmocap import camera as camlib
+from jaxmocap._config import side_device
 
 ENTITY_NAMES = ("head", "l_hand", "r_hand")  # the body model's keypoint names
 HEAD, LEFT_HAND, RIGHT_HAND = 0, 1, 2
@@ -309,8 +310,12 @@ def update(
     uv_l, uv_r = np.zeros((m, 2)), np.zeros((m, 2))
     uv_l[: len(bl.area)] = bl.centroid
     uv_r[: len(br.area)] = br.centroid
+    args = (cams, uv_l, uv_r, predicted)
+    side = side_device()  # off the device of a filter step that may be computing (live loops)
+    if side is not None:
+        args = jax.device_put(args, side)
     epi, X, depth, pred_uv = (
-        np.asarray(a) for a in _frame_geometry(cams, uv_l, uv_r, predicted, p.refine_triangulation)
+        np.asarray(a) for a in _frame_geometry(*args, p.refine_triangulation)
     )
 
     # merges: blobs holding the projections of two tracked entities, in either view
