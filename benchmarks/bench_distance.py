@@ -20,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from benchmarks._common import Row, sized, time_call, time_compile, write_results
-from jaxmocap.distance import _column_distance_sq, edt, id_map_distances
+from jaxmocap.distance import _column_distance_sq, _edt_sq_float, edt, id_map_distances
 
 
 def _previous_edt_sq(masks):
@@ -49,6 +49,9 @@ def _previous_edt_sq(masks):
 
 
 _previous_edt = jax.jit(lambda m: jnp.sqrt(_previous_edt_sq(m)))
+# session 8's transform: the same column pass and span window, the row pass in float32 (the
+# library now runs it in uint16 where the squared distances fit, same integers)
+_float_edt = jax.jit(lambda m: jnp.sqrt(_edt_sq_float(m)))
 
 
 def _naive_1d(f):  # out_j = min_k f_k + (j - k)^2 along the last axis, one broadcast reduce
@@ -242,28 +245,33 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     comp = time_compile(lambda: edt(mj))
     ref = np.stack([cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src])
     err = float(np.abs(np.asarray(edt(mj)) - ref).max())
-    cv_ms, cv_min = time_call(
-        lambda: [cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src]
-    )
     sp_ms, sp_min = time_call(lambda: [ndimage.distance_transform_edt(s) for s in src], n=20)
-    jx_ms, jx_min = time_call(lambda: edt(mj))
+    fl_comp = time_compile(lambda: _float_edt(mj))
+    assert np.array_equal(np.asarray(_float_edt(mj)), np.asarray(edt(mj)))
+    (cv_ms, cv_min), (jx_ms, jx_min), (fl_ms, fl_min) = _interleaved(
+        [lambda: [cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src],
+         lambda: edt(mj), lambda: _float_edt(mj)]
+    )  # fmt: skip
     pv_comp = time_compile(lambda: _previous_edt(mj))
     pv_ms, pv_min = time_call(lambda: _previous_edt(mj))
     nv_comp = time_compile(lambda: _naive_edt(mj))
     n_naive = 10 if side > 100 else 50
     nv_ms, nv_min = time_call(lambda: _naive_edt(mj), n=n_naive)
     rows = [
-        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms, cv_min, 50),
+        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms, cv_min, 30),
         Row(kernel, "scipy.ndimage.distance_transform_edt (loop)", sp_ms, sp_min, 20),
         Row(
             kernel,
-            "jaxmocap.distance.edt (jit, column-span row pass)",
+            "jaxmocap.distance.edt (jit, column-span row pass, uint16)",
             jx_ms,
             jx_min,
-            50,
+            30,
             comp,
             f"max abs err vs cv2 {err:.1e} px",
         ),
+        Row(kernel, "session 8 jaxmocap.distance.edt (float32 row pass)", fl_ms, fl_min, 30,
+            fl_comp, f"this/session 8 {jx_ms / fl_ms:.2f}; cv2, this and session 8 interleaved "
+            "(median of 6 rounds' medians)"),
         Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
             pv_ms, pv_min, 50, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
         Row(kernel, "naive JAX (jit, broadcast min)", nv_ms, nv_min, n_naive, nv_comp),
@@ -273,7 +281,8 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     summary = (
         f"{kernel}: jaxmocap {jx_ms:.3f} ms vs cv2 {cv_ms:.3f} ms "
         f"(cv2/jax = {cv_ms / jx_ms:.2f}x), vs SciPy {sp_ms:.3f} ms "
-        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), previous library {pv_ms:.3f} ms, "
+        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), session 8 (float32 row pass) {fl_ms:.3f} ms, "
+        f"previous library {pv_ms:.3f} ms, "
         f"naive JAX {nv_ms:.2f} ms"
     )
     return rows, summary
@@ -348,9 +357,12 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     assert np.all(got[~present] == 2 * n)
     pv_comp = time_compile(lambda: _previous_edt(mj[0]))
     # the three interleaved in rounds (a shared machine's load changes within a run)
-    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min) = _interleaved(
-        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj]]
-    )
+    time_compile(lambda: _float_edt(mj[0]))
+    assert all(np.array_equal(np.asarray(_float_edt(m)), np.asarray(edt(m))) for m in mj)
+    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min), (fl_ms, fl_min) = _interleaved(
+        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj],
+         lambda: [_float_edt(m) for m in mj]]
+    )  # fmt: skip
     note = (
         f"{n_poses} poses x 2 cameras; column span of a present patch median "
         f"{np.median(spans[present]):.0f}, widest per call median "
@@ -359,15 +371,19 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     rows = [
         Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 30,
             None, note + "; median of 6 interleaved rounds' medians"),
-        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass), one call per camera",
+        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass, uint16), one call per "
+            "camera",
             jx_ms / pairs, jx_min / pairs, 30, comp,
             f"max abs err vs cv2 {err:.1e} px (present patches); cv2/this {cv_ms / jx_ms:.2f}x"),
+        Row(kernel, "session 8 jaxmocap.distance.edt (float32 row pass)", fl_ms / pairs,
+            fl_min / pairs, 30, None, f"this/session 8 {jx_ms / fl_ms:.2f}"),
         Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
             pv_ms / pairs, pv_min / pairs, 30, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
     ]  # fmt: skip
     summary = (
         f"{kernel}: jaxmocap {jx_ms / pairs:.3f} ms vs cv2 {cv_ms / pairs:.3f} ms "
-        f"(cv2/jax = {cv_ms / jx_ms:.2f}x), previous library {pv_ms / pairs:.3f} ms "
+        f"(cv2/jax = {cv_ms / jx_ms:.2f}x), session 8 (float32 row pass) {fl_ms / pairs:.3f} ms, "
+        f"previous library {pv_ms / pairs:.3f} ms "
         f"(previous/now = {pv_ms / jx_ms:.2f}x); {note}"
     )
     return rows, summary
