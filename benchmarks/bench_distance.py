@@ -4,10 +4,11 @@
 pixels: every mask spans the image), float32 (the user default); and the masks the colour-shirt
 tracker transforms: the 20 patch masks of the bundled body's shirt rendered in each camera's
 128x128 working crop (two 640x480 cameras, several poses), one call per camera as in
-``color.pose_assisted.patch_distance_maps``. Also the library's previous formulation (row pass
-over all w candidate columns, column pass by associative scans) and a naive JAX formulation (one
-broadcast min over all candidates per 1D pass).
-Run: python benchmarks/bench_distance.py
+``color.pose_assisted.patch_distance_maps``. Also session 8's transform (the row pass in
+float32; cv2, the library and it interleaved in rounds), the library's previous formulation
+(row pass over all w candidate columns, column pass by associative scans) and a naive JAX
+formulation (one broadcast min over all candidates per 1D pass).
+Run: python -m benchmarks.bench_distance
 """
 
 import functools
@@ -262,7 +263,7 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
         Row(kernel, "scipy.ndimage.distance_transform_edt (loop)", sp_ms, sp_min, 20),
         Row(
             kernel,
-            "jaxmocap.distance.edt (jit, column-span row pass, uint16)",
+            "jaxmocap.distance.edt (jit, column-span row pass; uint16 from 64 columns)",
             jx_ms,
             jx_min,
             30,
@@ -371,7 +372,7 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     rows = [
         Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 30,
             None, note + "; median of 6 interleaved rounds' medians"),
-        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass, uint16), one call per "
+        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass in uint16), one call per "
             "camera",
             jx_ms / pairs, jx_min / pairs, 30, comp,
             f"max abs err vs cv2 {err:.1e} px (present patches); cv2/this {cv_ms / jx_ms:.2f}x"),
