@@ -4,12 +4,14 @@
 pixels: every mask spans the image), float32 (the user default); and the masks the colour-shirt
 tracker transforms: the 20 patch masks of the bundled body's shirt rendered in each camera's
 128x128 working crop (two 640x480 cameras, several poses), one call per camera as in
-``color.pose_assisted.patch_distance_maps``. Also the library's previous formulation (row pass
-over all w candidate columns, column pass by associative scans) and a naive JAX formulation (one
-broadcast min over all candidates per 1D pass).
-Run: python benchmarks/bench_distance.py
+``color.pose_assisted.patch_distance_maps``. Also session 8's transform (the row pass in
+float32; cv2, the library and it interleaved in rounds), the library's previous formulation
+(row pass over all w candidate columns, column pass by associative scans) and a naive JAX
+formulation (one broadcast min over all candidates per 1D pass).
+Run: python -m benchmarks.bench_distance
 """
 
+import functools
 import os
 
 import cv2
@@ -19,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from benchmarks._common import Row, sized, time_call, time_compile, write_results
-from jaxmocap.distance import edt, id_map_distances
+from jaxmocap.distance import _column_distance_sq, _edt_sq_float, edt, id_map_distances
 
 
 def _previous_edt_sq(masks):
@@ -48,6 +50,9 @@ def _previous_edt_sq(masks):
 
 
 _previous_edt = jax.jit(lambda m: jnp.sqrt(_previous_edt_sq(m)))
+# session 8's transform: the same column pass and span window, the row pass in float32 (the
+# library now runs it in uint16 where the squared distances fit, same integers)
+_float_edt = jax.jit(lambda m: jnp.sqrt(_edt_sq_float(m)))
 
 
 def _naive_1d(f):  # out_j = min_k f_k + (j - k)^2 along the last axis, one broadcast reduce
@@ -136,6 +141,72 @@ def _reduce_edt(masks):  # row pass as one (rows, w, w) broadcast + min reductio
     return jnp.sqrt(jnp.minimum(d2, jnp.float32((h + w) ** 2)))
 
 
+_OFFSET_BLOCK = 8  # offsets per loop iteration (4 and 16 measured: no better)
+
+
+def _offsets_loop(rows, bound, k0=1, out0=None):
+    """Row pass over the offsets k = |j - l| grown outward: out = min(out, g2[j -+ k] + k^2),
+    stopping once k^2 >= the largest current best of the rows of non-empty masks (no later
+    candidate can lower any pixel; exact) or k = w. ``rows`` (r, w) float32 g^2."""
+    w = rows.shape[-1]
+    big = jnp.float32(bound)
+    gp = jnp.pad(rows, ((0, 0), (w, w)), constant_values=big)
+    live = jnp.any(rows < big, axis=1)
+    out0 = rows if out0 is None else out0
+
+    def top(out):
+        return jnp.max(jnp.where(live[:, None], out, 0.0))
+
+    def body(c):
+        k, out, _ = c
+        for q in range(_OFFSET_BLOCK):
+            kk = k + q
+            near = jnp.minimum(jax.lax.dynamic_slice_in_dim(gp, w - kk, w, axis=1),
+                               jax.lax.dynamic_slice_in_dim(gp, w + kk, w, axis=1))
+            out = jnp.minimum(out, near + (kk * kk).astype(jnp.float32))
+        return k + _OFFSET_BLOCK, out, top(out)
+
+    def cond(c):
+        return (c[0] < w) & (c[0].astype(jnp.float32) ** 2 < c[2])
+
+    return jax.lax.while_loop(cond, body, (jnp.int32(k0), out0, top(out0)))[1]
+
+
+@jax.jit
+def _offsets_edt(masks):
+    """Column pass of the library, row pass by offsets grown outward with one early stop for
+    the whole stack (the largest distance of the stack decides)."""
+    n, h, w = masks.shape
+    bound = float((h + w) ** 2)
+    g2 = _column_distance_sq(masks).reshape(n * h, w)
+    d2 = _offsets_loop(g2, bound).reshape(n, h, w)
+    return jnp.sqrt(jnp.minimum(d2, bound))
+
+
+@functools.partial(jax.jit, static_argnames=("chunks", "first"))
+def _offsets_sorted_edt(masks, chunks=8, first=4):
+    """As :func:`_offsets_edt`, but every row's own bound decides: ``first`` offsets on all
+    rows, then the rows sorted by their largest current best and cut into ``chunks`` groups,
+    each group's loop stopping at its own largest best (exact)."""
+    n, h, w = masks.shape
+    bound = float((h + w) ** 2)
+    rows = _column_distance_sq(masks).reshape(n * h, w)
+    r = rows.shape[0]
+    gp = jnp.pad(rows, ((0, 0), (w, w)), constant_values=jnp.float32(bound))
+    out = rows
+    for k in range(1, first + 1):
+        near = jnp.minimum(gp[:, w - k : 2 * w - k], gp[:, w + k : 2 * w + k])
+        out = jnp.minimum(out, near + jnp.float32(k * k))
+    order = jnp.argsort(jnp.max(out, axis=1))
+    per = -(-r // chunks)
+    pad = ((0, per * chunks - r), (0, 0))
+    sr = jnp.pad(rows[order], pad, constant_values=bound).reshape(chunks, per, w)
+    so = jnp.pad(out[order], pad, constant_values=bound).reshape(chunks, per, w)
+    done = jnp.concatenate([_offsets_loop(sr[c], bound, first + 1, so[c]) for c in range(chunks)])
+    d2 = done[:r][jnp.argsort(order)].reshape(n, h, w)
+    return jnp.sqrt(jnp.minimum(d2, bound))
+
+
 def _alternatives(masks: np.ndarray, ref: np.ndarray, kernel: str, cv_ms: float) -> list[Row]:
     mj = jnp.asarray(masks)
     rows = []
@@ -143,6 +214,10 @@ def _alternatives(masks: np.ndarray, ref: np.ndarray, kernel: str, cv_ms: float)
         ("alternative: lower envelope (Meijster), vectorised over rows, lax.scan", _meijster_edt,
          20),
         ("alternative: row pass as one broadcast + min reduction", _reduce_edt, 20),
+        ("alternative: row pass over offsets |j - l| = k grown outward, exact early stop "
+         "(k^2 >= the stack's largest current best)", _offsets_edt, 50),
+        ("alternative: the same, rows sorted by their best after 4 offsets, 8 groups with "
+         "their own early stop", _offsets_sorted_edt, 50),
     ):  # fmt: skip
         comp = time_compile(lambda fn=fn: fn(mj))
         err = float(np.abs(np.asarray(fn(mj)) - ref).max())
@@ -171,28 +246,33 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     comp = time_compile(lambda: edt(mj))
     ref = np.stack([cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src])
     err = float(np.abs(np.asarray(edt(mj)) - ref).max())
-    cv_ms, cv_min = time_call(
-        lambda: [cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src]
-    )
     sp_ms, sp_min = time_call(lambda: [ndimage.distance_transform_edt(s) for s in src], n=20)
-    jx_ms, jx_min = time_call(lambda: edt(mj))
+    fl_comp = time_compile(lambda: _float_edt(mj))
+    assert np.array_equal(np.asarray(_float_edt(mj)), np.asarray(edt(mj)))
+    (cv_ms, cv_min), (jx_ms, jx_min), (fl_ms, fl_min) = _interleaved(
+        [lambda: [cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for s in src],
+         lambda: edt(mj), lambda: _float_edt(mj)]
+    )  # fmt: skip
     pv_comp = time_compile(lambda: _previous_edt(mj))
     pv_ms, pv_min = time_call(lambda: _previous_edt(mj))
     nv_comp = time_compile(lambda: _naive_edt(mj))
     n_naive = 10 if side > 100 else 50
     nv_ms, nv_min = time_call(lambda: _naive_edt(mj), n=n_naive)
     rows = [
-        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms, cv_min, 50),
+        Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms, cv_min, 30),
         Row(kernel, "scipy.ndimage.distance_transform_edt (loop)", sp_ms, sp_min, 20),
         Row(
             kernel,
-            "jaxmocap.distance.edt (jit, column-span row pass)",
+            "jaxmocap.distance.edt (jit, column-span row pass; uint16 from 64 columns)",
             jx_ms,
             jx_min,
-            50,
+            30,
             comp,
             f"max abs err vs cv2 {err:.1e} px",
         ),
+        Row(kernel, "session 8 jaxmocap.distance.edt (float32 row pass)", fl_ms, fl_min, 30,
+            fl_comp, f"this/session 8 {jx_ms / fl_ms:.2f}; cv2, this and session 8 interleaved "
+            "(median of 6 rounds' medians)"),
         Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
             pv_ms, pv_min, 50, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
         Row(kernel, "naive JAX (jit, broadcast min)", nv_ms, nv_min, n_naive, nv_comp),
@@ -202,7 +282,8 @@ def _bench_size(rng: np.random.Generator, side: int, n: int = 20) -> tuple[list[
     summary = (
         f"{kernel}: jaxmocap {jx_ms:.3f} ms vs cv2 {cv_ms:.3f} ms "
         f"(cv2/jax = {cv_ms / jx_ms:.2f}x), vs SciPy {sp_ms:.3f} ms "
-        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), previous library {pv_ms:.3f} ms, "
+        f"(scipy/jax = {sp_ms / jx_ms:.2f}x), session 8 (float32 row pass) {fl_ms:.3f} ms, "
+        f"previous library {pv_ms:.3f} ms, "
         f"naive JAX {nv_ms:.2f} ms"
     )
     return rows, summary
@@ -277,9 +358,12 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     assert np.all(got[~present] == 2 * n)
     pv_comp = time_compile(lambda: _previous_edt(mj[0]))
     # the three interleaved in rounds (a shared machine's load changes within a run)
-    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min) = _interleaved(
-        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj]]
-    )
+    time_compile(lambda: _float_edt(mj[0]))
+    assert all(np.array_equal(np.asarray(_float_edt(m)), np.asarray(edt(m))) for m in mj)
+    (cv_ms, cv_min), (jx_ms, jx_min), (pv_ms, pv_min), (fl_ms, fl_min) = _interleaved(
+        [cv, lambda: [edt(m) for m in mj], lambda: [_previous_edt(m) for m in mj],
+         lambda: [_float_edt(m) for m in mj]]
+    )  # fmt: skip
     note = (
         f"{n_poses} poses x 2 cameras; column span of a present patch median "
         f"{np.median(spans[present]):.0f}, widest per call median "
@@ -288,15 +372,19 @@ def _bench_patches(n_poses: int) -> tuple[list[Row], str]:
     rows = [
         Row(kernel, "cv2.distanceTransform PRECISE (loop)", cv_ms / pairs, cv_min / pairs, 30,
             None, note + "; median of 6 interleaved rounds' medians"),
-        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass), one call per camera",
+        Row(kernel, "jaxmocap.distance.edt (jit, column-span row pass in uint16), one call per "
+            "camera",
             jx_ms / pairs, jx_min / pairs, 30, comp,
             f"max abs err vs cv2 {err:.1e} px (present patches); cv2/this {cv_ms / jx_ms:.2f}x"),
+        Row(kernel, "session 8 jaxmocap.distance.edt (float32 row pass)", fl_ms / pairs,
+            fl_min / pairs, 30, None, f"this/session 8 {jx_ms / fl_ms:.2f}"),
         Row(kernel, "previous jaxmocap.distance.edt (all w columns, associative scans)",
             pv_ms / pairs, pv_min / pairs, 30, pv_comp, f"this/previous {jx_ms / pv_ms:.2f}"),
     ]  # fmt: skip
     summary = (
         f"{kernel}: jaxmocap {jx_ms / pairs:.3f} ms vs cv2 {cv_ms / pairs:.3f} ms "
-        f"(cv2/jax = {cv_ms / jx_ms:.2f}x), previous library {pv_ms / pairs:.3f} ms "
+        f"(cv2/jax = {cv_ms / jx_ms:.2f}x), session 8 (float32 row pass) {fl_ms / pairs:.3f} ms, "
+        f"previous library {pv_ms / pairs:.3f} ms "
         f"(previous/now = {pv_ms / jx_ms:.2f}x); {note}"
     )
     return rows, summary

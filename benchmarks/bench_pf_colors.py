@@ -28,6 +28,7 @@ from azad_render import config, load  # noqa: E402
 
 from benchmarks._common import Row, sized, time_call, write_results  # noqa: E402
 from jaxmocap import blobs  # noqa: E402
+from jaxmocap._config import enable_side_device  # noqa: E402
 from jaxmocap.pf import colors as pc  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams, segment_cv  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
@@ -121,6 +122,7 @@ def _frame_rows(d, colors: pc.CaptureColors, n: int) -> list[Row]:
 
 
 def main() -> None:
+    enable_side_device()  # as the CLI: live's host-side calls on a second CPU device
     ap = argparse.ArgumentParser()
     ap.add_argument("--world", type=Path, default=None, help="a test-world sequence folder")
     a = ap.parse_args()

@@ -159,7 +159,7 @@ def main() -> None:
     pred = state.position + state.velocity
 
     def geo_jax():
-        return B._frame_geometry(stacked, uv_l, uv_r, pred, False)
+        return B._frame_geometry(stacked, uv_l, uv_r, pred, False)  # NumPy results
 
     g_compile = time_compile(geo_jax)
     t = interleaved({"jax": geo_jax, "cv": lambda: geometry_cv(cams, uv_l, uv_r, pred)})

@@ -24,6 +24,7 @@ from azad_render import config, load  # noqa: E402
 
 from benchmarks._common import Row, sized, time_call, time_compile, write_results  # noqa: E402
 from jaxmocap import blobs  # noqa: E402
+from jaxmocap._config import enable_side_device  # noqa: E402
 from jaxmocap.body import fk  # noqa: E402
 from jaxmocap.pf import cues  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams, segment_cv  # noqa: E402
@@ -111,6 +112,7 @@ def numpy_fk_project_edge(chain_np, limbs_np, cams_np, q, edges):
 
 
 def main():
+    enable_side_device()  # as the CLI: live's host-side calls on a second CPU device
     d = load(CLIP, FRAMES)
     cams = make_cameras(config(CLIP, FRAMES), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))

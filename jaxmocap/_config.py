@@ -29,3 +29,38 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return folder
+
+
+SIDE_DEVICE_ENV = "JAXMOCAP_SIDE_DEVICE"
+
+
+def enable_side_device() -> bool:
+    """Give JAX a second CPU device for the host-side compiled calls of live loops.
+
+    XLA's CPU client runs one program at a time per device: in
+    :func:`jaxmocap.trackers.stereo_pf.live` the blob tracker's triangulation and the capture
+    colours' maps of frame t+1, dispatched while the filter step of frame t computes, waited
+    for it, and the host/device overlap was lost (``docs/results/realtime_profile.md``).
+    :func:`side_device` is that second device; the same compiled programs run there (identical
+    results). Must run before JAX's backend starts (the CLI calls it first); returns whether
+    there are now >= 2 CPU devices. ``JAXMOCAP_SIDE_DEVICE=0`` leaves JAX's devices alone; a
+    count the user gave (``jax_num_cpu_devices``, ``JAX_NUM_CPU_DEVICES``,
+    ``--xla_force_host_platform_device_count``) is kept.
+    """
+    if os.environ.get(SIDE_DEVICE_ENV, "").strip() == "0":
+        return False
+    user_set = "JAX_NUM_CPU_DEVICES" in os.environ or "xla_force_host_platform_device_count" in (
+        os.environ.get("XLA_FLAGS", "")
+    )
+    if jax.config.jax_num_cpu_devices < 2 and not user_set:
+        try:
+            jax.config.update("jax_num_cpu_devices", 2)
+        except RuntimeError:  # the backend has started: its device count is fixed
+            pass
+    return side_device() is not None
+
+
+def side_device() -> jax.Device | None:
+    """The second CPU device when JAX has one (:func:`enable_side_device`), else None."""
+    cpus = jax.devices("cpu")
+    return cpus[1] if len(cpus) > 1 else None

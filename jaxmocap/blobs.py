@@ -56,6 +56,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxmocap import camera as camlib
+from jaxmocap._config import side_device
 
 ENTITY_NAMES = ("head", "l_hand", "r_hand")  # the body model's keypoint names
 HEAD, LEFT_HAND, RIGHT_HAND = 0, 1, 2
@@ -221,19 +222,19 @@ def init(params: BlobParams = BlobParams()) -> BlobState:
 
 
 @functools.partial(jax.jit, static_argnames="refine")
-def _frame_geometry(
-    cams: camlib.Camera,
-    uv_l: Float[Array, "m 2"],
-    uv_r: Float[Array, "m 2"],
-    predicted: Float[Array, "3 3"],
-    refine: bool,
+def _frame_geometry_packed(
+    cams: camlib.Camera, points: Float[Array, " p"], refine: bool
 ) -> tuple[
     Float[Array, "m m"], Float[Array, "m m 3"], Float[Array, "2 m m"], Float[Array, "2 3 2"]
 ]:
     """Epipolar distances, triangulated points and depths of all (left, right) blob pairs, and
-    the projections of the predicted entities into both views. One compiled call per frame."""
+    the projections of the predicted entities into both views. One compiled call per frame;
+    ``points`` (4 m + 9,) = the left and right centroids (m, 2) and the predicted entities (3, 3),
+    flattened into one array (one host-to-device copy)."""
     cam_l, cam_r = camlib.unstack_cameras(cams)
-    m = uv_l.shape[0]
+    m = (points.shape[0] - 9) // 4
+    uv_l, uv_r = points[: 2 * m].reshape(m, 2), points[2 * m : 4 * m].reshape(m, 2)
+    predicted = points[4 * m :].reshape(3, 3)
     a = jnp.broadcast_to(uv_l[:, None, :], (m, m, 2))
     b = jnp.broadcast_to(uv_r[None, :, :], (m, m, 2))
     epi = camlib.epipolar_distance_undistorted(cam_l, cam_r, a, b)
@@ -241,6 +242,34 @@ def _frame_geometry(
     depth = jnp.stack([camlib.to_camera(cam_l, X)[..., 2], camlib.to_camera(cam_r, X)[..., 2]])
     pred_uv = jax.vmap(camlib.project, in_axes=(0, None))(cams, predicted)
     return epi, X, depth, pred_uv
+
+
+def _frame_geometry(
+    cams: camlib.Camera,
+    uv_l: Float[np.ndarray, "m 2"],
+    uv_r: Float[np.ndarray, "m 2"],
+    predicted: Float[np.ndarray, "3 3"],
+    refine: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_frame_geometry_packed` on the host's arrays, on the side CPU device when JAX has
+    one (:func:`jaxmocap._config.side_device`: off the device of a filter step that may be
+    computing in a live loop); NumPy results."""
+    points = np.concatenate([np.ravel(uv_l), np.ravel(uv_r), np.ravel(predicted)])
+    side = side_device()
+    if side is not None:
+        cams, points = _side_cameras(cams, side), jax.device_put(points, side)
+    return tuple(np.asarray(a) for a in _frame_geometry_packed(cams, points, refine))
+
+
+_SIDE_CAMERAS: list[tuple[camlib.Camera, jax.Device, camlib.Camera]] = []
+
+
+def _side_cameras(cams: camlib.Camera, side: jax.Device) -> camlib.Camera:
+    """``cams`` copied to the side device once per camera object (a live loop passes the
+    same one every frame; a copy per frame cost ~0.1 ms)."""
+    if not (_SIDE_CAMERAS and _SIDE_CAMERAS[0][0] is cams and _SIDE_CAMERAS[0][1] == side):
+        _SIDE_CAMERAS[:] = [(cams, side, jax.device_put(cams, side))]
+    return _SIDE_CAMERAS[0][2]
 
 
 def _blob_under(blobs: Blobs, uv: np.ndarray) -> int:
@@ -309,9 +338,8 @@ def update(
     uv_l, uv_r = np.zeros((m, 2)), np.zeros((m, 2))
     uv_l[: len(bl.area)] = bl.centroid
     uv_r[: len(br.area)] = br.centroid
-    epi, X, depth, pred_uv = (
-        np.asarray(a) for a in _frame_geometry(cams, uv_l, uv_r, predicted, p.refine_triangulation)
-    )
+    epi, X, depth, pred_uv = _frame_geometry(cams, uv_l, uv_r, predicted,
+                                             p.refine_triangulation)  # fmt: skip
 
     # merges: blobs holding the projections of two tracked entities, in either view
     merged = np.zeros(3, bool)

@@ -108,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)
     command = "jaxmocap"
+    from jaxmocap._config import enable_side_device
+
+    enable_side_device()  # before anything starts JAX's backend
     try:
         args = build_parser().parse_args(argv)
         command = f"jaxmocap {args.command}"

@@ -17,6 +17,9 @@ import jax
 import numpy as np
 import pytest
 
+from jaxmocap._config import enable_side_device  # noqa: E402
+
+enable_side_device()  # as the CLI: a second CPU device for the live loops' host-side calls
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -166,3 +166,40 @@ def test_vmap_members_with_different_spans(rng):
         np.asarray(jax.grad(cost)(x)), _scipy_to_nearest_true(np.asarray(x > 0.9)[None])[0],
         atol=TOL,
     )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("shape", "regime"),
+    [
+        ((48, 64), "uint16"),  # (h-1)^2 + (w-1)^2 below the none code N: no fallback
+        ((160, 160), "uint16 + fallback"),  # a true d^2 may reach N: checked per call
+        ((260, 40), "float32"),  # (h-1)^2 does not fit below N: the float32 pass
+    ],
+)
+def test_uint16_row_pass_is_exact(rng, shape, regime):
+    """The row pass in uint16 (wrapping differences and squares, "none" code N) gives the
+    same integers as the float32 pass and SciPy on every kind of mask; on 160^2 a single
+    pixel in a corner (d up to 225 px > sqrt(N) = 198) sends the call to the float32 pass,
+    a stack without such far pixels stays in uint16, both exact."""
+    from jaxmocap import distance as dist
+
+    h, w = shape
+    masks = _random_stack(rng, h, w)
+    got = np.asarray(edt(jnp.asarray(masks)))
+    want = _scipy_to_nearest_true(masks[:-1])
+    np.testing.assert_allclose(got[:-1], want, atol=TOL, rtol=0)
+    np.testing.assert_array_equal(got[-1], empty_distance(h, w))
+    ref = np.asarray(jax.jit(dist._edt_sq_float)(jnp.asarray(masks)))
+    np.testing.assert_array_equal(np.asarray(jax.jit(dist._edt_sq)(jnp.asarray(masks))), ref)
+    near = masks[[0, 1, 4, 5, 6, 7, 8]]  # no corner / single pixel: all distances small
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(dist._edt_sq)(jnp.asarray(near))),
+        np.asarray(jax.jit(dist._edt_sq_float)(jnp.asarray(near))),
+    )
+    none = 2**16 - 1 - (w - 2 + dist._BLOCK) ** 2
+    if regime == "uint16 + fallback":
+        assert (h - 1) ** 2 + (w - 1) ** 2 >= none and ref.max() >= none > want[:-1].min()
+    elif regime == "uint16":
+        assert (h - 1) ** 2 + (w - 1) ** 2 < none
+    else:
+        assert (h - 1) ** 2 >= none

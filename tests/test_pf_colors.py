@@ -351,3 +351,22 @@ def test_compiled_masks_agree_with_the_direct_evaluation(rng, gains):
             assert (a != b).mean() < 1e-3
     with pytest.raises(InputError, match="uint8"):
         PC.masks(c, img.astype(np.float32))
+
+
+def test_compiled_masks_on_the_side_device_equal_the_default_device(rng, monkeypatch):
+    """The fused maps run on the second CPU device (conftest enables it, as the CLI does; live
+    loops keep them off the filter step's device) and give the same maps as on the default
+    device."""
+    from jaxmocap._config import side_device
+
+    assert side_device() is not None
+    skin_s, shirt_s = scribbles()
+    base = scene(rng)
+    c = PC.fit_capture_colors([base], [skin_s], [shirt_s])
+    img = np.clip(base * np.asarray((1.1, 1.0, 0.8)), 0, 255).astype(np.uint8)
+    side = PC.masks(c, img)
+    monkeypatch.setattr(PC, "side_device", lambda: None)
+    one = PC.masks(c, img)
+    assert side[0].any() and side[1].any()
+    for a, b in zip(side, one, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -184,6 +184,23 @@ def test_live_stream_equals_init_and_steps(scene):
         np.testing.assert_allclose(out[t][1].q, est.q, rtol=1e-9, atol=1e-12)
 
 
+def test_live_side_device_changes_no_estimate(scene, monkeypatch):
+    """The blob tracker's triangulation on the second CPU device (conftest enables it, as the
+    CLI does) gives bit-identical estimates to the same calls on the default device."""
+    from jaxmocap import blobs
+    from jaxmocap._config import side_device
+
+    _, _, frames, _, _, params, _ = scene
+    assert side_device() is not None and side_device() != jax.devices()[0]
+    key = jax.random.key(5)
+    side = [(t, e) for t, e in sp.live(params, key, iter(frames)) if e is not None]
+    monkeypatch.setattr(blobs, "side_device", lambda: None)
+    one = [(t, e) for t, e in sp.live(params, key, iter(frames)) if e is not None]
+    assert [t for t, _ in side] == [t for t, _ in one] and len(one) > 2
+    for (_, a), (_, b) in zip(side, one, strict=True):
+        np.testing.assert_array_equal(np.asarray(a.q), np.asarray(b.q))
+
+
 def test_input_errors(scene):
     _, cams, frames, _, _, params, _ = scene
     with pytest.raises(InputError, match="frame_pair"):

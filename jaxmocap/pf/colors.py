@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxmocap._config import side_device
 from jaxmocap.errors import InputError
 
 FORMAT = "jaxmocap.pf_colors"
@@ -253,10 +254,16 @@ def _class_maps(colors: CaptureColors, image: np.ndarray) -> tuple[np.ndarray, n
     prec = [np.linalg.inv(np.asarray(c.cov, np.float64)) for c in (colors.skin, colors.shirt)]
     log_norm = 0.5 * np.log((2 * np.pi) ** 3 * np.linalg.det(cov_skin))
     f32 = functools.partial(np.asarray, dtype=np.float32)
-    skin, shirt = _class_maps_compiled(
+    args = (
         cv2.GaussianBlur(image, (3, 3), 0), f32(colors.skin.mean), f32(prec[0]),
         f32(colors.shirt.mean), f32(prec[1]), np.float32(log_norm),
         None if colors.background is None else f32(colors.background),
+    )  # fmt: skip
+    side = side_device()  # off the device of a filter step that may be computing (live loops)
+    if side is not None:
+        args = jax.device_put(args, side)
+    skin, shirt = _class_maps_compiled(
+        *args,
         skin_threshold=float(colors.skin_threshold), shirt_threshold=float(colors.shirt_threshold),
         log_ratio=float(colors.skin_log_ratio),
     )  # fmt: skip

@@ -178,7 +178,7 @@ def search_entities(
         a, b = np.zeros((m, 2)), np.zeros((m, 2))
         a[:nl], b[:nr] = cands[0], cands[1]
         epi, X, dep, _ = (np.asarray(x) for x in bloblib._frame_geometry(
-            cams, a, b, jnp.zeros((3, 3)), False))
+            cams, a, b, np.zeros((3, 3)), False))
         epi, X, dep = epi[:nl, :nr], X[:nl, :nr], dep[:, :nl, :nr]
         dist = np.linalg.norm(X - predicted[e], axis=-1)
         ok = (epi <= search.max_epipolar_px) & np.all(dep > 0, axis=0) & (dist <= search.gate_m)
