@@ -286,8 +286,8 @@ def test_step_renders_with_static_geom_kinds(setup):
     from jaxmocap.render._raycast import kind_groups
 
     p, model = setup["params"], setup["model"]
-    assert p.render_body is p.body  # off by default
-    p = dataclasses.replace(p, static_kinds=True)
+    assert p.static_kinds  # the default
+    assert dataclasses.replace(p, static_kinds=False).render_body is p.body
     assert p.geom_kinds == tuple(int(k) for k in np.asarray(model.geometry.kind))
     seen = {}
 

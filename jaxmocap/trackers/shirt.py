@@ -187,10 +187,12 @@ class ShirtParams(eqx.Module):
     held_start: bool = eqx.field(static=True, default=True)
     # ``static_kinds``: the renders inside the step use the body's geom kinds as constants
     # (``geom_kinds``), so that the ray caster tests each geom against its own primitive only;
-    # with traced kinds it evaluates every primitive kind for every geom and selects (2.6x
-    # slower per crop). Off by default: the two paths round differently on a few silhouette
-    # pixels and the tracked poses then differ by up to ~1e-2 (docs/results/realtime_profile.md)
-    static_kinds: bool = eqx.field(static=True, default=False)
+    # with traced kinds it evaluates every primitive kind for every geom and selects (2x slower
+    # per crop pair: 19.4 vs 9.8 ms). The two paths round differently on a few silhouette
+    # pixels; over 8 held-out sequences the mean error moved by +0.01 cm (3,000 poses) where a
+    # pure rounding change of the same program moves it by 0.27 cm
+    # (docs/results/realtime_profile.md, session 10). False: the traced-kinds path.
+    static_kinds: bool = eqx.field(static=True, default=True)
     geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
     # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance
     # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
@@ -300,7 +302,7 @@ def make_params(
     reacquire_passes: int = REACQUIRE_PASSES,
     reacquire_frames: int = REACQUIRE_FRAMES,
     held_start: bool = True,
-    static_kinds: bool = False,
+    static_kinds: bool = True,
     shading: Sequence[float] | None = None,
     scene_colors: ColorModel | None = None,
     hold_invalid: bool = True,
@@ -336,8 +338,9 @@ def make_params(
     ``reacquire_frames`` after it): the last valid pose measured without the pose prior (a
     subject re-entering fast is far from it, and a prior rendered there misleads the
     pose-assisted classification); on other frames it repeats the blend start.
-    ``static_kinds`` renders with the body's geom kinds as constants inside the step (faster
-    ray casting, rounding differs from the default; see :class:`ShirtParams`).
+    ``static_kinds`` (default) renders with the body's geom kinds as constants inside the step
+    (each geom runs its own primitive's ray test; ``False``: every primitive evaluated and
+    selected per geom, 2x slower renders, rounding differs; see :class:`ShirtParams`).
 
     Footage under spot lamps (not in the paper; both off by default): ``shading = (lo, hi)``
     compares every pixel to every colour at its best brightness in ``[lo, hi]`` (steps 1 and 3;
