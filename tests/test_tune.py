@@ -340,9 +340,13 @@ def test_per_clip_gradients_on_dask_workers_sum_to_the_in_process_loss(arm, ik_p
     stacked = jax.tree.map(lambda *a: jnp.concatenate(a), *clips)
     value, grad = vg_all(theta, setup, stacked)
     local_value, local_grad = clip_value_and_grad(setup, clips)(theta)
-    np.testing.assert_allclose(local_value, value, rtol=1e-10)  # sums in another order
+    # sums in another order, and the vmapped solves round differently from the per-clip ones,
+    # so a window's LM may stop an iteration apart within its rtol 1e-11: measured 7.6e-10
+    # (value) and 4.0e-9 (gradient) relative on an AMD EPYC host, below 1e-10 / 1e-9 on
+    # others; a lost or doubled clip would differ by O(1)
+    np.testing.assert_allclose(local_value, value, rtol=1e-8)
     for a, b in zip(jax.tree.leaves(local_grad), jax.tree.leaves(grad), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())
+        np.testing.assert_allclose(a, b, rtol=2e-8, atol=2e-8 * np.abs(b).max())
     import os
 
     with local_cluster(2, env={"XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}) as cluster, \
