@@ -80,12 +80,20 @@ def _in_finaliser(frame) -> bool:
     return False
 
 
+_RAISED: list[int] = []  # the signals the handler has raised as an interrupt in this process
+
+
 def _on_signal(signum, frame):
     """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in ordinary code: a signal that
-    lands in a finaliser is sent again a moment later instead of being lost."""
+    lands in a finaliser is sent again a moment later instead of being lost.
+
+    The signal is also recorded, because the interrupt may not reach :func:`main` as itself:
+    raised inside a ctypes argument conversion (e.g. in PyOpenGL's function wrappers)
+    it surfaces as ``ctypes.ArgumentError("argument 1: KeyboardInterrupt: ")``."""
     if _in_finaliser(frame):
         threading.Timer(0.02, os.kill, (os.getpid(), signum)).start()
         return
+    _RAISED.append(signum)
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
@@ -104,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     previous = {}
+    del _RAISED[:]
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)
@@ -118,15 +127,19 @@ def main(argv: list[str] | None = None) -> int:
 
         enable_compilation_cache()
         return int(args.func(args) or 0)
-    except (InputError, OSError) as err:
+    except BaseException as err:
+        if isinstance(err, KeyboardInterrupt) or _RAISED:
+            # an interrupt, possibly wrapped by the library it landed in (see _on_signal)
+            terminated = isinstance(err, Terminated) or signal.SIGTERM in _RAISED
+            what = "terminated" if terminated else "interrupted"
+            print(f"{command}: {what}; nothing written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        if not isinstance(err, (InputError, OSError)):
+            raise
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         prog = err.prog if isinstance(err, ArgumentError) else command
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as err:
-        what = "terminated" if isinstance(err, Terminated) else "interrupted"
-        print(f"{command}: {what}; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -530,3 +530,38 @@ def test_interrupt_elsewhere_is_one_line(tmp_path, argv):
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert "interrupted; nothing written" in err
     assert sorted(os.listdir(tmp_path)) == []
+
+
+@pytest.mark.parametrize("sig, word", [(signal.SIGINT, "interrupted"),
+                                       (signal.SIGTERM, "terminated")])
+def test_interrupt_wrapped_by_ctypes_is_one_line(tmp_path, monkeypatch, capsys, sig, word):
+    """A signal whose handler runs inside a ctypes argument conversion (e.g. in PyOpenGL's
+    function wrappers) reaches main as ``ctypes.ArgumentError``, not as the interrupt: still
+    one line, exit 130, nothing written. The conversion here is real ctypes."""
+    import ctypes
+
+    from jaxmocap import cli
+    from jaxmocap.commands import body as body_cmd
+
+    class SignalsOnConversion:
+        @classmethod
+        def from_param(cls, obj):
+            os.kill(os.getpid(), sig)
+            for _ in range(1000):  # the handler runs at a bytecode boundary in here
+                pass
+            return obj
+
+    labs = ctypes.CDLL(None).labs
+    labs.argtypes, labs.restype = [SignalsOnConversion], ctypes.c_long
+
+    def run(args):
+        labs(ctypes.c_long(-3))
+        Path(args.out).write_text("written after the signal")
+        return 0
+
+    monkeypatch.setattr(body_cmd, "run", run)
+    code = cli.main(["body", "--out", str(tmp_path / "b.urdf")])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_INTERRUPTED, err
+    assert err.strip() == f"jaxmocap body: {word}; nothing written"
+    assert os.listdir(tmp_path) == []
