@@ -34,6 +34,23 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
 SIDE_DEVICE_ENV = "JAXMOCAP_SIDE_DEVICE"
 
 
+def choose_offscreen_gl() -> str:
+    """Set ``MUJOCO_GL`` to an offscreen backend (``egl``, or ``osmesa`` where no EGL library
+    is found) unless the user set one, and return it.
+
+    Run before anything imports MuJoCo (pytorch-kinematics does): with ``MUJOCO_GL`` unset,
+    MuJoCo loads the ``glfw`` package, whose import starts a Python subprocess to read GLFW's
+    version; we never open a window, and a Ctrl-C during that import left the subprocess
+    printing a traceback into our stderr."""
+    import ctypes.util
+
+    backend = os.environ.get("MUJOCO_GL", "").lower()
+    if backend not in ("egl", "osmesa", "glx"):
+        backend = "egl" if ctypes.util.find_library("EGL") else "osmesa"
+        os.environ["MUJOCO_GL"] = backend
+    return backend
+
+
 def enable_side_device() -> bool:
     """Give JAX a second CPU device for the host-side compiled calls of live loops.
 

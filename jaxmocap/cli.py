@@ -16,6 +16,7 @@ frame loop and writes the frames tracked so far as a result marked partial.
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import gc
 import importlib
@@ -80,21 +81,70 @@ def _in_finaliser(frame) -> bool:
     return False
 
 
-_RAISED: list[int] = []  # the signals the handler has raised as an interrupt in this process
+def _importing(frame) -> bool:
+    """Whether a module is being imported somewhere up the stack of ``frame``."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+LOST_INTERRUPT_S = 15.0  # an interrupt no handler has reported by then ends the process
+_RAISED: list[int] = []  # the signals the handler raised as an interrupt in this run of main
+_TIMERS: list[threading.Timer] = []  # signals to send again, the lost-interrupt watchdog
+_STATE = {"command": "jaxmocap", "reported": False}
+
+
+def _timer(seconds: float, fn, *args) -> None:
+    timer = threading.Timer(seconds, fn, args)
+    timer.daemon = True
+    _TIMERS.append(timer)
+    timer.start()
+
+
+def _exit_if_lost(signum: int) -> None:
+    """The interrupt raised ``LOST_INTERRUPT_S`` ago never reached a handler (a library caught
+    it): report it as main would and end the process. Outputs are only renamed into place
+    when complete, so what is left behind is at most a temporary, swept by the next run."""
+    if _STATE["reported"]:
+        return
+    what = "terminated" if signum == signal.SIGTERM else "interrupted"
+    with contextlib.suppress(Exception):
+        print(f"{_STATE['command']}: {what}; nothing written", file=sys.stderr, flush=True)
+    os._exit(EXIT_INTERRUPTED)
 
 
 def _on_signal(signum, frame):
-    """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in ordinary code: a signal that
-    lands in a finaliser is sent again a moment later instead of being lost.
+    """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in our code or the libraries'
+    ordinary code.
 
-    The signal is also recorded, because the interrupt may not reach :func:`main` as itself:
-    raised inside a ctypes argument conversion (e.g. in PyOpenGL's function wrappers)
-    it surfaces as ``ctypes.ArgumentError("argument 1: KeyboardInterrupt: ")``."""
-    if _in_finaliser(frame):
-        threading.Timer(0.02, os.kill, (os.getpid(), signum)).start()
+    Where an exception cannot travel it is not raised; the signal is sent again 20 ms later:
+    in a finaliser (Python prints it as "Exception ignored" and drops it) and while a module
+    is imported (raised there it has been wrapped by ctypes into ``ctypes.ArgumentError`` in
+    PyOpenGL's import, and leaving a string ``exec`` it makes CPython's exit re-raise SIGINT,
+    see :func:`entry`). The signal raised is recorded, so that an exception a library made of
+    it still reads as the interrupt in :func:`main`, and a watchdog ends the process if no
+    handler reports it within ``LOST_INTERRUPT_S`` (a library swallowed it)."""
+    if _in_finaliser(frame) or _importing(frame):
+        _timer(0.02, os.kill, os.getpid(), signum)
         return
+    if not _RAISED:
+        _timer(LOST_INTERRUPT_S, _exit_if_lost, signum)
     _RAISED.append(signum)
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def acknowledge_interrupt() -> None:
+    """Tell the lost-interrupt watchdog that a handler has taken the interrupt (and may take
+    its time to write what it has)."""
+    _STATE["reported"] = True
+
+
+def interrupt_received() -> int | None:
+    """The signal the handler last raised as an interrupt in this run of :func:`main`, or None:
+    whatever exception follows it is the interrupt, however a library wrapped it."""
+    return _RAISED[-1] if _RAISED else None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,17 +162,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     previous = {}
-    del _RAISED[:]
+    del _RAISED[:], _TIMERS[:]
+    _STATE.update(command="jaxmocap", reported=False)
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)
     command = "jaxmocap"
-    from jaxmocap._config import enable_side_device
-
-    enable_side_device()  # before anything starts JAX's backend
     try:
+        from jaxmocap._config import choose_offscreen_gl, enable_side_device
+
+        choose_offscreen_gl()  # before anything imports MuJoCo
+        enable_side_device()  # before anything starts JAX's backend
         args = build_parser().parse_args(argv)
         command = f"jaxmocap {args.command}"
+        _STATE["command"] = command
         from jaxmocap._config import enable_compilation_cache
 
         enable_compilation_cache()
@@ -130,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     except BaseException as err:
         if isinstance(err, KeyboardInterrupt) or _RAISED:
             # an interrupt, possibly wrapped by the library it landed in (see _on_signal)
+            acknowledge_interrupt()
             terminated = isinstance(err, Terminated) or signal.SIGTERM in _RAISED
             what = "terminated" if terminated else "interrupted"
             print(f"{command}: {what}; nothing written", file=sys.stderr)
@@ -141,9 +195,32 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
     finally:
+        for timer in _TIMERS:  # a signal still to be sent again would meet the old handler
+            timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
+def entry() -> None:
+    """The ``jaxmocap`` console script and ``python -m jaxmocap.cli``: run :func:`main` and
+    exit with its status.
+
+    After an interrupt the process ends through ``os._exit`` once the atexit handlers have run
+    and the standard streams are flushed. Run with ``python -m``, CPython's normal exit
+    re-raises SIGINT (exit status -2, not 130) whenever a KeyboardInterrupt has left a string
+    ``exec`` (``dataclasses`` and ``typing`` run them while modules are imported) and no later
+    string ``exec`` cleared the mark, even though main handled the interrupt. (Imports are
+    shielded from the interrupt, see :func:`_on_signal`; other string ``exec`` calls are not.)
+    """
+    code = main()
+    if code == EXIT_INTERRUPTED:
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

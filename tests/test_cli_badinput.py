@@ -565,3 +565,126 @@ def test_interrupt_wrapped_by_ctypes_is_one_line(tmp_path, monkeypatch, capsys, 
     assert code == cli.EXIT_INTERRUPTED, err
     assert err.strip() == f"jaxmocap body: {word}; nothing written"
     assert os.listdir(tmp_path) == []
+
+
+def test_interrupt_wrapped_by_ctypes_while_tracking_writes_marked_partial(
+        long_capture, tmp_path, monkeypatch, capsys):
+    """The same wrapped interrupt during tracking: the frames tracked before it are written,
+    marked partial, as for a plain Ctrl-C."""
+    import ctypes
+
+    from jaxmocap import cli
+
+    class SignalsOnConversion:
+        @classmethod
+        def from_param(cls, obj):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):
+                pass
+            return obj
+
+    labs = ctypes.CDLL(None).labs
+    labs.argtypes, labs.restype = [SignalsOnConversion], ctypes.c_long
+
+    class Wrapped:
+        diagnostic_names = ("steps",)
+
+        def __init__(self):
+            self.body, self.n = default_body(), 0
+
+        def start(self, frames):
+            pass
+
+        def step(self, frames):
+            self.n += 1
+            if self.n == 4:
+                labs(ctypes.c_long(-3))
+            q = np.zeros(self.body.n_dof)
+            q[2] = 0.9
+            return track_cmd.FrameResult(q, True, {"steps": float(self.n)})
+
+        def draw(self, frames, result):
+            return frames
+
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: Wrapped())
+    out = tmp_path / "res"
+    code = cli.main(["track", "--cameras", str(long_capture / "cameras.json"),
+                     str(long_capture / "cam0"), str(long_capture / "cam1"), "--out", str(out),
+                     "--quiet"])
+    captured = capsys.readouterr()
+    assert code == cli.EXIT_INTERRUPTED, captured.err
+    assert captured.out.startswith("PARTIAL: interrupted (SIGINT) after ")
+    run = json.loads((out / "run.json").read_text())
+    assert run["complete"] is False and run["interrupted_by"] == "SIGINT"
+    assert run["frames_written"] == 3 and run["frames_in_input"] == 40
+
+
+# `jaxmocap body` whose work is replaced by ``argv[1]``'s case, run through the entry point of
+# ``python -m jaxmocap.cli``: the interrupt machinery of jaxmocap.cli is what is tested.
+SIGNAL_CASES = """
+import os, signal, sys, time
+from jaxmocap import cli
+from jaxmocap.commands import body
+
+def in_string_exec(args):
+    # a KeyboardInterrupt leaving a string exec: CPython's own exit would re-raise SIGINT
+    exec("import os, signal\\nos.kill(os.getpid(), signal.SIGINT)\\nfor _ in range(10**7): pass")
+    raise AssertionError("not interrupted")
+
+def in_import(args):
+    sys.path.insert(0, FOLDER)
+    import sends_sigint_while_imported  # its body signals, then works for 0.3 s
+    print("import finished", sends_sigint_while_imported.done, flush=True)
+    time.sleep(5)
+    raise AssertionError("not interrupted")
+
+def swallowed(args):
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(5)
+    except KeyboardInterrupt:
+        pass  # a library that eats the interrupt
+    time.sleep(60)
+
+cli.LOST_INTERRUPT_S = 1.0
+body.run, FOLDER = globals()[sys.argv[1]], sys.argv[2]
+sys.argv[1:] = ["body", "--out", os.path.join(FOLDER, "b.urdf")]
+cli.entry()
+"""
+
+SENDS_SIGINT = """
+import os, signal, time
+os.kill(os.getpid(), signal.SIGINT)
+t = time.time()
+while time.time() - t < 0.3:
+    pass
+done = True
+"""
+
+
+@pytest.mark.parametrize("case", ["in_string_exec", "in_import", "swallowed"])
+def test_interrupt_machinery_exits_130_with_one_line(tmp_path, case):
+    """A KeyboardInterrupt that left a string ``exec`` (CPython's exit would make it -2); one
+    that lands while a module is imported (sent again until the import is done, never raised
+    inside it); one a library swallows (the watchdog ends the process): each exits 130 with
+    the one line, and writes nothing."""
+    (tmp_path / "cases.py").write_text(SIGNAL_CASES)
+    mods = tmp_path / "mods"
+    mods.mkdir()
+    (mods / "sends_sigint_while_imported.py").write_text(SENDS_SIGINT)
+    out = tmp_path / "out"
+    out.mkdir()
+    # run as a module, like ``python -m jaxmocap.cli``: only there does CPython's exit turn an
+    # interrupt that once left a string exec into SIGINT (a script's sys.exit ends earlier)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)]),
+               JAX_PLATFORMS="cpu")
+    args = [sys.executable, "-m", "cases", case, str(mods if case == "in_import" else out)]
+    t0 = time.time()
+    proc = subprocess.run(args, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, (proc.stdout, proc.stderr)
+    assert proc.stderr.strip() == "jaxmocap body: interrupted; nothing written", proc.stderr
+    if case == "in_import":
+        assert proc.stdout.strip() == "import finished True"
+    if case == "swallowed":
+        assert time.time() - t0 < 40
+    assert os.listdir(out) == []

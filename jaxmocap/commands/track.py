@@ -408,7 +408,7 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
     completed before it; one before any frame was stepped propagates (nothing to keep)."""
     from tqdm import tqdm
 
-    from jaxmocap.cli import Terminated
+    from jaxmocap.cli import Terminated, acknowledge_interrupt, interrupt_received
 
     n_dof = tracker.body.n_dof
     qs, valid, rows = [], [], []
@@ -444,11 +444,16 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 cv2.imshow("jaxmocap track", view[..., ::-1])
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
                     break
-    except KeyboardInterrupt as err:  # e.g. a live capture ended with Ctrl-C
+    except BaseException as err:  # e.g. a live capture ended with Ctrl-C
+        signum = interrupt_received()
+        if not (isinstance(err, KeyboardInterrupt) or signum):
+            raise
+        acknowledge_interrupt()
         n = min(len(qs), len(valid), len(rows))  # a frame half-appended is dropped
         if not any(r[1] for r in rows[:n]):
             raise  # set-up or compiling the first step: nothing tracked, nothing written
-        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
+        interrupted = "SIGTERM" if isinstance(err, Terminated) or signum == signal.SIGTERM \
+            else "SIGINT"
         del qs[n:], valid[n:], rows[n:]
     finally:
         if writer is not None:

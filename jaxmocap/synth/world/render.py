@@ -46,13 +46,11 @@ def ensure_gl() -> str:
     where no EGL library is found) unless set. If MuJoCo was already imported with another
     backend (e.g. by pytorch-kinematics, before this ran), its renderer's context class is
     switched to the offscreen one. Returns the backend."""
-    import ctypes.util
     import sys
 
-    backend = os.environ.get("MUJOCO_GL", "").lower()
-    if backend not in ("egl", "osmesa", "glx"):
-        backend = "egl" if ctypes.util.find_library("EGL") else "osmesa"
-        os.environ["MUJOCO_GL"] = backend
+    from jaxmocap._config import choose_offscreen_gl
+
+    backend = choose_offscreen_gl()
     if "mujoco" in sys.modules:
         from mujoco.rendering.classic import gl_context
 
