@@ -649,28 +649,39 @@ def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
 
 def choose_start(params: ShirtParams, state: ShirtState, ctx: RoundContext):
     """The first round from each start, the best-agreeing result kept: the placed blend and
-    the previous pose (after a loss: the blend measured without the pose prior) under
-    ``jax.vmap``; on (re)acquisition frames and ``reacquire_frames`` after, the last valid
-    pose measured without the pose prior (``lax.cond`` on a scalar predicate, so only on
-    those frames; elsewhere a copy of the blend start, which the argmax's first-index tie rule
-    never prefers). Returns ``(q, c_obs, v_obs, hits, agreement)``."""
+    the previous pose (after a loss: the blend measured without the pose prior); on
+    (re)acquisition frames and ``reacquire_frames`` after, a third: the last valid pose
+    measured without the pose prior. Returns ``(q, c_obs, v_obs, hits, agreement)``.
+
+    The starts run one after the other in a loop over one ``first_round`` body, 2 or 3 times
+    (the count is traced, so the third runs only on those frames), keeping the first of the
+    best-agreeing results (argmax's tie rule). One compiled copy of the round serves all
+    starts; under ``jax.vmap`` the two starts cost as much as two runs (no batching gain on
+    CPU, and the batched LM loop runs every member to the slower one's iteration count,
+    docs/results/realtime_profile.md), and the held start was a second copy in a ``cond``."""
     q_g = ctx.q_g
     if not params.temporal_start:
         return first_round(params, ctx, q_g, jnp.array(False))
     reacquire = ~state.valid
-    starts = jnp.stack([q_g, jnp.where(state.valid, state.q, q_g)])
-    plain = jnp.stack([jnp.array(False), reacquire & params.reacquire_start])
-    results = jax.vmap(lambda q, p: first_round(params, ctx, q, p))(starts, plain)
+    starts = [q_g, jnp.where(state.valid, state.q, q_g)]
+    plain = [jnp.array(False), reacquire & params.reacquire_start]
+    n_starts = jnp.asarray(2)
     if params.held_start:
+        starts.append(state.q)
+        plain.append(jnp.array(True))
         fresh = reacquire | (state.tracked < params.reacquire_frames)
-        held = jax.lax.cond(
-            fresh,
-            lambda: first_round(params, ctx, state.q, jnp.array(True)),
-            lambda: jax.tree.map(lambda a: a[0], results),
-        )
-        results = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), results, held)
-    best = jnp.argmax(results[-1])
-    return jax.tree.map(lambda a: a[best], results)
+        n_starts = n_starts + fresh.astype(n_starts.dtype)
+    starts, plain = jnp.stack(starts), jnp.stack(plain)
+
+    def run(i, best):
+        result = first_round(params, ctx, starts[i], plain[i])
+        better = result[-1] > best[-1]
+        return jax.tree.map(lambda r, b: jnp.where(better, r, b), result, best)
+
+    shapes = jax.eval_shape(lambda: first_round(params, ctx, starts[0], plain[0]))
+    none = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    none = (*none[:-1], jnp.asarray(-jnp.inf, shapes[-1].dtype))
+    return jax.lax.fori_loop(0, n_starts, run, none)
 
 
 def more_rounds(params: ShirtParams, ctx: RoundContext, k: int, carry):
