@@ -196,15 +196,15 @@ def shirt_profile(s: dict, reps: int) -> dict:
     firstv = eqx.filter_jit(
         lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl)
     )
-    stages["5v first_round, 2 starts under vmap (as shipped)"] = _t(
+    stages["5v first_round, 2 starts under vmap (shipped until session 11)"] = _t(
         lambda: firstv(p, ctx, starts, plain), reps
     )
     choose = eqx.filter_jit(S.choose_start)
-    stages["6 choose_start, steady frame (vmap 2 starts; held cond false)"] = _t(
+    stages["6 choose_start, steady frame (2 starts in its loop)"] = _t(
         lambda: choose(p, st, ctx), reps
     )
     ctx_f = ctxf(p, states["fresh"], views, db.okq, q_g)
-    stages["6f choose_start, fresh frame (vmap 2 starts + held start)"] = _t(
+    stages["6f choose_start, fresh frame (3 starts in its loop)"] = _t(
         lambda: choose(p, states["fresh"], ctx_f), reps
     )
     q1, co, vo, h1, agr = choose(p, st, ctx)
