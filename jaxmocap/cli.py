@@ -103,15 +103,20 @@ def _timer(seconds: float, fn, *args) -> None:
     timer.start()
 
 
+def _report_interrupt(terminated: bool) -> None:
+    """The one line of an interrupted command (main's, or the watchdog's)."""
+    what = "terminated" if terminated else "interrupted"
+    print(f"{_STATE['command']}: {what}; nothing written", file=sys.stderr, flush=True)
+
+
 def _exit_if_lost(signum: int) -> None:
     """The interrupt raised ``LOST_INTERRUPT_S`` ago never reached a handler (a library caught
     it): report it as main would and end the process. Outputs are only renamed into place
     when complete, so what is left behind is at most a temporary, swept by the next run."""
     if _STATE["reported"]:
         return
-    what = "terminated" if signum == signal.SIGTERM else "interrupted"
     with contextlib.suppress(Exception):
-        print(f"{_STATE['command']}: {what}; nothing written", file=sys.stderr, flush=True)
+        _report_interrupt(signum == signal.SIGTERM)
     os._exit(EXIT_INTERRUPTED)
 
 
@@ -167,15 +172,13 @@ def main(argv: list[str] | None = None) -> int:
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)
-    command = "jaxmocap"
     try:
         from jaxmocap._config import choose_offscreen_gl, enable_side_device
 
         choose_offscreen_gl()  # before anything imports MuJoCo
         enable_side_device()  # before anything starts JAX's backend
         args = build_parser().parse_args(argv)
-        command = f"jaxmocap {args.command}"
-        _STATE["command"] = command
+        _STATE["command"] = f"jaxmocap {args.command}"
         from jaxmocap._config import enable_compilation_cache
 
         enable_compilation_cache()
@@ -184,14 +187,12 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(err, KeyboardInterrupt) or _RAISED:
             # an interrupt, possibly wrapped by the library it landed in (see _on_signal)
             acknowledge_interrupt()
-            terminated = isinstance(err, Terminated) or signal.SIGTERM in _RAISED
-            what = "terminated" if terminated else "interrupted"
-            print(f"{command}: {what}; nothing written", file=sys.stderr)
+            _report_interrupt(isinstance(err, Terminated) or signal.SIGTERM in _RAISED)
             return EXIT_INTERRUPTED
         if not isinstance(err, (InputError, OSError)):
             raise
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        prog = err.prog if isinstance(err, ArgumentError) else command
+        prog = err.prog if isinstance(err, ArgumentError) else _STATE["command"]
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
     finally:
