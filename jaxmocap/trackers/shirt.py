@@ -656,9 +656,11 @@ def choose_start(params: ShirtParams, state: ShirtState, ctx: RoundContext):
     The starts run one after the other in a loop over one ``first_round`` body, 2 or 3 times
     (the count is traced, so the third runs only on those frames), keeping the first of the
     best-agreeing results (argmax's tie rule). One compiled copy of the round serves all
-    starts; under ``jax.vmap`` the two starts cost as much as two runs (no batching gain on
-    CPU, and the batched LM loop runs every member to the slower one's iteration count,
-    docs/results/realtime_profile.md), and the held start was a second copy in a ``cond``."""
+    starts, where a ``jax.vmap`` of two starts plus the held start in a ``cond`` compiled two
+    (docs/results/realtime_profile.md, session 11: cold compile -35%, steady frame -13% in
+    interleaved runs of the whole step). The loop's initial carry comes from
+    ``jax.eval_shape`` of ``first_round``, a second trace of it (~1.8 s of the step's ~6 s
+    trace)."""
     q_g = ctx.q_g
     if not params.temporal_start:
         return first_round(params, ctx, q_g, jnp.array(False))
