@@ -43,8 +43,12 @@ def main() -> None:
     from benchmarks import bench_shirt
     from jaxmocap.trackers import shirt as S
 
-    a.out.mkdir(parents=True, exist_ok=True)
     setup = a.setup or a.out / "setup640.npz"
+    if (a.out / f"{a.label}.npz").resolve() == setup.resolve():
+        print(f"step_ab: --label {a.label} would write over the scene {setup}; choose another "
+              "label", file=sys.stderr)
+        sys.exit(2)
+    a.out.mkdir(parents=True, exist_ok=True)
     if not setup.exists():
         bench_shirt.save_setup(setup, bench_shirt.setup(640, 480))
     s = bench_shirt.load_setup(setup)
