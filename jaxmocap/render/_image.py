@@ -61,10 +61,27 @@ def render_uv(
 ) -> Hits:
     """Cast the rays through (distorted) pixel positions ``uv`` of ``cam``; Hits of shape
     ``uv.shape[:-1]`` with ``depth`` the camera-frame z."""
-    shape = uv.shape[:-1]
-    origins, dirs = pixel_rays(cam, uv.reshape(-1, 2))
+    origins, dirs = pixel_rays(cam, uv)
+    return render_rays(model, garment, q, origins.reshape(-1, 3)[0], dirs, cam.R[2], chunk)
+
+
+def render_rays(
+    model: BodyModel,
+    garment: Garment,
+    q: Float[Array, " n_dof"],
+    origin: Float[Array, " 3"],
+    dirs: Float[Array, "*s 3"],
+    depth_axis: Float[Array, " 3"] | None = None,
+    chunk: int = RAY_CHUNK,
+) -> Hits:
+    """:func:`render_uv` on rays already made (``origin`` the camera centre, ``dirs`` from
+    :func:`jaxmocap.camera.pixel_rays`, ``depth_axis`` the camera's row ``R[2]``): a tracker
+    that renders several poses on one pixel grid undistorts the grid once. Hits of shape
+    ``dirs.shape[:-1]``."""
+    shape = dirs.shape[:-1]
     scene = posed_scene(model, q)
-    hits = cast_rays(scene, garment, origins[0], dirs, depth_axis=cam.R[2], chunk=chunk)
+    hits = cast_rays(scene, garment, origin, dirs.reshape(-1, 3), depth_axis=depth_axis,
+                     chunk=chunk)  # fmt: skip
     return jax.tree.map(lambda a: a.reshape(shape + a.shape[1:]), hits)
 
 

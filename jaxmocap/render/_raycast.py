@@ -28,7 +28,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .. import garment as _garment
 from ..body import BodyModel, fk, geom_world_poses
 from ..garment import Garment
-from ._intersect import intersect_kind, surface_normal
+from ._intersect import intersect_components, surface_normal
 
 RAY_CHUNK = 4096  # rays per lax.map step: ~30 geoms x 4096 rays x 3 floats per temporary
 
@@ -96,22 +96,25 @@ def posed_scene(model: BodyModel, q: Float[Array, " n_dof"]) -> Scene:
 def _cast_chunk(
     scene: Scene, garment: Garment, origin: Float[Array, " 3"], d: Float[Array, "n 3"]
 ) -> tuple[Array, Array, Array, Array, Array]:
-    """Nearest hits of rays from one origin: (geom, patch, t, world normal, world point)."""
+    """Nearest hits of rays from one origin: (geom, patch, t, world normal, world point).
+
+    The local rays are held as three ``(geoms, rays)`` planes, one per axis
+    (``_intersect.intersect_components``): XLA vectorises each plane along the rays."""
     o_loc = jnp.einsum("gji,gj->gi", scene.R, origin[None, :] - scene.p)  # R^T (o - p)
-    d_loc = jnp.einsum("gji,nj->ngi", scene.R, d)  # (n, g, 3)
+    d_loc = jnp.einsum("gji,nj->ign", scene.R, d)  # (3, g, n)
     ts = []
     for kind, a, b in scene.groups:
-        dl = d_loc[:, a:b]
-        ol = jnp.broadcast_to(o_loc[None, a:b], dl.shape)
-        sz = jnp.broadcast_to(scene.size[None, a:b], dl.shape)
-        ka = None if kind is not None else jnp.broadcast_to(scene.kind[None, a:b], dl.shape[:2])
-        ts.append(intersect_kind(kind, sz, ol, dl, kind_array=ka))
-    t_all = jnp.concatenate(ts, axis=1) if len(ts) > 1 else ts[0]
-    row = jnp.argmin(t_all, axis=1)
-    t = jnp.min(t_all, axis=1)
+        dl = tuple(d_loc[k, a:b] for k in range(3))
+        ol = tuple(o_loc[a:b, k, None] for k in range(3))
+        sz = tuple(scene.size[a:b, k, None] for k in range(3))
+        ka = None if kind is not None else jnp.broadcast_to(scene.kind[a:b, None], dl[0].shape)
+        ts.append(intersect_components(kind, sz, ol, dl, kind_array=ka))
+    t_all = jnp.concatenate(ts, axis=0) if len(ts) > 1 else ts[0]  # (g, n)
+    row = jnp.argmin(t_all, axis=0)
+    t = jnp.min(t_all, axis=0)
     hit = jnp.isfinite(t)
     t0 = jnp.where(hit, t, 0)
-    d_row = jnp.take_along_axis(d_loc, row[:, None, None], axis=1)[:, 0]
+    d_row = jnp.take_along_axis(d_loc, row[None, None, :], axis=1)[:, 0].T  # (n, 3)
     p_loc = o_loc[row] + t0[:, None] * d_row
     n_loc = surface_normal(scene.kind[row], scene.size[row], p_loc)
     normal = jnp.einsum("nij,nj->ni", scene.R[row], n_loc)

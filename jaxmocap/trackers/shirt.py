@@ -97,7 +97,7 @@ from jaxmocap.ik import (
 from jaxmocap.ik import view_anchors as _view_anchors
 from jaxmocap.posedb._sample import canonical_camera, pose_in_camera
 from jaxmocap.posedb._search import PoseDB, estimate_pose
-from jaxmocap.render import TINY_SIZE, render_uv, resample_ids, tiny_hits, window_from_mask
+from jaxmocap.render import TINY_SIZE, render_rays, render_uv, resample_ids, tiny_hits, window_from_mask
 
 # IK covariances trained the paper's way (§5.2 step 4: the covariance of each term over
 # ground-truth sequences) on the TRAIN clips dance_a + walk + kick pooled, default body and
@@ -481,7 +481,9 @@ class DatabasePose(NamedTuple):
 
 class RoundContext(NamedTuple):
     """What every round of steps 3–4 shares: the views, ``okq``, the placed blend ``q_g``,
-    the temporal prior ``q_h``, the IK covariances and the crops' pixel grids."""
+    the temporal prior ``q_h``, the IK covariances, the crops' pixel grids and their rays
+    (``(origin, dirs)`` per camera: every render of the frame casts the same rays, so the grid
+    is undistorted once per frame, not once per render)."""
 
     views: Views
     okq: Array
@@ -490,6 +492,7 @@ class RoundContext(NamedTuple):
     cov: IKCovariances
     uvs: list
     uv_all: Array
+    rays: list
 
 
 def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
@@ -570,15 +573,19 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
     if params.reacquire_frames:
         fresh = state.tracked < params.reacquire_frames
         cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
-    return RoundContext(views, okq, q_g, q_h, cov, uvs, jnp.stack(uvs))
+    rays = []
+    for i in range(params.n_cams):
+        cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
+        origins, dirs = pixel_rays(cam, uvs[i])
+        rays.append((origins.reshape(-1, 3)[0], dirs))
+    return RoundContext(views, okq, q_g, q_h, cov, uvs, jnp.stack(uvs), rays)
 
 
 def render_views(params: ShirtParams, ctx: RoundContext, q) -> list:
     """The model at ``q`` rendered on each camera's crop grid (patch, colour, 3D point)."""
     body = params.render_body
     return [
-        render_uv(body, params.garment, q, jax.tree.map(lambda a, i=i: a[i], params.cams),
-                  ctx.uvs[i])
+        render_rays(body, params.garment, q, *ctx.rays[i], params.cams.R[i, 2])
         for i in range(params.n_cams)
     ]  # fmt: skip
 
