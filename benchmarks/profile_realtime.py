@@ -199,18 +199,18 @@ def shirt_profile(s: dict, reps: int) -> dict:
     stages["5v first_round, 2 starts under vmap (shipped until session 11)"] = _t(
         lambda: firstv(p, ctx, starts, plain), reps
     )
-    choose = eqx.filter_jit(S.choose_start)
-    stages["6 choose_start, steady frame (2 starts in its loop)"] = _t(
-        lambda: choose(p, st, ctx), reps
+    rounds = eqx.filter_jit(S.rounds)
+    zero, one = jnp.asarray(0), jnp.asarray(1)
+    stages["6 rounds, steady frame, first rounds only (2 starts)"] = _t(
+        lambda: rounds(p, st, ctx, zero), reps
     )
     ctx_f = ctxf(p, states["fresh"], views, db.okq, q_g)
-    stages["6f choose_start, fresh frame (3 starts in its loop)"] = _t(
-        lambda: choose(p, states["fresh"], ctx_f), reps
+    stages["6f rounds, fresh frame, first rounds only (3 starts)"] = _t(
+        lambda: rounds(p, states["fresh"], ctx_f, zero), reps
     )
-    q1, co, vo, h1, agr = choose(p, st, ctx)
-    more = eqx.filter_jit(lambda p, ctx, carry: S.more_rounds(p, ctx, 1, carry))
-    stages["7 one more round (more_rounds(1): round + render)"] = _t(
-        lambda: more(p, ctx, (q1, co, vo, h1)), reps
+    q1, co, vo, h1, agr = rounds(p, st, ctx, zero)
+    stages["7 rounds, steady frame, 2 starts + 1 more round (the shipped steady frame)"] = _t(
+        lambda: rounds(p, st, ctx, one), reps
     )
 
     @eqx.filter_jit
@@ -453,10 +453,8 @@ def compile_by_stage(s: dict) -> dict:
         lambda p, ctx, qs, pl: jax.vmap(lambda q, b: S.first_round(p, ctx, q, b))(qs, pl),
         p, ctx, starts, plain,
     )  # fmt: skip
-    out["6 choose_start"] = timed(lambda *a: S.choose_start(*a), p, st, ctx)
-    q1, co, vo, h1, _ = eqx.filter_jit(S.choose_start)(p, st, ctx)
-    out["7 more_rounds(1)"] = timed(
-        lambda p, ctx, carry: S.more_rounds(p, ctx, 1, carry), p, ctx, (q1, co, vo, h1)
+    out["7 rounds (2 starts + 1 more round)"] = timed(
+        lambda p, st, ctx, k: S.rounds(p, st, ctx, k), p, st, ctx, jnp.asarray(1)
     )
     res["programs"] = out
     res["load_average_at_end"] = list(os.getloadavg())

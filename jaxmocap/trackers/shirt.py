@@ -422,9 +422,9 @@ def init(
 # ``_step`` is the paper's steps in order, each a module-level function (per camera lists;
 # the bench and the profile time them separately): ``locate_and_classify`` (§4, §5.2 step 1),
 # ``database_pose`` (step 2, 10-NN), ``global_placement`` (step 2, 6-DOF IK),
-# ``pose_assisted_centroids`` + ``ik_round`` (steps 3 + 4, run from the starts by
-# ``choose_start`` and ``ik_passes - 1`` more times by ``more_rounds``), ``frame_validity`` and
-# ``white_balance_refit`` (step 5).
+# ``pose_assisted_centroids`` + ``ik_round`` (steps 3 + 4, run from every start of
+# ``starts_of`` and ``ik_passes - 1`` more times, all in the one loop of ``rounds``),
+# ``frame_validity`` and ``white_balance_refit`` (step 5).
 
 
 def _root_guess(params: ShirtParams, q_db: Array, win_db: Array, win_q: Array, i: int) -> Array:
@@ -636,13 +636,11 @@ def ik_round(params: ShirtParams, ctx: RoundContext, q, hits, plain=False):
     return sol.q, c_obs, v_obs
 
 
-def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
-    """:func:`ik_round` from ``q_start``, the result re-rendered, and its agreement with the
-    step-1 classification (agreeing minus disagreeing pixels over the rendered shirt pixels;
-    shared by all starts, so comparable between them)."""
+def agreement(params: ShirtParams, ctx: RoundContext, hits) -> Array:
+    """Agreement of a render ``hits`` with the step-1 classification: agreeing minus
+    disagreeing pixels over the rendered shirt pixels (shared by all starts, so comparable
+    between them)."""
     dt = ctx.q_g.dtype
-    q1, c_obs, v_obs = ik_round(params, ctx, q_start, render_views(params, ctx, q_start), plain)
-    hits = render_views(params, ctx, q1)
     score, shown = jnp.zeros((), dt), jnp.zeros((), dt)
     for i in range(params.n_cams):
         c1 = ctx.views.cls[i].ids
@@ -651,56 +649,90 @@ def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
         score = score + jnp.sum(both & (hits[i].colour == c1))
         score = score - jnp.sum(both & (hits[i].colour != c1))
         shown = shown + jnp.sum((hits[i].colour > 0) & ok)
-    return q1, c_obs, v_obs, hits, score / jnp.maximum(shown, 1.0)
+    return score / jnp.maximum(shown, 1.0)
 
 
-def choose_start(params: ShirtParams, state: ShirtState, ctx: RoundContext):
-    """The first round from each start, the best-agreeing result kept: the placed blend and
-    the previous pose (after a loss: the blend measured without the pose prior); on
-    (re)acquisition frames and ``reacquire_frames`` after, a third: the last valid pose
-    measured without the pose prior. Returns ``(q, c_obs, v_obs, hits, agreement)``.
+def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
+    """:func:`ik_round` from ``q_start``, the result re-rendered, and its :func:`agreement`:
+    what :func:`rounds` does per start (a stage on its own for profiling)."""
+    q1, c_obs, v_obs = ik_round(params, ctx, q_start, render_views(params, ctx, q_start), plain)
+    hits = render_views(params, ctx, q1)
+    return q1, c_obs, v_obs, hits, agreement(params, ctx, hits)
 
-    The starts run one after the other in a loop over one ``first_round`` body, 2 or 3 times
-    (the count is traced, so the third runs only on those frames), keeping the first of the
-    best-agreeing results (argmax's tie rule). One compiled copy of the round serves all
-    starts, where a ``jax.vmap`` of two starts plus the held start in a ``cond`` compiled two
-    (docs/results/realtime_profile.md, session 11: cold compile -35%, steady frame -13% in
-    interleaved runs of the whole step). The loop's initial carry comes from
-    ``jax.eval_shape`` of ``first_round``, a second trace of it (~1.8 s of the step's ~6 s
-    trace)."""
+
+def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
+    """The starts of the first round, ``(starts, plain, n)``: the placed blend and the previous
+    pose (after a loss: the blend measured without the pose prior); on (re)acquisition frames
+    and ``reacquire_frames`` after, a third: the last valid pose measured without the pose
+    prior. ``n`` (2 or 3) is traced; without ``temporal_start`` the blend alone."""
     q_g = ctx.q_g
     if not params.temporal_start:
-        return first_round(params, ctx, q_g, jnp.array(False))
+        return q_g[None], jnp.zeros((1,), bool), jnp.asarray(1)
     reacquire = ~state.valid
     starts = [q_g, jnp.where(state.valid, state.q, q_g)]
     plain = [jnp.array(False), reacquire & params.reacquire_start]
-    n_starts = jnp.asarray(2)
+    n = jnp.asarray(2)
     if params.held_start:
         starts.append(state.q)
         plain.append(jnp.array(True))
         fresh = reacquire | (state.tracked < params.reacquire_frames)
-        n_starts = n_starts + fresh.astype(n_starts.dtype)
-    starts, plain = jnp.stack(starts), jnp.stack(plain)
-
-    def run(i, best):
-        result = first_round(params, ctx, starts[i], plain[i])
-        better = result[-1] > best[-1]
-        return jax.tree.map(lambda r, b: jnp.where(better, r, b), result, best)
-
-    shapes = jax.eval_shape(lambda: first_round(params, ctx, starts[0], plain[0]))
-    none = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-    none = (*none[:-1], jnp.asarray(-jnp.inf, shapes[-1].dtype))
-    return jax.lax.fori_loop(0, n_starts, run, none)
+        n = n + fresh.astype(n.dtype)
+    return jnp.stack(starts), jnp.stack(plain), n
 
 
-def more_rounds(params: ShirtParams, ctx: RoundContext, k: int, carry):
-    """``k`` more rounds of steps 3 + 4 from ``carry = (q, c_obs, v_obs, hits)``, each with
-    the model re-rendered at the last round's pose."""
-    q_sol, c_obs, v_obs, hits = carry
-    for _ in range(k):
-        q_sol, c_obs, v_obs = ik_round(params, ctx, q_sol, hits)
-        hits = render_views(params, ctx, q_sol)
-    return q_sol, c_obs, v_obs, hits
+def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
+    """Steps 3–4 of the frame: the first round from every start (:func:`starts_of`), the
+    best-agreeing result kept (the first of equals), then ``n_more`` (traced) more rounds from
+    it, each with the model re-rendered at the last pose. Returns ``(q, c_obs, v_obs, hits,
+    agreement)``: the last round's pose and centroids, the render of the pose, and the
+    agreement of the kept start's first round.
+
+    One loop of ``2 n + n_more`` iterations, each one render and at most one IK round (under
+    ``lax.cond``, which runs one branch on CPU): iteration ``2s`` renders start ``s`` and runs
+    its round, ``2s + 1`` renders the result and scores it; after the last start's score and
+    after each extra render the next round runs from the kept result. XLA compiles one render
+    and one round for the whole frame where a loop per phase compiled three renders and two
+    rounds (cold compile -N%, docs/results/realtime_profile.md, session 12)."""
+    starts, plain, n = starts_of(params, state, ctx)
+    total = 2 * n + n_more
+    dt = ctx.q_g.dtype
+    P = params.garment.n_patches
+    hits0 = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
+                         jax.eval_shape(lambda: render_views(params, ctx, ctx.q_g)))  # fmt: skip
+    c0 = jnp.zeros((params.n_cams, P, 2), dt)
+    v0 = jnp.zeros((params.n_cams, P), bool)
+    pick = lambda b, x, y: jax.tree.map(lambda u, w: jnp.where(b, u, w), x, y)  # noqa: E731
+
+    def body(k, carry):
+        pose, ik_out, best = carry
+        hits = render_views(params, ctx, pose)
+        s = jnp.minimum(k // 2, starts.shape[0] - 1)
+        in_starts = k < 2 * n
+        is_start = in_starts & (k % 2 == 0)
+        is_check = in_starts & (k % 2 == 1)
+        score = agreement(params, ctx, hits)
+        # a start's first round scored: kept if it agrees better than every earlier start
+        best = pick(is_check & (score > best[-1]), (*ik_out, hits, score), best)
+        # an extra round's render: that round's result is the frame's (agreement kept)
+        best = pick(~in_starts, (*ik_out, hits, best[-1]), best)
+        last_check = is_check & (s == n - 1)
+        more = k + 1 < total
+        do_ik = is_start | ((last_check | ~in_starts) & more)
+        q_src = jnp.where(is_start, pose, best[0])
+        hits_src = pick(is_start, hits, best[3])
+        plain_k = is_start & plain[s]
+        ik_out = jax.lax.cond(
+            do_ik,
+            lambda: ik_round(params, ctx, q_src, hits_src, plain_k),
+            lambda: ik_out,
+        )
+        nxt = starts[jnp.minimum(s + 1, starts.shape[0] - 1)]
+        pose = jnp.where(is_check & ~last_check, nxt, ik_out[0])
+        return pose, ik_out, best
+
+    init = (starts[0], (ctx.q_g, c0, v0), (ctx.q_g, c0, v0, hits0, jnp.asarray(-jnp.inf, dt)))
+    _, _, best = jax.lax.fori_loop(0, total, body, init)
+    return best
 
 
 def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> Array:
@@ -799,18 +831,10 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     db = database_pose(params, views, dt)
     q_g = global_placement(params, db, dt)
     ctx = round_context(params, state, views, db.okq, q_g)
-    first = choose_start(params, state, ctx)
-    q_sol, c_obs, v_obs, hits, agreement = first
-    carry = (q_sol, c_obs, v_obs, hits)
-    if params.ik_passes - 1 + params.reacquire_passes:
-        # ik_passes - 1 more rounds, and reacquire_passes more after a loss: one loop over
-        # one round body, so XLA compiles the round (EDT + classification + IK + render) once
-        # instead of per call site: cold compile -13% (docs/results/realtime_profile.md,
-        # session 11); paired held-out accuracy unchanged (4.84 vs 4.85 cm)
-        n_more = params.ik_passes - 1 + jnp.where(state.valid, 0, params.reacquire_passes)
-        carry = jax.lax.fori_loop(0, n_more, lambda _, c: more_rounds(params, ctx, 1, c), carry)
-    q_sol, c_obs, v_obs, hits = carry
-    valid = frame_validity(params, ctx, v_obs, agreement)
+    # ik_passes - 1 more rounds, and reacquire_passes more after a loss
+    n_more = params.ik_passes - 1 + jnp.where(state.valid, 0, params.reacquire_passes)
+    q_sol, c_obs, v_obs, hits, agree = rounds(params, state, ctx, n_more)
+    valid = frame_validity(params, ctx, v_obs, agree)
     q_star = jnp.where(valid, q_sol, state.q)
     W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
@@ -832,7 +856,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         added_reference=added,
         centroids=c_obs,
         visible=v_obs,
-        agreement=agreement,
+        agreement=agree,
         signals=signals,
     )
     return new_state, out
