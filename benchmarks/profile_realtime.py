@@ -8,7 +8,7 @@ traced programs), and measured floors (dispatch of an empty jitted call, memory 
 Writes ``docs/results/realtime_profile.json`` (all numbers) and prints a summary; the
 discussion is ``docs/results/realtime_profile.md``.
 
-    python -m benchmarks.profile_realtime [--setup PATH.npz] [--reps N]
+    python -m benchmarks.profile_realtime [--setup PATH.npz] [--reps N] [--out PATH.json]
 
 ``--setup``: a set-up stored by ``bench_shirt.save_setup`` (skips rendering the database).
 """
@@ -465,6 +465,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--setup", default=None)
     ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help=f"the JSON written (default {OUT.relative_to(OUT.parents[2])}; with "
+                         "--edt / --compile the file whose key is replaced)")  # fmt: skip
     ap.add_argument("--edt", action="store_true",
                     help="only the EDT inside the step, session 8 vs previous (key 'edt_in_step' "
                          "of the JSON; the rest of the JSON is kept)")  # fmt: skip
@@ -474,17 +477,18 @@ def main():
         help="only the cold compile time per program (key 'compile_by_stage')",
     )
     a = ap.parse_args()
+    out = a.out
     s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
     if a.compile:
-        res = json.loads(OUT.read_text()) if OUT.exists() else {}
+        res = json.loads(out.read_text()) if out.exists() else {}
         res["compile_by_stage"] = {"machine": machine(), **compile_by_stage(s)}
-        OUT.write_text(json.dumps(res, indent=1))
+        out.write_text(json.dumps(res, indent=1))
         print(json.dumps(res["compile_by_stage"], indent=1))
         return
     if a.edt:
-        res = json.loads(OUT.read_text()) if OUT.exists() else {}
+        res = json.loads(out.read_text()) if out.exists() else {}
         res["edt_in_step"] = {"machine": machine(), **edt_in_step(s, a.reps)}
-        OUT.write_text(json.dumps(res, indent=1))
+        out.write_text(json.dumps(res, indent=1))
         print(json.dumps(res["edt_in_step"], indent=1))
         return
     res = {"machine": machine(), "load_average_at_start": list(os.getloadavg())}
@@ -492,8 +496,8 @@ def main():
     res["stereo"] = stereo_profile(a.reps)
     res["shirt"] = shirt_profile(s, a.reps)
     res["load_average_at_end"] = list(os.getloadavg())
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(res, indent=1))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
     print(json.dumps(res, indent=1))
 
 
