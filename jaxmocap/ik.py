@@ -504,7 +504,8 @@ def _q_to_z(q: Array, finite: Array, mid: Array, half: Array) -> Array:
 
 
 def _default_ftol(dtype) -> float:
-    """8 float eps of ``dtype``: the rounding of a sum of squares (:class:`FtolLevenbergMarquardt`)."""
+    """8 float eps of ``dtype``: the rounding of a sum of squares
+    (:class:`FtolLevenbergMarquardt`)."""
     return 8 * float(jnp.finfo(dtype).eps)
 
 
@@ -525,7 +526,8 @@ class FtolLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     and the trust region shrinks by 4x per step until ``max_steps``. Measured on the shirt
     tracker's IK (bench scene, 24 DOF): converged after 14 and 9 steps, stopped after 42 and
     31 (docs/results/realtime_profile.md, session 12). ``ftol`` defaults to 8 float eps of the
-    solve's dtype (the rounding of the loss); 0 turns the test off. ``y`` and the residual are single arrays."""
+    solve's dtype (the rounding of the loss); 0 turns the test off. ``y`` and the residual are
+    single arrays."""
 
     inner: optx.LevenbergMarquardt
     ftol: float | Array | None

@@ -39,7 +39,8 @@ from ._shade import CAMERA_GAMMA, Lighting, default_lighting, encode, render_rgb
 
 __all__ = [
     "TINY_MARGIN", "TINY_SIZE", "RAY_CHUNK", "CAMERA_GAMMA", "Hits", "Scene", "Lighting",
-    "cast_rays", "kind_groups", "posed_scene", "render_ids", "render_rays", "render_uv", "render_rgb",
+    "cast_rays", "kind_groups", "posed_scene", "render_ids", "render_rays", "render_uv",
+    "render_rgb",
     "shade", "encode", "default_lighting", "pixel_grid", "tiny_id_map", "tiny_id_maps",
     "tiny_hits", "shirt_window", "shirt_points", "patch_surface_points", "square_window",
     "window_from_mask", "window_uv", "resample_ids", "intersect_box", "intersect_capsule",

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from ..body import BodyModel
-from ..camera import Camera, pixel_rays, project, to_camera
+from ..camera import Camera, camera_center, pixel_rays, project, to_camera
 from ..garment import Garment
 from ._intersect import BOX, CAPSULE, CYLINDER, SPHERE
 from ._raycast import RAY_CHUNK, Hits, cast_rays, posed_scene
@@ -61,8 +61,8 @@ def render_uv(
 ) -> Hits:
     """Cast the rays through (distorted) pixel positions ``uv`` of ``cam``; Hits of shape
     ``uv.shape[:-1]`` with ``depth`` the camera-frame z."""
-    origins, dirs = pixel_rays(cam, uv)
-    return render_rays(model, garment, q, origins.reshape(-1, 3)[0], dirs, cam.R[2], chunk)
+    dirs = pixel_rays(cam, uv)[1]
+    return render_rays(model, garment, q, camera_center(cam), dirs, cam.R[2], chunk)
 
 
 def render_rays(

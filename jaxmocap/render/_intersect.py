@@ -78,8 +78,8 @@ def _unit(v: Array) -> Array:
 
 
 def _ellipsoid(radii: Vec, o: Vec, d: Vec) -> Array:
-    os_ = tuple(oi / ri for oi, ri in zip(o, radii))
-    ds = tuple(di / ri for di, ri in zip(d, radii))
+    os_ = tuple(oi / ri for oi, ri in zip(o, radii, strict=True))
+    ds = tuple(di / ri for di, ri in zip(d, radii, strict=True))
     t, _ = _near_root(_vdot(ds, ds), _vdot(os_, ds), _vdot(os_, os_) - 1)
     return _entry(t)
 

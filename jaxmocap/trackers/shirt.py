@@ -65,7 +65,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxmocap.body import BodyModel
-from jaxmocap.camera import Camera, pixel_rays, to_camera
+from jaxmocap.camera import Camera, camera_center, pixel_rays, to_camera
 from jaxmocap.color import (
     ColorModel,
     ReferenceIlluminations,
@@ -97,7 +97,14 @@ from jaxmocap.ik import (
 from jaxmocap.ik import view_anchors as _view_anchors
 from jaxmocap.posedb._sample import canonical_camera, pose_in_camera
 from jaxmocap.posedb._search import PoseDB, estimate_pose
-from jaxmocap.render import TINY_SIZE, render_rays, render_uv, resample_ids, tiny_hits, window_from_mask
+from jaxmocap.render import (
+    TINY_SIZE,
+    render_rays,
+    render_uv,
+    resample_ids,
+    tiny_hits,
+    window_from_mask,
+)
 
 # IK covariances trained the paper's way (§5.2 step 4: the covariance of each term over
 # ground-truth sequences) on the TRAIN clips dance_a + walk + kick pooled, default body and
@@ -576,8 +583,7 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
     rays = []
     for i in range(params.n_cams):
         cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
-        origins, dirs = pixel_rays(cam, uvs[i])
-        rays.append((origins.reshape(-1, 3)[0], dirs))
+        rays.append((camera_center(cam), pixel_rays(cam, uvs[i])[1]))
     return RoundContext(views, okq, q_g, q_h, cov, uvs, jnp.stack(uvs), rays)
 
 
@@ -650,14 +656,6 @@ def agreement(params: ShirtParams, ctx: RoundContext, hits) -> Array:
         score = score - jnp.sum(both & (hits[i].colour != c1))
         shown = shown + jnp.sum((hits[i].colour > 0) & ok)
     return score / jnp.maximum(shown, 1.0)
-
-
-def first_round(params: ShirtParams, ctx: RoundContext, q_start, plain):
-    """:func:`ik_round` from ``q_start``, the result re-rendered, and its :func:`agreement`:
-    what :func:`rounds` does per start (a stage on its own for profiling)."""
-    q1, c_obs, v_obs = ik_round(params, ctx, q_start, render_views(params, ctx, q_start), plain)
-    hits = render_views(params, ctx, q1)
-    return q1, c_obs, v_obs, hits, agreement(params, ctx, hits)
 
 
 def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
