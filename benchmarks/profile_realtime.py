@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -486,6 +487,10 @@ def main():
     )
     a = ap.parse_args()
     out = a.out
+    if a.setup and out.resolve() == Path(a.setup).resolve():
+        print(f"profile_realtime: --out {out} would write over the --setup scene; choose another "
+              "path", file=sys.stderr)  # fmt: skip
+        sys.exit(2)
     s = bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480)
     if a.compile:
         res = json.loads(out.read_text()) if out.exists() else {}
