@@ -52,7 +52,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxmocap.body import CAPSULE, CYLINDER, BodyModel, fk, keypoint_index, require_roles
 from jaxmocap.body.roles import CONTOUR_LIMBS, geom_support, limb_axis
-from jaxmocap.camera import Camera, project, to_camera
+from jaxmocap.camera import Camera, project
 from jaxmocap.errors import InputError
 
 __all__ = [
@@ -244,9 +244,30 @@ def limb_endpoints(
     t = transforms[np.asarray(limbs.link)]
     rot, trans = t[:, :3, :3], t[:, :3, 3]
     dt = transforms.dtype
-    a = (rot @ limbs.p0.astype(dt)[:, :, None])[..., 0] + trans
-    b = (rot @ limbs.p1.astype(dt)[:, :, None])[..., 0] + trans
-    return a, b
+    return _matvec(rot, limbs.p0.astype(dt)) + trans, _matvec(rot, limbs.p1.astype(dt)) + trans
+
+
+def _dot(a: Float[Array, "... k"], b: Float[Array, "... k"]) -> Float[Array, " ..."]:
+    """sum(a * b, -1) over a short last axis as a chain of adds (see :func:`_matvec`)."""
+    out = a[..., 0] * b[..., 0]
+    for i in range(1, a.shape[-1]):
+        out = out + a[..., i] * b[..., i]
+    return out
+
+
+def _matvec(m: Float[Array, "... 3 3"], v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """m @ v for stacks of 3x3 matrices and 3-vectors as three broadcast multiply-adds. The
+    likelihood applies such small products to 1000 particles x limbs x cameras; as batched
+    dots XLA hands them to a library call each (~0.2 ms apiece in the filter step's profile,
+    ``docs/results/realtime_profile.md``, session 13), as multiply-adds they fuse."""
+    m = m.reshape((1,) * (v.ndim + 1 - m.ndim) + m.shape)  # explicit rank (no promotion)
+    return m[..., 0] * v[..., 0:1] + m[..., 1] * v[..., 1:2] + m[..., 2] * v[..., 2:3]
+
+
+def _camera_frame(cam: Camera, x: Float[Array, "*n 3"]) -> Float[Array, "*n 3"]:
+    """:func:`jaxmocap.camera.to_camera` (R x + t) written with :func:`_matvec`."""
+    rot = cam.R.astype(x.dtype)
+    return _matvec(rot, x) + cam.t.astype(x.dtype).reshape((1,) * (x.ndim - 1) + (3,))
 
 
 def silhouette_radius(
@@ -266,22 +287,26 @@ def silhouette_radius(
 
     Computed in the camera frame (the ray is the midpoint's camera coordinates).
     """
-    dt = a.dtype
+    return _silhouette_radius(cam, limbs, transforms, _camera_frame(cam, a), _camera_frame(cam, b))
+
+
+def _silhouette_radius(cam, limbs, transforms, xa, xb):
+    """:func:`silhouette_radius` from the end points' camera coordinates xa, xb."""
+    dt = xa.dtype
     rot = transforms[np.asarray(limbs.link)][:, :3, :3]
-    R = cam.R.astype(dt)
-    side = (R[None] @ rot @ limbs.side.astype(dt)[:, :, None])[..., 0]
-    axis = _unit(to_camera(cam, b) - to_camera(cam, a))
+    side = _matvec(cam.R.astype(dt), _matvec(rot, limbs.side.astype(dt)))
+    axis = _unit(xb - xa)
     front = jnp.cross(axis, side)
-    ray = to_camera(cam, 0.5 * (a + b))
+    ray = 0.5 * (xa + xb)  # the midpoint's camera coordinates (the map is affine)
     u = _unit(jnp.cross(axis, ray))
     r, d = limbs.radius.astype(dt), limbs.depth.astype(dt)
-    us, uf = jnp.sum(u * side, -1), jnp.sum(u * front, -1)
+    us, uf = _dot(u, side), _dot(u, front)
     h = jnp.sqrt(jnp.square(r * us) + jnp.square(d * uf))
     return jnp.where(d == r, r, h)  # round: exactly r (also when the axis points at the camera)
 
 
 def _unit(v: Array) -> Array:
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    n2 = _dot(v, v)[..., None]
     ok = n2 > jnp.finfo(v.dtype).tiny
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), jnp.zeros_like(v))
 
@@ -299,9 +324,13 @@ def project_limbs(
     distortion is left out: over a limb's width it is a sub-pixel effect); radii in pixels
     use the mean focal length and each end point's depth.
     """
-    dt = a.dtype
+    return _project_limbs(cam, _camera_frame(cam, a), _camera_frame(cam, b), radius)
+
+
+def _project_limbs(cam, xa, xb, radius):
+    """:func:`project_limbs` from the end points' camera coordinates xa, xb."""
+    dt = xa.dtype
     K = cam.K.astype(dt)
-    xa, xb = to_camera(cam, a), to_camera(cam, b)
     za, zb = xa[:, 2], xb[:, 2]
     f = 0.5 * (K[0, 0] + K[1, 1])
     c = K[:2, 2]
@@ -435,20 +464,21 @@ def distance_loglik(
 ) -> Float[Array, ""]:
     """log p_d' (§III-D): -1 / (2 sigma_d^2) sum_i d_i, d_i = |f_i(s) - c_i|^2 (m^2) where
     ``valid[i]``, 0 for a missing c_i."""
-    d = jnp.sum(jnp.square(points - targets.astype(points.dtype)), axis=-1)
+    diff = points - targets.astype(points.dtype)
+    d = _dot(diff, diff)
     d = jnp.where(valid, d, jnp.zeros_like(d))
     return -jnp.sum(d) / (2 * jnp.square(jnp.asarray(sigma_d, points.dtype)))
 
 
 def distance_points(
     model: BodyModel, transforms: Float[Array, "n_links 4 4"], names: Sequence[str] = DISTANCE_NAMES
-) -> Float[Array, "k 3"]:
+) -> Float[Array, " ..."]:
     """f_i(s): world positions (m) of the named keypoints given the links' transforms."""
     idx = keypoint_index(model, names)
     link = model.keypoint_link[idx]
     off = model.keypoint_offset[idx].astype(transforms.dtype)
     t = transforms[link]
-    return (t[:, :3, :3] @ off[:, :, None])[..., 0] + t[:, :3, 3]
+    return _matvec(t[:, :3, :3], off) + t[:, :3, 3]
 
 
 def pose_transforms(model: BodyModel, q: Float[Array, " n_dof"]) -> Float[Array, "n_links 4 4"]:
@@ -464,7 +494,7 @@ def _skew(v: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
                       jnp.stack([-y, x, o], -1)], -2)  # fmt: skip
 
 
-def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, " ..."]:
     """J_l(w) = I + (1 - cos t) / t^2 [w]_x + (t - sin t) / t^3 [w]_x^2, t = |w| (Taylor
     branch near 0, "safe where" so that values and gradients stay finite)."""
     t2 = jnp.sum(w * w)
@@ -559,7 +589,8 @@ class StereoLikelihood(eqx.Module):
         cs, vs = c[perm], v[perm]
 
         def cost(cc, vv):
-            return jnp.sum(jnp.where(vv[1:], jnp.sum(jnp.square(f[1:] - cc[1:]), -1), 0.0))
+            diff = f[1:] - cc[1:]
+            return jnp.sum(jnp.where(vv[1:], _dot(diff, diff), 0.0))
 
         swap = cost(cs, vs) < cost(c, v)
         return jnp.where(swap, cs, c), jnp.where(swap, vs, v)
@@ -576,7 +607,7 @@ class StereoLikelihood(eqx.Module):
     def full_q(self, s: Float[Array, " d"]) -> Float[Array, " n_dof"]:
         return self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
 
-    def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " k3"]:
+    def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " ..."]:
         """The distance cue's residuals valid_i (f_i(s) - c_i), flattened (3 k,) in m (zero
         for a missing c_i): log p_d' = -|r|^2 / (2 sigma_d^2). The residual of the guided
         proposal (:class:`jaxmocap.pf.guided.GuidedProposal`)."""
@@ -607,7 +638,8 @@ class StereoLikelihood(eqx.Module):
         axis = model.chain.joint_axis.astype(s.dtype)
         rel_root = f - q[None, :3]
         jl = _so3_left_jacobian(q[3:6])
-        d_rot = -_skew(rel_root) @ jl[None]  # (k, 3, 3)
+        # column c of -[p - t]_x J_l is J_l[:, c] x (p - t)
+        d_rot = jnp.stack([jnp.cross(jl[:, c][None, :], rel_root) for c in range(3)], -1)
         cols = []
         for dof in self.dofs:
             if dof < 3:
@@ -617,7 +649,7 @@ class StereoLikelihood(eqx.Module):
             else:
                 link = link_of_dof[dof]
                 below = anc[link, plink]
-                a = tr[link, :3, :3] @ axis[link]
+                a = _matvec(tr[link, :3, :3], axis[link])
                 col = jnp.cross(a[None, :], f - tr[link, :3, 3][None, :])
                 cols.append(jnp.where(below[:, None], col, 0.0))
         jac = jnp.stack(cols, axis=-1)  # (k, 3, d)
@@ -634,8 +666,9 @@ class StereoLikelihood(eqx.Module):
             a, b = limb_endpoints(self.limbs, tr)
 
             def per_cam(cam, edges, fg):
-                radius = silhouette_radius(cam, self.limbs, tr, a, b)
-                starts, ends = project_limbs(cam, a, b, radius)
+                xa, xb = _camera_frame(cam, a), _camera_frame(cam, b)
+                radius = _silhouette_radius(cam, self.limbs, tr, xa, xb)
+                starts, ends = _project_limbs(cam, xa, xb, radius)
                 out = jnp.zeros((), s.dtype)
                 if self.use_edges:
                     uv = edge_samples(starts, ends, self.points_per_line)
