@@ -472,7 +472,7 @@ def distance_loglik(
 
 def distance_points(
     model: BodyModel, transforms: Float[Array, "n_links 4 4"], names: Sequence[str] = DISTANCE_NAMES
-) -> Float[Array, " ..."]:
+) -> Float[Array, "k 3"]:
     """f_i(s): world positions (m) of the named keypoints given the links' transforms."""
     idx = keypoint_index(model, names)
     link = model.keypoint_link[idx]
@@ -494,7 +494,7 @@ def _skew(v: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
                       jnp.stack([-y, x, o], -1)], -2)  # fmt: skip
 
 
-def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, " ..."]:
+def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     """J_l(w) = I + (1 - cos t) / t^2 [w]_x + (t - sin t) / t^3 [w]_x^2, t = |w| (Taylor
     branch near 0, "safe where" so that values and gradients stay finite)."""
     t2 = jnp.sum(w * w)
@@ -607,7 +607,7 @@ class StereoLikelihood(eqx.Module):
     def full_q(self, s: Float[Array, " d"]) -> Float[Array, " n_dof"]:
         return self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
 
-    def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " ..."]:
+    def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " k3"]:
         """The distance cue's residuals valid_i (f_i(s) - c_i), flattened (3 k,) in m (zero
         for a missing c_i): log p_d' = -|r|^2 / (2 sigma_d^2). The residual of the guided
         proposal (:class:`jaxmocap.pf.guided.GuidedProposal`)."""
