@@ -265,7 +265,9 @@ def _matvec(m: Float[Array, "... 3 3"], v: Float[Array, "... 3"]) -> Float[Array
 
 
 def _camera_frame(cam: Camera, x: Float[Array, "*n 3"]) -> Float[Array, "*n 3"]:
-    """:func:`jaxmocap.camera.to_camera` (R x + t) written with :func:`_matvec`."""
+    """:func:`jaxmocap.camera.to_camera` (R x + t) written with :func:`_matvec`. Kept local:
+    changing ``to_camera`` itself would change the colour-shirt tracker's rounding too, which
+    would then need its own held-out accuracy run."""
     rot = cam.R.astype(x.dtype)
     return _matvec(rot, x) + cam.t.astype(x.dtype).reshape((1,) * (x.ndim - 1) + (3,))
 
