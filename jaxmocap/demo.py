@@ -114,12 +114,12 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     obs = sp.observe_sequence(params, seq.frames)
     t0 = time.perf_counter()
     t_init = sp.anchor_frame(obs)  # the first frame with a triangulated head
-    state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[t_init], obs))
-    _, est = sp.run(params, state, obs)
+    state, _ = sp.init_top_level(params, jax.random.key(0), jax.tree.map(lambda a: a[t_init], obs))
+    _, est = sp.run_top_level(params, state, obs)
     jax.block_until_ready(est.q)
     cold = time.perf_counter() - t0
     t0 = time.perf_counter()
-    jax.block_until_ready(sp.run(params, state, obs)[1].q)
+    jax.block_until_ready(sp.run_top_level(params, state, obs)[1].q)
     warm_ms = 1e3 * (time.perf_counter() - t0) / n_frames
     return seq, np.asarray(est.q, np.float64), cold, warm_ms, float(jnp.mean(obs.valid))
 

@@ -159,6 +159,9 @@ def test_determinism_and_scan_equals_loop(scene):
     s2, _ = sp.init(params, jax.random.key(3), first)
     np.testing.assert_array_equal(s1.particles.particles, s2.particles.particles)
     _, est_scan = sp.run(params, s1, jax.tree.map(lambda a: a[:2], obs))
+    # the same scan compiled as its own program with COMPILER_OPTIONS: rounding only
+    _, est_top = sp.run_top_level(params, s1, jax.tree.map(lambda a: a[:2], obs))
+    np.testing.assert_allclose(est_top.q, est_scan.q, rtol=1e-9, atol=1e-12)
     # live loop: host image processing per frame + one jitted step, same key sequence
     s = s2
     for t in range(2):
@@ -170,7 +173,9 @@ def test_determinism_and_scan_equals_loop(scene):
 
 def test_live_stream_equals_init_and_steps(scene):
     """stereo_pf.live (compiled step with the params closed over, host/device overlap, one
-    frame late) hands out the same estimates as init on the anchor frame + filter_step."""
+    frame late) hands out the same estimates as init on the anchor frame + filter_step. live's
+    programs compile with COMPILER_OPTIONS (XLA's classic CPU emitters), the plain functions
+    with XLA's defaults: the two agree to rounding (float64 here)."""
     _, _, frames, _, _, params, obs = scene
     key = jax.random.key(5)
     t0 = sp.anchor_frame(obs)
@@ -483,7 +488,8 @@ def _scene_colors(scene):
 
 
 def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scene):
-    """adapt_colors off: track() is observe_sequence + init + run, bit for bit; on with rates
+    """adapt_colors off: track() is observe_sequence + init + run (their top-level programs),
+    bit for bit; on with rates
     0: the same observations. On: the skin of frames 1-3 drifts toward a darker, redder colour
     (a lamp on the subject only); the fixed model loses the head on the last frame, the adapted
     one (updated from the head the filter agrees with) still triangulates it."""
@@ -496,8 +502,8 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
     assert p_off.adapt is None
     key = jax.random.key(0)
     obs = sp.observe_sequence(p_off, frames)
-    state, _ = sp.init(p_off, key, jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs))
-    _, ref = sp.run(p_off, state, obs)
+    state, _ = sp.init_top_level(p_off, key, jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs))
+    _, ref = sp.run_top_level(p_off, state, obs)
     np.testing.assert_array_equal(sp.track(p_off, key, frames).q, ref.q)
     p_zero = sp.make_params(cams, adapt_colors=True, adapt_rate=0.0, adapt_shirt_rate=0.0, **kw)
     o_zero, log = observe_adaptive(p_zero, key, frames)

@@ -338,7 +338,7 @@ class StereoPFFrameTracker:
             if not valid_blobs[0]:  # no triangulated head yet: nothing to anchor on
                 return FrameResult(np.full(self.body.n_dof, np.nan), False,
                                    {"waiting_for_head": 1.0, "blobs": float(valid_blobs.sum())})
-            self.state, est = self._pf.init(self.params, self.key, obs)
+            self.state, est = self._pf.init_top_level(self.params, self.key, obs)
         else:
             self.state, est = self._step(self.state, obs)
         est, parts = jax.device_get((est, self.state.particles.particles))

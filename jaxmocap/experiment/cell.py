@@ -312,8 +312,8 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     t_init = sp.anchor_frame(obs)  # offline: initialise on the first frame with a head
 
     def filt():
-        state, _ = sp.init(params, key, jax.tree.map(lambda a: a[t_init], obs))
-        _, est = sp.run(params, state, obs, lag)
+        state, _ = sp.init_top_level(params, key, jax.tree.map(lambda a: a[t_init], obs))
+        _, est = sp.run_top_level(params, state, obs, lag)
         return jax.block_until_ready(est)
 
     t0 = time.perf_counter()

@@ -103,6 +103,20 @@ from jaxmocap.trackers.stereo_pf_checks import (  # noqa: F401 (re-exported)
     head_residual,
 )
 
+# The filter's top-level programs (:func:`compile_step`, :data:`init_top_level`,
+# :data:`run_top_level`) compile with XLA CPU's classic LLVM IR emitters instead of its MLIR
+# fusion emitters (XLA's default in the jax we test, 0.10). The step is ~570 small fused
+# kernels (1000 particles' kinematics, the guided proposal's written-out solves); the classic
+# emitters compile them in about half the time -- the filter step 11-16 -> 6-9 s, the demo's
+# filter (init + run) 21-23 -> 15-18 s on this 2-core machine -- with steps no slower and the
+# same arithmetic up to float32 rounding (docs/results/realtime_profile.md, session 14). XLA
+# takes compile options only on a top-level jit, so :func:`init`, :func:`filter_step` and
+# :func:`run` stay plain and nest in a caller's jit. A jax older than the one tested may not
+# know the option: it compiles with its own defaults.
+COMPILER_OPTIONS: dict[str, bool] = (
+    {"xla_cpu_use_fusion_emitters": False} if jax.__version_info__ >= (0, 10) else {}
+)
+
 __all__ = [
     "AZAD_FILTER",
     "N_PARTICLES",
@@ -119,11 +133,13 @@ __all__ = [
     "StereoPFParams",
     "TrackerState",
     "init",
+    "init_top_level",
     "live",
     "make_params",
     "observe",
     "observe_sequence",
     "run",
+    "run_top_level",
     "step",
     "filter_step",
     "support_map",
@@ -609,7 +625,7 @@ def online_frame(params: StereoPFParams, key: PRNGKeyArray, step, state, seen: l
     if state is None:
         if not np.asarray(obs.valid)[0]:
             return None, None
-        state, _ = init(params, key, obs)
+        state, _ = init_top_level(params, key, obs)
         for o in seen:
             state, est = step(state, o)
         return state, est
@@ -639,6 +655,12 @@ def run(
     )
     smoothed = params.full_q(pf.fixed_lag_smooth(lineage, smooth_lag))
     return final, dataclasses.replace(est, q=smoothed, q_filtered=est.q)
+
+
+init_top_level = eqx.filter_jit(init, compiler_options=COMPILER_OPTIONS)
+"""``init`` compiled as a program of its own with :data:`COMPILER_OPTIONS` (not inside a jit)."""
+run_top_level = eqx.filter_jit(run, compiler_options=COMPILER_OPTIONS)
+"""``run`` compiled as a program of its own with :data:`COMPILER_OPTIONS` (not inside a jit)."""
 
 
 # ----------------------------------------------------------------------------- host edge
@@ -744,8 +766,9 @@ def compile_step(
     """:func:`filter_step` with ``params`` closed over, for live loops: ``(state, obs) ->
     (state, estimate)``. A ``jax.jit`` closure does not flatten the ~130-leaf parameter pytree
     at every call as ``filter_step(params, ...)`` does (~0.3 ms per frame). It compiles on its
-    first call; build a new one when the parameters change."""
-    return jax.jit(lambda state, obs: filter_step(params, state, obs))
+    first call (with :data:`COMPILER_OPTIONS`); build a new one when the parameters change."""
+    return jax.jit(lambda state, obs: filter_step(params, state, obs),
+                   compiler_options=COMPILER_OPTIONS)
 
 
 def live(
@@ -772,7 +795,7 @@ def live(
         obs, blob_state = observe(params, pair, blob_state)
         if state is None:
             if bool(np.asarray(obs.valid)[0]):
-                state, est = init(params, key, obs)
+                state, est = init_top_level(params, key, obs)
                 out: tuple[int, StereoEstimate | None] = (t, est)
             else:
                 out = (t, None)
@@ -818,6 +841,6 @@ def track(
     else:
         obs = observe_sequence(params, frames, blob_params)
     t0 = anchor_frame(obs)
-    state, _ = init(params, key, jax.tree.map(lambda a: a[t0], obs))
-    _, est = run(params, state, obs, smooth_lag)
+    state, _ = init_top_level(params, key, jax.tree.map(lambda a: a[t0], obs))
+    _, est = run_top_level(params, state, obs, smooth_lag)
     return est
