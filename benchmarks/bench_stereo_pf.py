@@ -186,6 +186,17 @@ def main():
     med, mn = time_call(lambda: sp.filter_step(params, state, first))
     rows.append(Row("filter step N=1000 (resample, predict, guided proposal, weigh)",
                     "jaxmocap jit", med, mn, 50, c3))  # fmt: skip
+    # 4a. the same program compiled with stereo_pf.COMPILER_OPTIONS (XLA's classic CPU
+    # emitters, as init_top_level and run_top_level are); against 4 in the same run
+    top = eqx.filter_jit(sp.filter_step, compiler_options=sp.COMPILER_OPTIONS)
+    c3b = time_compile(lambda: top(params, state, first))
+    med, mn = time_call(lambda: top(params, state, first))
+    dq = float(np.abs(np.asarray(top(params, state, first)[1].q)
+                      - np.asarray(sp.filter_step(params, state, first)[1].q)).max())
+    rows.append(Row("filter step N=1000, COMPILER_OPTIONS (classic CPU emitters)", "jaxmocap jit",
+                    med, mn, 50, c3b,
+                    notes=f"compile {c3b / c3:.2f}x of the XLA-defaults row; "
+                          f"max |q diff| {dq:.1e}"))
     # 4b. the same step without the guided proposal (Azad's filter), and the proposal alone
     paper = sp.make_params(cams, segment=seg, **sp.AZAD_FILTER)
     c4 = time_compile(lambda: sp.filter_step(paper, state, first))

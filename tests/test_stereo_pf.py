@@ -174,7 +174,7 @@ def test_determinism_and_scan_equals_loop(scene):
 def test_live_stream_equals_init_and_steps(scene):
     """stereo_pf.live (compiled step with the params closed over, host/device overlap, one
     frame late) hands out the same estimates as init on the anchor frame + filter_step. live's
-    programs compile with COMPILER_OPTIONS (XLA's classic CPU emitters), the plain functions
+    initialisation compiles with COMPILER_OPTIONS (XLA's classic CPU emitters), the plain init
     with XLA's defaults: the two agree to rounding (float64 here)."""
     _, _, frames, _, _, params, obs = scene
     key = jax.random.key(5)

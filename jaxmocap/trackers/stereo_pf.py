@@ -103,16 +103,18 @@ from jaxmocap.trackers.stereo_pf_checks import (  # noqa: F401 (re-exported)
     head_residual,
 )
 
-# The filter's top-level programs (:func:`compile_step`, :data:`init_top_level`,
-# :data:`run_top_level`) compile with XLA CPU's classic LLVM IR emitters instead of its MLIR
-# fusion emitters (XLA's default in the jax we test, 0.10). The step is ~570 small fused
-# kernels (1000 particles' kinematics, the guided proposal's written-out solves); the classic
-# emitters compile them in about half the time -- the filter step 11-16 -> 6-9 s, the demo's
-# filter (init + run) 21-23 -> 15-18 s on this 2-core machine -- with steps no slower and the
-# same arithmetic up to float32 rounding (docs/results/realtime_profile.md, session 14). XLA
-# takes compile options only on a top-level jit, so :func:`init`, :func:`filter_step` and
-# :func:`run` stay plain and nest in a caller's jit. A jax older than the one tested may not
-# know the option: it compiles with its own defaults.
+# The filter's once-per-sequence programs (:data:`init_top_level`, :data:`run_top_level`: the
+# annealed initialisation and the offline scan) compile with XLA CPU's classic LLVM IR emitters
+# instead of its MLIR fusion emitters (XLA's default in the jax we test, 0.10). The step is
+# ~500 small fused kernels (1000 particles' kinematics, the guided proposal's written-out
+# solves); the classic emitters compile the filter step in ~0.6x the time (11.7 / 14.1 -> 7.2 /
+# 8.9 s on this 2-core machine), ``init`` and the scan in 0.7-0.8x, with the same arithmetic
+# up to float32 rounding -- but the compiled step runs 4-10% slower, so the live step
+# (:func:`compile_step`, called every frame) keeps XLA's defaults
+# (docs/results/realtime_profile.md, session 14). XLA takes compile options only on a
+# top-level jit, so :func:`init`, :func:`filter_step` and :func:`run` stay plain and nest in a
+# caller's jit. A jax older than the one tested may not know the option: it then compiles
+# with its own defaults.
 COMPILER_OPTIONS: dict[str, bool] = (
     {"xla_cpu_use_fusion_emitters": False} if jax.__version_info__ >= (0, 10) else {}
 )
@@ -766,9 +768,9 @@ def compile_step(
     """:func:`filter_step` with ``params`` closed over, for live loops: ``(state, obs) ->
     (state, estimate)``. A ``jax.jit`` closure does not flatten the ~130-leaf parameter pytree
     at every call as ``filter_step(params, ...)`` does (~0.3 ms per frame). It compiles on its
-    first call (with :data:`COMPILER_OPTIONS`); build a new one when the parameters change."""
-    return jax.jit(lambda state, obs: filter_step(params, state, obs),
-                   compiler_options=COMPILER_OPTIONS)
+    first call; build a new one when the parameters change. It keeps XLA's default compile
+    options: with :data:`COMPILER_OPTIONS` it compiles faster but steps 4-10% slower."""
+    return jax.jit(lambda state, obs: filter_step(params, state, obs))
 
 
 def live(
