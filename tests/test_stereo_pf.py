@@ -489,10 +489,10 @@ def _scene_colors(scene):
 
 def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scene):
     """adapt_colors off: track() is observe_sequence + init + run (their top-level programs),
-    bit for bit; on with rates
-    0: the same observations. On: the skin of frames 1-3 drifts toward a darker, redder colour
-    (a lamp on the subject only); the fixed model loses the head on the last frame, the adapted
-    one (updated from the head the filter agrees with) still triangulates it."""
+    bit for bit; on with rates 0: the same observations. On: the skin of frames 1-3 drifts
+    toward a darker, redder colour (a lamp on the subject only); the fixed model loses the head
+    on the last frame, the adapted one (updated from the head the filter agrees with) still
+    triangulates it."""
     from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
 
     model, cams, frames, qs, kp, _, _ = scene
