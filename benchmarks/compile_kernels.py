@@ -20,13 +20,7 @@ import argparse
 import collections
 import json
 import re
-import resource
 import time
-
-
-def _cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
 
 
 def _table(lines: list[str], name: str) -> dict[int, str]:
@@ -124,9 +118,9 @@ def main() -> None:
     lower = _pf(a.default) if a.program == "pf" else _shirt()
     t0 = time.perf_counter()
     lowered = lower()
-    t1, c1 = time.perf_counter(), _cpu_s()
+    t1, c1 = time.perf_counter(), time.process_time()
     compiled = lowered.compile()
-    t2, c2 = time.perf_counter(), _cpu_s()
+    t2, c2 = time.perf_counter(), time.process_time()
     inner = getattr(compiled, "compiled", compiled)  # equinox wraps jax's Compiled
     parts = attribute(inner.as_text())
     total_k = sum(k for k, _ in parts.values())
