@@ -157,3 +157,37 @@ def test_centroids_match_numpy(rng, use_window):
         assert float(out.count[p - 1]) == len(rows)
         assert bool(out.valid[p - 1]) == (len(rows) >= 4)
         np.testing.assert_allclose(np.asarray(out.xy[p - 1]), [xs.mean(), ys.mean()], rtol=1e-12)
+
+
+def test_score_gradient_and_scene_colours_match_references(rng):
+    """The score is differentiable in W (central finite differences), and with the scene's
+    colours (``background``) a pixel nearer a scene colour than every shirt colour is
+    background, as the Gaussian classifier decides (:func:`jaxmocap.color.classify`)."""
+    model = _model()
+    prior = _prior()
+    img = np.clip(rng.uniform(0, 255, size=(H, W, 3)), 0, 255)
+    for p in range(1, 5):
+        sel = prior == p
+        img[sel] = MEANS[PATCH_COLOUR[p - 1] - 1] + rng.normal(0, 12, size=(sel.sum(), 3))
+    img = jnp.asarray(np.clip(img, 0, 255))
+    dist = patch_distance_maps(jnp.asarray(prior), 4)
+    pc = jnp.asarray(PATCH_COLOUR)
+
+    def total(Wb):
+        return jnp.sum(pose_assisted_classify(model, Wb, img, dist, pc, 0.2).score)
+
+    Wb = jnp.eye(3) + 0.01 * jnp.asarray(rng.normal(size=(3, 3)))
+    g = jax.grad(total)(Wb)
+    h = 1e-6
+    fd = np.array([[(total(Wb.at[i, j].add(h)) - total(Wb.at[i, j].add(-h))) / (2 * h)
+                    for j in range(3)] for i in range(3)])  # fmt: skip
+    np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-4)
+
+    scene = ColorModel(mean=jnp.asarray([[128.0, 128.0, 128.0], MEANS[1] + 5.0]),
+                       cov=jnp.asarray(np.stack([100 * np.eye(3)] * 2)))  # fmt: skip
+    out = pose_assisted_classify(model, Wb, img, dist, pc, 0.2, threshold=50.0, background=scene)
+    plain = pose_assisted_classify(model, Wb, img, dist, pc, 0.2, threshold=50.0)
+    ids, _ = classify(model, Wb, img, threshold=1e9, background=scene)
+    patch, plain_patch = np.asarray(out.patch), np.asarray(plain.patch)
+    np.testing.assert_array_equal(patch, np.where(np.asarray(ids) > 0, plain_patch, 0))
+    assert 0 < (patch > 0).sum() < (plain_patch > 0).sum()  # the scene colours removed some

@@ -36,7 +36,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxmocap.distance import edt
 
-from .classify import mahalanobis_sq, nearest_sq
+from .classify import _distances, _dtype, nearest_sq
 from .model import ColorModel
 
 POSE_THRESHOLD = 5.0  # Wang §5.2 step 3: "The classifier threshold T is set to five."
@@ -102,19 +102,27 @@ def pose_assisted_classify(
 
     Jit-able; differentiable w.r.t. the score (not the argmin).
     """
-    d2 = mahalanobis_sq(model, W, image, gain)  # (h, w, k)
-    dtype = d2.dtype
+    dtype = _dtype(model, W, image)
+    d2 = jnp.stack(_distances(model, W, image, dtype, gain))  # (k, h, w)
     colour_dist = jnp.sqrt(jnp.maximum(d2, 0))
-    per_patch = jnp.take(colour_dist, patch_colour - 1, axis=-1)  # (h, w, P)
-    cost = per_patch + jnp.asarray(weight, dtype) * jnp.moveaxis(distances.astype(dtype), 0, -1)
-    best = jnp.argmin(cost, axis=-1)
-    score = jnp.min(cost, axis=-1)
+    weight = jnp.asarray(weight, dtype)
+    # A running minimum over the patches, one (h, w) plane each: XLA fuses it into one
+    # vectorised loop, where an argmin over a minor axis of P lowered to a variadic reduce
+    # (1.5 -> 1.2 ms per 128x128 crop; ties keep the first patch, as argmin does).
+    score = best = None
+    for p in range(distances.shape[0]):
+        cost = colour_dist[patch_colour[p] - 1] + weight * distances[p].astype(dtype)
+        if score is None:
+            score, best = cost, jnp.zeros(cost.shape, jnp.int32)
+        else:
+            better = cost < score
+            score, best = jnp.where(better, cost, score), jnp.where(better, p, best)
     keep = score < jnp.asarray(threshold, dtype)
     if mask is not None:
         keep = keep & mask
     if background is not None:
-        keep = keep & (jnp.min(d2, axis=-1) < nearest_sq(background, W, image, gain))
-    patch = jnp.where(keep, best.astype(jnp.int32) + 1, 0)
+        keep = keep & (jnp.min(d2, axis=0) < nearest_sq(background, W, image, gain))
+    patch = jnp.where(keep, best + 1, 0)
     colour = jnp.where(keep, jnp.take(patch_colour.astype(jnp.int32), best), 0)
     return PoseAssistedClassification(patch=patch, colour=colour, score=score)
 
