@@ -8,6 +8,7 @@ poses) for the MJCF conversion; SciPy rotations; central finite differences for 
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -339,3 +340,47 @@ def test_loader_errors(tmp_path):
     bad.write_text(bad.read_text().replace("floating", "fixed"))
     with pytest.raises(ValueError, match="bad.urdf.*link 'a'.*<mesh> is not supported"):
         body.load_urdf(bad)
+
+
+@pytest.mark.parametrize("which", ["bundled", "toy"])
+def test_fk_closed_form_jacobian(models, which, rng, tmp_path):
+    """``fk``'s derivatives in q come from the geometric Jacobian (a custom JVP): they match
+    central finite differences, first and second order, on the bundled body and on a toy
+    with ball, hinge and slide joints; derivatives in the chain's own arrays (autodiff) too."""
+    if which == "toy":
+        path = tmp_path / "toy.xml"
+        path.write_text(TOY_MJCF)
+        model = body.load_mjcf(path)
+    else:
+        model = models["bundled"]
+    chain = model.chain
+    q = jnp.asarray(random_q(chain, 1, rng, root=True)[0])
+    n, eps = chain.n_dof, 1e-6
+    basis = np.eye(n)
+
+    def fd(f, x):  # central differences of f along every dof, stacked last
+        return np.stack([(np.asarray(f(x + eps * e)) - np.asarray(f(x - eps * e))) / (2 * eps)
+                         for e in basis], axis=-1)  # fmt: skip
+
+    fk = jax.jit(lambda x: body.fk(chain, x))
+    jac = jax.jit(jax.jacfwd(lambda x: body.fk(chain, x)))
+    np.testing.assert_allclose(np.asarray(jac(q)), fd(fk, q), atol=1e-8)
+    # second order (the IK's Jacobian is itself linearised by the solver)
+    hess = jax.jacfwd(jax.jacfwd(lambda x: body.fk(chain, x)))(q)
+    np.testing.assert_allclose(np.asarray(hess), fd(jac, q), atol=1e-6)
+    # reverse mode and vmap agree with forward mode
+    w = jnp.asarray(rng.normal(size=(chain.n_links, 4, 4)))
+    g = jax.grad(lambda x: jnp.sum(w * body.fk(chain, x)))(q)
+    np.testing.assert_allclose(np.asarray(g), np.einsum("lij,lijk->k", w, jac(q)), atol=1e-12)
+    qs = jnp.stack([q, q[::-1]])
+    jv = jax.vmap(jax.jacfwd(lambda x: body.fk(chain, x)))(qs)
+    np.testing.assert_allclose(np.asarray(jv[1]), np.asarray(jac(qs[1])), atol=1e-12)
+    # the chain's joint offsets (e.g. fitting proportions) are differentiated by autodiff
+    def loss(origin):
+        return jnp.sum(w * body.fk(eqx.tree_at(lambda c: c.joint_origin, chain, origin), q))
+
+    o = chain.joint_origin
+    k = (min(2, chain.n_links - 1), 1, 3)  # one translation entry of a joint offset
+    e = jnp.zeros_like(o).at[k].set(eps)
+    np.testing.assert_allclose(float(jax.grad(loss)(o)[k]),
+                               float((loss(o + e) - loss(o - e)) / (2 * eps)), atol=1e-7)

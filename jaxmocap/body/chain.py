@@ -21,9 +21,13 @@ loop over links is unrolled at trace time from the chain's static topology.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float, Int
 
 FIXED, REVOLUTE, PRISMATIC = 0, 1, 2
@@ -155,15 +159,19 @@ def fk(chain: KinematicChain, q: Float[Array, " n_dof"]) -> Float[Array, "n_link
     """World transforms ``T_i`` (4x4, metres) of every link for the pose vector ``q``.
 
     ``q`` follows the layout in the module docstring; the result follows ``q.dtype``.
-    Batch with ``jax.vmap(fk, in_axes=(None, 0))``.
+    Batch with ``jax.vmap(fk, in_axes=(None, 0))``. Derivatives in ``q`` come from the
+    geometric Jacobian in closed form (:func:`_fk_jvp`); in the chain's arrays from autodiff.
     """
     if q.shape != (chain.n_dof,):
         raise ValueError(f"fk: q has shape {q.shape}, expected ({chain.n_dof},)")
     dt = q.dtype
-    origin = chain.joint_origin.astype(dt)
+    return _fk(chain.topology, chain.joint_origin.astype(dt), chain.joint_axis.astype(dt), q)
+
+
+def _fk_plain(
+    topo: tuple[tuple[int, int, int], ...], origin: Array, axis: Array, q: Array
+) -> Array:
     o_rot, o_t = origin[:, :3, :3], origin[:, :3, 3]
-    axis = chain.joint_axis.astype(dt)
-    topo = chain.topology
     types = np.array([t for _, t, _ in topo])
     theta = q[np.array([max(d, 0) for _, _, d in topo])] * (types != FIXED)
 
@@ -188,6 +196,78 @@ def fk(chain: KinematicChain, q: Float[Array, " n_dof"]) -> Float[Array, "n_link
         trans.append(_mv(rots[p], local_t[i]) + trans[p])
     r = jnp.stack(rots)
     t = jnp.stack(trans)
+    return _homogeneous(r, t)
+
+
+def _homogeneous(r: Array, t: Array) -> Array:
     top = jnp.concatenate([r, t[:, :, None]], axis=-1)
-    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dt), (len(topo), 1, 4))
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=r.dtype), (r.shape[0], 1, 4))
     return jnp.concatenate([top, bottom], axis=-2)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _fk(topo: tuple[tuple[int, int, int], ...], origin: Array, axis: Array, q: Array) -> Array:
+    return _fk_plain(topo, origin, axis, q)
+
+
+def _ancestors(topo: tuple[tuple[int, int, int], ...]) -> np.ndarray:
+    """``anc[i, k] = 1`` where link k is link i or one of its ancestors (static)."""
+    n = len(topo)
+    anc = np.zeros((n, n))
+    for i in range(n):
+        k = i
+        while k >= 0:
+            anc[i, k] = 1.0
+            k = topo[k][0]
+    return anc
+
+
+def _cross(a: Array, b: Array) -> Array:
+    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)  # fmt: skip
+
+
+def _fk_tangent(topo, T: Array, axis: Array, q: Array, dq: Array) -> Array:
+    """``d T_i`` for a pose tangent ``dq``: the geometric Jacobian of the tree.
+
+    Joint k's world axis is ``a_k = R_k axis_k`` (``Rot(axis, theta)`` leaves its axis fixed)
+    through the link origin ``t_k``. A revolute ``dtheta_k`` turns every link i below k
+    (itself included) by ``a_k dtheta_k``: ``dR_i = [a_k]_x R_i dtheta``,
+    ``dt_i = a_k x (t_i - t_k) dtheta``; a prismatic one moves it by ``a_k dtheta``. The
+    root's rotation vector turns everything by ``omega`` (``[omega]_x = d exp(w) exp(w)^T``)
+    about the root translation, which itself moves every link. Summed over the tree with the
+    static ancestor matrix, a handful of products over all links at once: under the IK's
+    vmapped forward-mode Jacobian this replaces the tangent of every link's 3x3 product."""
+    types = np.array([t for _, t, _ in topo])
+    dofs = np.array([max(d, 0) for _, _, d in topo])
+    anc = jnp.asarray(_ancestors(topo), q.dtype)
+    r, t = T[:, :3, :3], T[:, :3, 3]
+    a = jnp.sum(r * axis[:, None, :], axis=-1)  # (n, 3) world joint axes R_k axis_k
+    s = dq[dofs]
+    b = jnp.where(jnp.asarray(types == REVOLUTE)[:, None], s[:, None] * a, 0.0)
+    c = _cross(b, t)
+    m = jnp.where(jnp.asarray(types == PRISMATIC)[:, None], s[:, None] * a, 0.0)
+    root_r, d_root = jax.jvp(so3_exp, (q[3:6],), (dq[3:6],))
+    h = d_root @ root_r.T  # [omega]_x up to rounding
+    omega = 0.5 * jnp.stack([h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]])
+    turn = anc @ b  # (n, 3) joint part of every link's angular velocity
+    w = omega[None, :] + turn
+    v = dq[None, 0:3] + _cross(omega[None, :], t - q[None, 0:3]) + _cross(turn, t) \
+        - anc @ c + anc @ m
+    d_r = jnp.stack([_cross(w, r[:, :, j]) for j in range(3)], axis=-1)  # [w]_x R
+    top = jnp.concatenate([d_r, v[:, :, None]], axis=-1)
+    return jnp.concatenate([top, jnp.zeros((r.shape[0], 1, 4), q.dtype)], axis=-2)
+
+
+@functools.partial(_fk.defjvp, symbolic_zeros=True)
+def _fk_jvp(topo, primals, tangents):
+    origin, axis, q = primals
+    t_origin, t_axis, t_q = tangents
+    zero = lambda x: isinstance(x, SymbolicZero)  # noqa: E731
+    out = _fk(topo, origin, axis, q)
+    if zero(t_origin) and zero(t_axis):
+        return out, (jnp.zeros_like(out) if zero(t_q) else _fk_tangent(topo, out, axis, q, t_q))
+    # the chain's own arrays are differentiated (e.g. fitting proportions): plain autodiff
+    dense = [jnp.zeros(x.aval.shape, x.aval.dtype) if zero(x) else x for x in tangents]
+    return jax.jvp(functools.partial(_fk_plain, topo), primals, tuple(dense))
