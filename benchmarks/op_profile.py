@@ -120,6 +120,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
+    if a.setup is not None and a.out.resolve() == a.setup.resolve():
+        print(f"op_profile: --out {a.out} would write over the scene --setup {a.setup}; "
+              "choose another --out", file=sys.stderr)
+        sys.exit(2)
     import equinox as eqx
     import jax
     import numpy as np
