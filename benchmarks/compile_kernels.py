@@ -35,29 +35,44 @@ def _table(lines: list[str], name: str) -> dict[int, str]:
     return out
 
 
+class HloFrames:
+    """The stack frames in a compiled HLO text's metadata (its FileNames, FunctionNames,
+    FileLocations and StackFrames tables) and each instruction's frame."""
+
+    def __init__(self, hlo: str):
+        lines = hlo.split("\n")
+        self.files = {k: v.strip('"') for k, v in _table(lines, "FileNames").items()}
+        self.funcs = {k: v.strip('"') for k, v in _table(lines, "FunctionNames").items()}
+        self.locs = {k: dict(re.findall(r"(\w+)=(\d+)", v))
+                     for k, v in _table(lines, "FileLocations").items()}  # fmt: skip
+        self.frames = {}
+        for k, v in _table(lines, "StackFrames").items():
+            d = dict(re.findall(r"(\w+)=(\d+)", v))
+            self.frames[k] = (int(d["file_location_id"]), int(d.get("parent_frame_id", 0)))
+        self.op_frame = {m.group(1): int(m.group(2)) for m in re.finditer(
+            r"\n\s*(?:ROOT )?%?([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo)}  # fmt: skip
+
+    def chain(self, fid: int) -> list[tuple[str, str, bool]]:
+        """(file, function, inside jaxmocap) from frame ``fid`` outwards; files inside
+        ``jaxmocap`` relative to the package, others by their last two path parts."""
+        out, seen = [], set()
+        while fid and fid not in seen and fid in self.frames:
+            seen.add(fid)
+            loc, fid = self.frames[fid]
+            d = self.locs[loc]
+            path = self.files[int(d["file_name_id"])]
+            ours = "/jaxmocap/" in path and "/site-packages/" not in path
+            f = path.rsplit("/jaxmocap/", 1)[1] if ours else "/".join(path.split("/")[-2:])
+            out.append((f, self.funcs[int(d["function_name_id"])], ours))
+        return out
+
+
 def attribute(hlo: str) -> dict[str, tuple[int, int]]:
     """{source function: (fused kernels, instructions in them)} of a compiled HLO text."""
-    lines = hlo.split("\n")
-    files = {k: v.strip('"') for k, v in _table(lines, "FileNames").items()}
-    funcs = {k: v.strip('"') for k, v in _table(lines, "FunctionNames").items()}
-    locs = {k: dict(re.findall(r"(\w+)=(\d+)", v))
-            for k, v in _table(lines, "FileLocations").items()}
-    frames = {}
-    for k, v in _table(lines, "StackFrames").items():
-        d = dict(re.findall(r"(\w+)=(\d+)", v))
-        frames[k] = (int(d["file_location_id"]), int(d.get("parent_frame_id", 0)))
+    hf = HloFrames(hlo)
 
     def source(fid: int) -> str:
-        seen = set()
-        while fid and fid not in seen and fid in frames:
-            seen.add(fid)
-            loc, parent = frames[fid]
-            d = locs[loc]
-            path = files[int(d["file_name_id"])]
-            if "/jaxmocap/" in path and "/site-packages/" not in path:
-                return f"{path.rsplit('/jaxmocap/', 1)[1]}:{funcs[int(d['function_name_id'])]}"
-            fid = parent
-        return "(outside jaxmocap)"
+        return next((f"{f}:{fn}" for f, fn, ours in hf.chain(fid) if ours), "(outside jaxmocap)")
 
     sizes = {m.group(1).lstrip("%"): m.group(2).count("\n") + 1
              for m in re.finditer(r"\n(%?[\w.\-]+) \([^\n]*\{\n(.*?)\n\}", hlo, re.S)}

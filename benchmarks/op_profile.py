@@ -52,52 +52,6 @@ STAGES = (
 )
 
 
-def _table(lines: list[str], name: str) -> dict[int, str]:
-    out: dict[int, str] = {}
-    if name not in lines:
-        return out
-    for line in lines[lines.index(name) + 1:]:
-        if not line.strip():
-            break
-        k, v = line.split(" ", 1)
-        out[int(k)] = v
-    return out
-
-
-class Frames:
-    """Stack frames of a compiled HLO text (its FileNames / FunctionNames / StackFrames)."""
-
-    def __init__(self, hlo: str):
-        lines = hlo.split("\n")
-        self.files = {k: v.strip('"') for k, v in _table(lines, "FileNames").items()}
-        self.funcs = {k: v.strip('"') for k, v in _table(lines, "FunctionNames").items()}
-        self.locs = {k: dict(re.findall(r"(\w+)=(\d+)", v))
-                     for k, v in _table(lines, "FileLocations").items()}  # fmt: skip
-        self.frames = {}
-        for k, v in _table(lines, "StackFrames").items():
-            d = dict(re.findall(r"(\w+)=(\d+)", v))
-            self.frames[k] = (int(d["file_location_id"]), int(d.get("parent_frame_id", 0)))
-        self.op_frame = {m.group(1): int(m.group(2)) for m in re.finditer(
-            r"\n\s*(?:ROOT )?%?([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo)}  # fmt: skip
-
-    def chain(self, op: str) -> list[tuple[str, str, bool]]:
-        """(file, function, inside jaxmocap) from the innermost frame outwards; files inside
-        ``jaxmocap`` relative to the package, others by their last two path parts."""
-        fid, out, seen = self.op_frame.get(op, 0), [], set()
-        while fid and fid not in seen and fid in self.frames:
-            seen.add(fid)
-            loc, fid = self.frames[fid]
-            d = self.locs[loc]
-            path = self.files[int(d["file_name_id"])]
-            ours = "/jaxmocap/" in path and "/site-packages/" not in path
-            if ours:
-                f = path.rsplit("/jaxmocap/", 1)[1].removesuffix(".py")
-            else:
-                f = "/".join(path.split("/")[-2:]).removesuffix(".py")
-            out.append((f, self.funcs[int(d["function_name_id"])], ours))
-        return out
-
-
 def stage_of(chain: list[tuple[str, str, bool]]) -> str:
     """The stage of the innermost ``jaxmocap`` frame; without one, the IK when a solver
     library emitted the op."""
@@ -130,6 +84,7 @@ def main() -> None:
 
     from benchmarks import bench_shirt
     from benchmarks._common import machine
+    from benchmarks.compile_kernels import HloFrames
     from jaxmocap.trackers import shirt as S
 
     s = (bench_shirt.load_setup(a.setup) if a.setup else bench_shirt.setup(640, 480))
@@ -147,7 +102,7 @@ def main() -> None:
     t0 = time.perf_counter()
     compiled = jax.jit(call).lower(dyn, state, frames).compile()
     compile_s = time.perf_counter() - t0
-    frames_of = Frames(getattr(compiled, "compiled", compiled).as_text())
+    frames_of = HloFrames(getattr(compiled, "compiled", compiled).as_text())
     run = lambda: jax.block_until_ready(compiled(dyn, state, frames)[1].q)  # noqa: E731
     for _ in range(3):
         run()
@@ -169,7 +124,8 @@ def main() -> None:
     by_stage, by_func, by_kind = (collections.Counter() for _ in range(3))
     n_stage = collections.Counter()
     for e in ops:
-        c = frames_of.chain(e["name"])
+        c = [(f.removesuffix(".py"), fn, ours)
+             for f, fn, ours in frames_of.chain(frames_of.op_frame.get(e["name"], 0))]
         stage = stage_of(c)
         by_stage[stage] += e["dur"] / per
         n_stage[stage] += 1 / a.steps

@@ -196,12 +196,8 @@ def _fk_plain(
         trans.append(_mv(rots[p], local_t[i]) + trans[p])
     r = jnp.stack(rots)
     t = jnp.stack(trans)
-    return _homogeneous(r, t)
-
-
-def _homogeneous(r: Array, t: Array) -> Array:
     top = jnp.concatenate([r, t[:, :, None]], axis=-1)
-    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=r.dtype), (r.shape[0], 1, 4))
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=q.dtype), (len(topo), 1, 4))
     return jnp.concatenate([top, bottom], axis=-2)
 
 
@@ -210,22 +206,20 @@ def _fk(topo: tuple[tuple[int, int, int], ...], origin: Array, axis: Array, q: A
     return _fk_plain(topo, origin, axis, q)
 
 
-def _ancestors(topo: tuple[tuple[int, int, int], ...]) -> np.ndarray:
+def path_to_root(topology: tuple[tuple[int, int, int], ...], link: int) -> list[int]:
+    """``link`` and its ancestors, from ``link`` up to the root (``KinematicChain.topology``)."""
+    out = [int(link)]
+    while topology[out[-1]][0] >= 0:
+        out.append(topology[out[-1]][0])
+    return out
+
+
+def _ancestor_matrix(topo: tuple[tuple[int, int, int], ...]) -> np.ndarray:
     """``anc[i, k] = 1`` where link k is link i or one of its ancestors (static)."""
-    n = len(topo)
-    anc = np.zeros((n, n))
-    for i in range(n):
-        k = i
-        while k >= 0:
-            anc[i, k] = 1.0
-            k = topo[k][0]
+    anc = np.zeros((len(topo), len(topo)))
+    for i in range(len(topo)):
+        anc[i, path_to_root(topo, i)] = 1.0
     return anc
-
-
-def _cross(a: Array, b: Array) -> Array:
-    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)  # fmt: skip
 
 
 def _fk_tangent(topo, T: Array, axis: Array, q: Array, dq: Array) -> Array:
@@ -241,21 +235,21 @@ def _fk_tangent(topo, T: Array, axis: Array, q: Array, dq: Array) -> Array:
     vmapped forward-mode Jacobian this replaces the tangent of every link's 3x3 product."""
     types = np.array([t for _, t, _ in topo])
     dofs = np.array([max(d, 0) for _, _, d in topo])
-    anc = jnp.asarray(_ancestors(topo), q.dtype)
+    anc = jnp.asarray(_ancestor_matrix(topo), q.dtype)
     r, t = T[:, :3, :3], T[:, :3, 3]
     a = jnp.sum(r * axis[:, None, :], axis=-1)  # (n, 3) world joint axes R_k axis_k
     s = dq[dofs]
     b = jnp.where(jnp.asarray(types == REVOLUTE)[:, None], s[:, None] * a, 0.0)
-    c = _cross(b, t)
+    c = jnp.cross(b, t)
     m = jnp.where(jnp.asarray(types == PRISMATIC)[:, None], s[:, None] * a, 0.0)
     root_r, d_root = jax.jvp(so3_exp, (q[3:6],), (dq[3:6],))
     h = d_root @ root_r.T  # [omega]_x up to rounding
     omega = 0.5 * jnp.stack([h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]])
     turn = anc @ b  # (n, 3) joint part of every link's angular velocity
     w = omega[None, :] + turn
-    v = dq[None, 0:3] + _cross(omega[None, :], t - q[None, 0:3]) + _cross(turn, t) \
+    v = dq[None, 0:3] + jnp.cross(omega[None, :], t - q[None, 0:3]) + jnp.cross(turn, t) \
         - anc @ c + anc @ m
-    d_r = jnp.stack([_cross(w, r[:, :, j]) for j in range(3)], axis=-1)  # [w]_x R
+    d_r = jnp.stack([jnp.cross(w, r[:, :, j]) for j in range(3)], axis=-1)  # [w]_x R
     top = jnp.concatenate([d_r, v[:, :, None]], axis=-1)
     return jnp.concatenate([top, jnp.zeros((r.shape[0], 1, 4), q.dtype)], axis=-2)
 

@@ -43,7 +43,7 @@ from jaxtyping import Array, Bool, Float
 
 from ..camera import Camera, project
 from ..errors import InputError
-from .chain import fk
+from .chain import fk, path_to_root
 from .geometry import CAPSULE, CYLINDER, SPHERE
 from .model import BodyModel, keypoint_index
 
@@ -80,18 +80,10 @@ class SegmentTable(NamedTuple):
     kp_segment: np.ndarray
 
 
-def _ancestors(parents: np.ndarray, link: int) -> list[int]:
-    out = [link]
-    while parents[out[-1]] >= 0:
-        out.append(int(parents[out[-1]]))
-    return out
-
-
 def segment_table(model: BodyModel, segments=SEGMENTS) -> SegmentTable:
     """The segments of ``model`` (module docstring); one line naming what is missing if the
     body lacks a keypoint role or a segment's ends are not on one branch of the chain."""
     names = tuple(segments)
-    parents = np.asarray(model.chain.parents)
     kp_link = np.asarray(model.keypoint_link)
     need = sorted({k for pairs in segments.values() for pair in pairs for k in pair})
     missing = [k for k in need if k not in model.keypoint_names]
@@ -105,7 +97,7 @@ def segment_table(model: BodyModel, segments=SEGMENTS) -> SegmentTable:
         for a, b in pairs:
             ia, ib = (int(keypoint_index(model, k)[0]) for k in (a, b))
             la, lb = int(kp_link[ia]), int(kp_link[ib])
-            path = _ancestors(parents, lb)
+            path = path_to_root(model.chain.topology, lb)
             if la not in path:
                 raise ProportionsError(
                     f"proportions: segment {names[s]!r}: keypoint {a!r} (link "

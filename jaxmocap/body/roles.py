@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .chain import FIXED, ROOT_DOFS, KinematicChain
+from .chain import FIXED, ROOT_DOFS, KinematicChain, path_to_root
 from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, Geometry
 
 SIDES = ("l", "r")
@@ -200,20 +200,12 @@ def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
     if "pelvis" not in out and "pelvis" not in ties:
         out["pelvis"] = chain.link_names[0]
     elif "pelvis" in out:  # fixed to the root link (DeepMimic's base -> root): the root moves it
-        path = _ancestors(chain, chain.link_names.index(out["pelvis"]))
+        path = path_to_root(chain.topology, chain.link_names.index(out["pelvis"]))
         if all(chain.topology[i][1] == FIXED for i in path):
             out["pelvis"] = chain.link_names[0]
     if "head" not in out and "head" not in ties and "neck" in out:
         out["head"] = out.pop("neck")  # a "neck" link that carries the head (DeepMimic)
     return out, ties
-
-
-def _ancestors(chain: KinematicChain, i: int) -> list[int]:
-    """``i`` and its ancestors, from ``i`` up to the root."""
-    out = [i]
-    while chain.topology[out[-1]][0] >= 0:
-        out.append(chain.topology[out[-1]][0])
-    return out
 
 
 def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
@@ -223,8 +215,8 @@ def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
     if "l_upper_arm" not in found or "r_upper_arm" not in found:
         return None
     names = chain.link_names
-    common = set(_ancestors(chain, names.index(found["l_upper_arm"])))
-    common &= set(_ancestors(chain, names.index(found["r_upper_arm"])))
+    common = set(path_to_root(chain.topology, names.index(found["l_upper_arm"])))
+    common &= set(path_to_root(chain.topology, names.index(found["r_upper_arm"])))
     common -= {names.index(found["l_upper_arm"]), names.index(found["r_upper_arm"])}
     if geometry is not None:
         common &= set(np.asarray(geometry.link).tolist())
@@ -341,7 +333,7 @@ def limb_axis(model, role: str) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- derivation
 def _path_dofs(chain: KinematicChain, parent: int, child: int, where: str, what: str) -> tuple:
-    anc = _ancestors(chain, child)
+    anc = path_to_root(chain.topology, child)
     if parent not in anc:
         raise InputError(
             f"{where}: role link {chain.link_names[child]!r} ({what}) does not hang below "

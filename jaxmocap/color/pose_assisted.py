@@ -108,7 +108,8 @@ def pose_assisted_classify(
     weight = jnp.asarray(weight, dtype)
     # A running minimum over the patches, one (h, w) plane each: XLA fuses it into one
     # vectorised loop, where an argmin over a minor axis of P lowered to a variadic reduce
-    # (1.5 -> 1.2 ms per 128x128 crop; ties keep the first patch, as argmin does).
+    # (1.33 -> 0.93 ms per 128x128 crop, interleaved; ties keep the first patch, as argmin
+    # does).
     score = best = None
     for p in range(distances.shape[0]):
         cost = colour_dist[patch_colour[p] - 1] + weight * distances[p].astype(dtype)

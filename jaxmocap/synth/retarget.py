@@ -41,6 +41,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxmocap.body import FIXED, BodyModel, require_roles, so3_exp
+from jaxmocap.body.chain import path_to_root
 from jaxmocap.errors import InputError
 from jaxmocap.synth._rotations import axis_angle_matrix, euler_xyz, matrix_to_rotvec, mm, mtm, mv
 
@@ -201,7 +202,7 @@ def plan(model: BodyModel, links: tuple[str, ...],
             k = model.keypoint_names.index(end)
             if kp_link[k] == s:
                 bone = kp_off[k]
-            elif s in _ancestors(topo, int(kp_link[k])):
+            elif s in path_to_root(topo, int(kp_link[k]))[1:]:
                 e = rest[kp_link[k]]
                 bone = rest[s, :3, :3].T @ (e[:3, :3] @ kp_off[k] + e[:3, 3] - rest[s, :3, 3])
             else:
@@ -217,7 +218,7 @@ def plan(model: BodyModel, links: tuple[str, ...],
             raise InputError(f"retarget: bone of {names[s]!r} has zero length (end {end!r})")
         groups.append(_Group(
             link=s,
-            parent=max((p for p in segs if p in _ancestors(topo, s)), default=-1),
+            parent=max((p for p in segs if p in path_to_root(topo, s)[1:]), default=-1),
             source=links.index(names[s]) if names[s] in links else -1,
             dofs=tuple(topo[i][2] for i in moving),
             axes=tuple(_tup(a) for a in axes),
@@ -234,14 +235,6 @@ def _rest_transforms(origin: np.ndarray, topo) -> np.ndarray:
     for i in range(1, len(topo)):
         out.append(out[topo[i][0]] @ origin[i])
     return np.stack(out)
-
-
-def _ancestors(topo, i: int) -> set[int]:
-    out = set()
-    while topo[i][0] >= 0:
-        i = topo[i][0]
-        out.add(i)
-    return out
 
 
 def min_rotation(u: Float[Array, "*b 3"], v: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
