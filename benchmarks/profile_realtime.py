@@ -151,7 +151,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
     hits = render(p, ctx, q_g)
     stages["4a render r^b, both crops (render_views)"] = _t(lambda: render(p, ctx, q_g), reps)
     P = p.garment.n_patches
-    edt = eqx.filter_jit(lambda hits: [patch_distance_maps(h.patch, P, dt) for h in hits])
+    edt = eqx.filter_jit(lambda hits: [patch_distance_maps(h, P, dt) for h in hits.patch])
     ctx_k = ctxf(pk, st, views, db.okq, q_g)
     stages["4a' render r^b, both crops, traced geom kinds"] = _t(
         lambda: render(pk, ctx_k, q_g), reps
@@ -160,28 +160,24 @@ def shirt_profile(s: dict, reps: int) -> dict:
     import cv2
 
     src = [
-        (np.asarray(h.patch) != k).astype(np.uint8) for h in hits for k in range(1, P + 1)
+        (np.asarray(h) != k).astype(np.uint8) for h in hits.patch for k in range(1, P + 1)
     ]  # the same 2 x P masks, OpenCV's convention (distance to the nearest zero)
     stages[f"4b' cv2.distanceTransform (PRECISE), the same {2 * P} masks"] = _t(
         lambda: [cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) for m in src], reps
     )
     pac = eqx.filter_jit(
-        lambda p, ctx, hits: [
-            S.pose_assisted_centroids(p, ctx, hits[i], i, jnp.array(False)) for i in range(p.n_cams)
-        ]
+        lambda p, ctx, hits: S.pose_assisted_centroids(p, ctx, hits.patch, jnp.array(False))
     )
     stages["4c EDT + pose-assisted classification + centroids, both crops"] = _t(
         lambda: pac(p, ctx, hits), reps
     )
     meas = pac(p, ctx, hits)
-    c_obs = jnp.stack([m.xy for m in meas])
-    v_obs = jnp.stack([m.valid for m in meas])
+    c_obs, v_obs = meas.xy, meas.valid
     va = eqx.filter_jit(
         lambda p, ctx, q, hits: _view_anchors(
-            p.body.chain, p.anchors, p.cams, q, jnp.stack([h.patch for h in hits]),
-            jnp.stack([h.point for h in hits]), ctx.uv_all,
+            p.body.chain, p.anchors, p.cams, q, hits.patch, hits.point, ctx.uvs
         )
-    )  # fmt: skip
+    )
     anchors = va(p, ctx, q_g, hits)
     stages["4d per-view anchors"] = _t(lambda: va(p, ctx, q_g, hits), reps)
 
@@ -240,10 +236,9 @@ def shirt_profile(s: dict, reps: int) -> dict:
     @eqx.filter_jit
     def ik_inputs(p, ctx, q, plain):
         hits = S.render_views(p, ctx, q)
-        m = [S.pose_assisted_centroids(p, ctx, hits[i], i, plain) for i in range(p.n_cams)]
-        a = _view_anchors(p.body.chain, p.anchors, p.cams, q, jnp.stack([h.patch for h in hits]),
-                          jnp.stack([h.point for h in hits]), ctx.uv_all)  # fmt: skip
-        return a, jnp.stack([x.xy for x in m]), jnp.stack([x.valid for x in m])
+        m = S.pose_assisted_centroids(p, ctx, hits.patch, plain)
+        a = _view_anchors(p.body.chain, p.anchors, p.cams, q, hits.patch, hits.point, ctx.uvs)
+        return a, m.xy, m.valid
 
     lm = {}
     ins = [ik_inputs(p, ctx, q, fal) for q in (q_g, st.q)]
@@ -367,7 +362,7 @@ def edt_in_step(s: dict, reps: int) -> dict:
     q_g = eqx.filter_jit(lambda p, db: S.global_placement(p, db, dt))(p, db)
     ctx = eqx.filter_jit(S.round_context)(p, st, views, db.okq, q_g)
     hits = eqx.filter_jit(S.render_views)(p, ctx, q_g)
-    patches = [h.patch for h in hits]
+    patches = list(hits.patch)
     stages = {}
     for name, fn in (("session 8", new_edt), ("previous", previous_edt)):
         pose_assisted.edt = fn
@@ -447,10 +442,10 @@ def compile_by_stage(s: dict) -> dict:
     # (new lambdas: a function jitted above would come from the in-memory cache)
     out["4a render_views"] = timed(lambda p, ctx, q: S.render_views(p, ctx, q), p, ctx, q_g)
     out["4c pose_assisted_centroids, both crops"] = timed(
-        lambda p, ctx, hits: [S.pose_assisted_centroids(p, ctx, hits[i], i, fal)
-                              for i in range(p.n_cams)], p, ctx, hits)  # fmt: skip
-    meas = [S.pose_assisted_centroids(p, ctx, hits[i], i, fal) for i in range(p.n_cams)]
-    c_obs, v_obs = jnp.stack([m.xy for m in meas]), jnp.stack([m.valid for m in meas])
+        lambda p, ctx, hits: S.pose_assisted_centroids(p, ctx, hits.patch, fal), p, ctx, hits
+    )
+    meas = S.pose_assisted_centroids(p, ctx, hits.patch, fal)
+    c_obs, v_obs = meas.xy, meas.valid
     out["4e solve_ik (robust), one start"] = timed(
         lambda p, ctx, c, v, q: solve_ik(p.body.chain, p.cams, p.anchors, c, v, ctx.q_g, ctx.q_h,
                                          ctx.cov, q, robust=p.robust),

@@ -12,6 +12,7 @@ from _shirt_colours import SHIRT  # noqa: E402  (shared procedural shirt palette
 from jaxmocap.color import (
     classified_fraction,
     classify,
+    classify_views_with_references,
     classify_with_references,
     fit_color_model,
     histogram_search,
@@ -130,6 +131,39 @@ def test_reference_illuminations_recover_a_lamp_switched_off(lamp):
     # without the lamp-off reference, nothing stored can help: the collapse remains
     alone = classify_refs(model, init_references(W_on), W_on, img, fg)
     assert float(alone.fraction) < 0.4
+
+
+def test_classify_views_with_references_equals_each_view_alone(lamp):
+    """Two views, one classified well with its W (no fallback) and one after the lamp went off
+    (its fallback picks a stored reference): the batched call gives each view what
+    ``classify_with_references`` gives it alone; with no view below ``min_fraction`` neither
+    uses a reference."""
+    model, on, off, rng = lamp
+    wb = jax.jit(white_balance_from_ids)
+    img_on, ids_on, _, _ = make_scene(rng, 160, 160, L=on, shirt_w=100)
+    img_off, ids_off, _, _ = make_scene(rng, 160, 160, L=off, shirt_w=100)
+    W_on = wb(model, jnp.asarray(img_on), jnp.asarray(ids_on), jnp.eye(3))
+    W_off = wb(model, jnp.asarray(img_off), jnp.asarray(ids_off), jnp.eye(3))
+    refs = init_references(W_on)
+    refs, _ = maybe_add_reference(refs, W_off)
+    stacked = jax.tree.map(lambda a: jnp.stack([a, a]), refs)
+    images = jnp.stack([jnp.asarray(img_on), jnp.asarray(img_off)])
+    masks = jnp.stack([jnp.asarray(ids_on > 0), jnp.asarray(ids_off > 0)])
+    W = jnp.stack([W_on, W_on])  # view 1 still has the lamp-on W: it needs the fallback
+    batched = jax.jit(classify_views_with_references)
+    for m in (masks, None):
+        both = batched(model, stacked, W, images, m)
+        if m is not None:  # (without masks the fraction counts the background too)
+            assert not bool(both.used_reference[0]) and bool(both.used_reference[1])
+        for i in range(2):
+            alone = classify_with_references(model, refs, W[i], images[i],
+                                             None if m is None else m[i])  # fmt: skip
+            for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(both), strict=True):
+                np.testing.assert_allclose(np.asarray(b[i]), np.asarray(a), rtol=1e-6, atol=1e-5)
+    # nobody below min_fraction: the fallback's branch is not taken
+    none = batched(model, stacked, W, images, masks, min_fraction=0.0)
+    assert not bool(jnp.any(none.used_reference))
+    np.testing.assert_array_equal(np.asarray(none.W), np.asarray(W))
 
 
 def test_maybe_add_reference_threshold_and_ring_buffer():

@@ -73,8 +73,8 @@ def _crop_stats(shirt, params, state, frames, colour_ids):
             return classify(params.color, W, image, None, THRESHOLD, params.shading,
                             params.scene_colors)[0]
 
-        W = views.cls[i].W
-        r = score(views.cls[i].ids)
+        W = views.cls.W[i]
+        r = score(views.cls.ids[i])
         Wg = white_balance_from_ids(params.color, crop, gt, W)
         og = score(cls(Wg))
         half = params.work_size // 2

@@ -93,25 +93,68 @@ def classify_with_references(
     ``gain`` / ``background``: :func:`jaxmocap.color.classify`'s options.
     """
 
-    def classify(model, W, image, mask, threshold):
+    def classify(W):
         return _classify(model, W, image, mask, threshold, gain, background)
 
-    ids, dist = classify(model, W, image, mask, threshold)
+    ids, dist = classify(W)
     frac = classified_fraction(ids, mask)
+    first = ReferenceClassification(ids, dist, W, frac, jnp.array(False))
+    fallback = lambda: _with_best_reference(classify, refs, first, mask)  # noqa: E731
+    return jax.lax.cond(frac < min_fraction, fallback, lambda: first)
 
-    def fallback(_):
-        counts = jax.vmap(lambda Wr: jnp.sum(classify(model, Wr, image, mask, threshold)[0] > 0))(
-            refs.W.astype(W.dtype)
+
+def _with_best_reference(classify, refs: ReferenceIlluminations, first: ReferenceClassification,
+                         mask) -> ReferenceClassification:  # fmt: skip
+    """The fallback of :func:`classify_with_references`: classify with every stored matrix
+    (``vmap`` over the buffer), keep the one with the most classified pixels, and use it only
+    if it beats ``first`` (the classification with the current ``W``)."""
+    W = first.W
+    counts = jax.vmap(lambda Wr: jnp.sum(classify(Wr)[0] > 0))(refs.W.astype(W.dtype))
+    counts = jnp.where(refs.valid, counts, -1)
+    best = jnp.argmax(counts)
+    better = counts[best] > jnp.sum(first.ids > 0)
+    W_best = jnp.where(better, refs.W[best].astype(W.dtype), W)
+    ids_b, dist_b = classify(W_best)
+    return ReferenceClassification(ids_b, dist_b, W_best, classified_fraction(ids_b, mask), better)
+
+
+def classify_views_with_references(
+    model: ColorModel,
+    refs: ReferenceIlluminations,
+    W: Float[Array, "n 3 3"],
+    images: UInt8[Array, "n h w 3"] | Float[Array, "n h w 3"],
+    masks: Bool[Array, "n h w"] | None = None,
+    threshold: float | Float[Array, ""] = THRESHOLD,
+    min_fraction: float | Float[Array, ""] = MIN_CLASSIFIED_FRACTION,
+    gain: tuple[float, float] | None = None,
+    background: ColorModel | None = None,
+) -> ReferenceClassification:
+    """:func:`classify_with_references` for ``n`` views at once (each with its own ``refs``,
+    stacked, its ``W`` and image), outputs stacked. The views are classified under one
+    ``vmap``; the fallback runs, for every view (a view that does not need it keeps its first
+    classification), under one ``lax.cond`` taken when some view classified less than
+    ``min_fraction``: ``vmap`` of :func:`classify_with_references` would turn that ``cond``
+    into a select and run the fallback (a classification per stored matrix) every time."""
+
+    def first_of(W, image, mask):
+        ids, dist = _classify(model, W, image, mask, threshold, gain, background)
+        return ReferenceClassification(
+            ids, dist, W, classified_fraction(ids, mask), jnp.array(False)
         )
-        counts = jnp.where(refs.valid, counts, -1)
-        best = jnp.argmax(counts)
-        better = counts[best] > jnp.sum(ids > 0)
-        W_best = jnp.where(better, refs.W[best].astype(W.dtype), W)
-        ids_b, dist_b = classify(model, W_best, image, mask, threshold)
-        return ids_b, dist_b, W_best, classified_fraction(ids_b, mask), better
 
-    def keep(_):
-        return ids, dist, W, frac, jnp.array(False)
+    def fallback_of(refs, first, image, mask):
+        def classify(Wr):
+            return _classify(model, Wr, image, mask, threshold, gain, background)
 
-    out = jax.lax.cond(frac < min_fraction, fallback, keep, None)
-    return ReferenceClassification(*out)
+        return _with_best_reference(classify, refs, first, mask)
+
+    m_ax = None if masks is None else 0
+    first = jax.vmap(first_of, in_axes=(0, 0, m_ax))(W, images, masks)
+    need = first.fraction < min_fraction
+
+    def fallback():
+        fb = jax.vmap(fallback_of, in_axes=(0, 0, 0, m_ax))(refs, first, images, masks)
+        pick = lambda a, b: jnp.where(need.reshape(need.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+        return jax.tree.map(pick, fb, first)
+
+    return jax.lax.cond(jnp.any(need), fallback, lambda: first)
