@@ -44,7 +44,7 @@ from benchmarks._common import Row, sized, time_call, time_compile, write_result
 from jaxmocap.body import default_body
 from jaxmocap.camera import look_at, stack_cameras
 from jaxmocap.color import (
-    classify_with_references,
+    classify_views_with_references,
     histogram_search,
     maybe_add_reference,
     white_balance_from_ids,
@@ -226,10 +226,6 @@ def _cam(params, i):
     return jax.tree.map(lambda a: a[i], params.cams)
 
 
-def _stack(xs):
-    return jax.tree.map(lambda *a: jnp.stack(a), *xs)
-
-
 @eqx.filter_jit
 def stage_search(params, frames):
     """1: ``(x', y', s')`` per camera -> crop windows (n_cams, 4), ``s'`` and ``found``."""
@@ -246,39 +242,37 @@ def stage_search(params, frames):
 
 @eqx.filter_jit
 def stage_classify(params, state, frames, windows):
-    """2: crops (n_cams, n, n, 3) and the step-1 classification (batched over cameras)."""
-    crops, cls = [], []
+    """2: crops (n_cams, n, n, 3) and the step-1 classification (batched over cameras, the
+    reference fallback under one ``cond``)."""
     min_fraction = {} if params.adaptive_white_balance else {"min_fraction": 0.0}
-    for i in range(params.n_cams):
-        crop = shirt.sample_bilinear(frames[i], shirt.crop_uv(windows[i], params.work_size))
-        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
-        cls.append(
-            classify_with_references(
-                params.color, refs_i, state.W[i], crop, None, THRESHOLD, **min_fraction
-            )
-        )
-        crops.append(crop)
-    return jnp.stack(crops), _stack(cls)
+    crops = jnp.stack([
+        shirt.sample_bilinear(frames[i], shirt.crop_uv(windows[i], params.work_size))
+        for i in range(params.n_cams)
+    ])  # fmt: skip
+    cls = classify_views_with_references(
+        params.color, state.refs, state.W, crops, None, THRESHOLD, **min_fraction
+    )
+    return crops, cls
 
 
 @eqx.filter_jit
 def stage_database(params, ids, windows, found):
-    """3: per camera the 10-NN blend ``q_db``, its tiny patch map and canonical window, the
-    query window in the image; joint angles averaged over the cameras that found the shirt."""
+    """3: per camera (one vmap) the 10-NN blend ``q_db``, its tiny patch map and canonical
+    window, the query window in the image; joint angles averaged over the cameras that found
+    the shirt."""
     dt = params.cams.K.dtype
-    q_dbs, win_qs, tiny_patch, win_dbs, okq = [], [], [], [], []
-    for i in range(params.n_cams):
-        win_c = window_from_mask(ids[i] > 0)
-        q_db = estimate_pose(params.db, resample_ids(ids[i], win_c, TINY_SIZE))[0].astype(dt)
+
+    def one(ids_i, window, found_i):
+        win_c = window_from_mask(ids_i > 0)
+        q_db = estimate_pose(params.db, resample_ids(ids_i, win_c, TINY_SIZE))[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
-        q_dbs.append(q_db), tiny_patch.append(hits.patch), win_dbs.append(win_db)
-        win_qs.append(shirt._crop_to_image(win_c, windows[i], params.work_size))
-        okq.append(found[i] & (jnp.sum(ids[i] > 0) > 0))
-    okq = jnp.stack(okq)
-    q_dbs = jnp.stack(q_dbs)
+        win_q = shirt._crop_to_image(win_c, window, params.work_size)
+        return q_db, win_q, hits.patch, win_db, found_i & (jnp.sum(ids_i > 0) > 0)
+
+    q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(ids, windows, found)
     wq = okq.astype(dt) / jnp.maximum(jnp.sum(okq), 1)
     q_b = jnp.concatenate([jnp.zeros(6, dt), jnp.sum(wq[:, None] * q_dbs[:, 6:], axis=0)])
-    return q_dbs, jnp.stack(win_qs), jnp.stack(tiny_patch), jnp.stack(win_dbs), okq, q_b
+    return q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b
 
 
 @eqx.filter_jit
@@ -286,17 +280,12 @@ def stage_global(params, q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b):
     """4: ``r^b``'s patch centroids moved into the query windows, root guess, 6-DOF IK."""
     dt = q_b.dtype
     P = params.garment.n_patches
-    cons = [
-        patch_centroids(tiny_patch[i], P, win_qs[i], min_pixels=2, dtype=dt)
-        for i in range(params.n_cams)
-    ]
-    c_xy = jnp.stack([c.xy for c in cons])
-    c_vis = jnp.stack([c.valid for c in cons]) & okq[:, None]
-    guesses = jnp.stack(
-        [
-            shirt._root_guess(params, q_dbs[i], win_dbs[i], win_qs[i], i)
-            for i in range(params.n_cams)
-        ]
+    cons = jax.vmap(lambda t, w: patch_centroids(t, P, w, min_pixels=2, dtype=dt))(
+        tiny_patch, win_qs
+    )
+    c_xy, c_vis = cons.xy, cons.valid & okq[:, None]
+    guesses = jax.vmap(lambda *a: shirt._root_guess(params, *a))(
+        params.cams, q_dbs, win_dbs, win_qs
     )
     root0, _ = initial_root(
         params.cams, params.body.chain, params.anchors, c_xy, c_vis, q_b, guesses[jnp.argmax(okq)]
@@ -308,23 +297,25 @@ def stage_global(params, q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b):
 
 @eqx.filter_jit
 def stage_pose_assisted(params, crops, windows, s_found, W, okq, q_g):
-    """5: measured patch centroids (n_cams, P, 2), their validity and the frame's validity."""
+    """5: measured patch centroids (n_cams, P, 2), their validity and the frame's validity
+    (one vmap over the cameras)."""
     n, P, dt = params.work_size, params.garment.n_patches, q_g.dtype
-    xy, vis = [], []
-    for i in range(params.n_cams):
-        uv = shirt.crop_uv(windows[i], n)
-        rb = render_uv(params.render_body, params.garment, q_g, _cam(params, i), uv).patch
+
+    def one(cam, crop, window, s_i, W_i):
+        uv = shirt.crop_uv(window, n)
+        rb = render_uv(params.render_body, params.garment, q_g, cam, uv).patch
         dist = patch_distance_maps(rb, P, dt)
         if params.pose_prior:
-            weight, T = PRIOR_SCALE / s_found[i] * (windows[i][2] / n), POSE_THRESHOLD
+            weight, T = PRIOR_SCALE / s_i * (window[2] / n), POSE_THRESHOLD
         else:
             weight, T = shirt.TIE_BREAK_WEIGHT, THRESHOLD
         pa = pose_assisted_classify(
-            params.color, W[i], crops[i], dist, params.garment.patch_colour, weight, None, T
+            params.color, W_i, crop, dist, params.garment.patch_colour, weight, None, T
         )
-        c = patch_centroids(pa.patch, P, windows[i], dtype=dt)
-        xy.append(c.xy), vis.append(c.valid & okq[i])
-    c_obs, v_obs = jnp.stack(xy), jnp.stack(vis)
+        return patch_centroids(pa.patch, P, window, dtype=dt)
+
+    c = jax.vmap(one)(params.cams, crops, windows, s_found, W)
+    c_obs, v_obs = c.xy, c.valid & okq[:, None]
     valid = jnp.any(okq) & (jnp.sum(v_obs) >= shirt.MIN_VALID_PATCHES)
     return c_obs, v_obs, valid
 
@@ -341,23 +332,20 @@ def stage_ik(params, state, c_obs, v_obs, valid, q_g):
 
 @eqx.filter_jit
 def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
-    """7: ``W*`` per camera from ``r*`` and the updated reference illuminations."""
-    W_new, refs_new = [], []
-    for i in range(params.n_cams):
-        refs_i = jax.tree.map(lambda a, i=i: a[i], state.refs)
-        uv = shirt.crop_uv(windows[i], params.work_size)
-        r_star = shirt._erode(
-            render_uv(params.render_body, params.garment, q_star, _cam(params, i), uv).colour
-        )
+    """7: ``W*`` per camera (one vmap) from ``r*`` and the updated reference illuminations."""
+
+    def one(cam, refs_i, crop, window, W_i, ok_i):
+        uv = shirt.crop_uv(window, params.work_size)
+        r_star = shirt._erode(render_uv(params.render_body, params.garment, q_star, cam, uv).colour)
         W_star = white_balance_from_ids(
-            params.color, crops[i], r_star, W_cls[i], None, min_pixels=shirt.REFERENCE_PIXELS
+            params.color, crop, r_star, W_i, None, min_pixels=shirt.REFERENCE_PIXELS
         )
-        ok = valid & okq[i] & jnp.all(jnp.isfinite(W_star))
-        W_star = jnp.where(ok, W_star, W_cls[i])
+        ok = valid & ok_i & jnp.all(jnp.isfinite(W_star))
+        W_star = jnp.where(ok, W_star, W_i)
         refs_i2, _ = maybe_add_reference(refs_i, W_star)
-        refs_new.append(jax.tree.map(lambda a, b, ok=ok: jnp.where(ok, a, b), refs_i2, refs_i))
-        W_new.append(W_star)
-    return jnp.stack(W_new), _stack(refs_new)
+        return W_star, jax.tree.map(lambda a, b: jnp.where(ok, a, b), refs_i2, refs_i)
+
+    return jax.vmap(one)(params.cams, state.refs, crops, windows, W_cls, okq)
 
 
 def staged_step(params, state, frames, upto: int = len(STAGES)) -> dict:
