@@ -93,14 +93,21 @@ def classify_with_references(
     ``gain`` / ``background``: :func:`jaxmocap.color.classify`'s options.
     """
 
-    def classify(W):
-        return _classify(model, W, image, mask, threshold, gain, background)
-
-    ids, dist = classify(W)
-    frac = classified_fraction(ids, mask)
-    first = ReferenceClassification(ids, dist, W, frac, jnp.array(False))
+    classify = _classifier(model, image, mask, threshold, gain, background)
+    first = _first(classify, W, mask)
     fallback = lambda: _with_best_reference(classify, refs, first, mask)  # noqa: E731
-    return jax.lax.cond(frac < min_fraction, fallback, lambda: first)
+    return jax.lax.cond(first.fraction < min_fraction, fallback, lambda: first)
+
+
+def _classifier(model, image, mask, threshold, gain, background):
+    """``W -> (ids, distance)`` of ``image`` (:func:`jaxmocap.color.classify`)."""
+    return lambda W: _classify(model, W, image, mask, threshold, gain, background)
+
+
+def _first(classify, W, mask) -> ReferenceClassification:
+    """The classification with the current ``W`` (no reference used)."""
+    ids, dist = classify(W)
+    return ReferenceClassification(ids, dist, W, classified_fraction(ids, mask), jnp.array(False))
 
 
 def _with_best_reference(classify, refs: ReferenceIlluminations, first: ReferenceClassification,
@@ -137,15 +144,10 @@ def classify_views_with_references(
     into a select and run the fallback (a classification per stored matrix) every time."""
 
     def first_of(W, image, mask):
-        ids, dist = _classify(model, W, image, mask, threshold, gain, background)
-        return ReferenceClassification(
-            ids, dist, W, classified_fraction(ids, mask), jnp.array(False)
-        )
+        return _first(_classifier(model, image, mask, threshold, gain, background), W, mask)
 
     def fallback_of(refs, first, image, mask):
-        def classify(Wr):
-            return _classify(model, Wr, image, mask, threshold, gain, background)
-
+        classify = _classifier(model, image, mask, threshold, gain, background)
         return _with_best_reference(classify, refs, first, mask)
 
     m_ax = None if masks is None else 0

@@ -866,13 +866,12 @@ def model_centroids(
     what per-view anchors predict there, the model term of covariance training
     (:func:`jaxmocap.ik.estimate_covariances` ``predicted=``)."""
     n, P = params.work_size, params.garment.n_patches
-    out = []
-    for i in range(params.n_cams):
-        cam = jax.tree.map(lambda a, i=i: a[i], params.cams)
-        win = windows[i].astype(q.dtype)
+
+    def one(cam, win):
         ids = render_uv(params.render_body, params.garment, q, cam, crop_uv(win, n)).patch
-        out.append(patch_centroids(ids, P, win, dtype=q.dtype))
-    return jax.tree.map(lambda *a: jnp.stack(a), *out)
+        return patch_centroids(ids, P, win, dtype=q.dtype)
+
+    return jax.vmap(one)(params.cams, windows.astype(q.dtype))
 
 
 TRACE_COUNT = {"step": 0}  # incremented each time ``step`` is traced (tests count recompiles)
