@@ -222,6 +222,7 @@ class ShirtFrameTracker:
             + [f"reference_added_{n}" for n in names]
             + [f"residual_{n}" for n in names] + [f"recall_{n}" for n in names] + ["patches"])
         self.state = None
+        self._step = None
         from jaxmocap.color import classify
 
         self._classify = jax.jit(lambda W, im: classify(
@@ -231,9 +232,11 @@ class ShirtFrameTracker:
         dt = self.params.cams.K.dtype
         self.state = self._shirt.init(self.params, jnp.asarray(self.W0, dt),
                                       jnp.zeros(self.body.n_dof, dt))
+        if self._step is None:
+            self._step = self._shirt.compile_step(self.params)
 
     def step(self, frames: np.ndarray) -> FrameResult:
-        self.state, out = self._shirt.step(self.params, self.state, frames)
+        self.state, out = self._step(self.state, frames)
         out, W = jax.device_get((out, self.state.W))
         d = {}
         for c, n in enumerate(self.names):

@@ -55,7 +55,8 @@ masks computed on the host per frame), ``run_scan`` runs a whole sequence under
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import sys
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import equinox as eqx
@@ -892,6 +893,11 @@ def step(
     """One frame of Wang et al. §4–5 for every camera (module docstring); jit-compiled once
     per camera count, image size and settings. ``frames`` RGB ``uint8``; ``masks`` optional
     foreground masks (e.g. :class:`jaxmocap.color.BackgroundSubtractor`)."""
+    frames, masks = _checked_inputs(params, frames, masks)
+    return _step_jit(params, state, frames, masks)
+
+
+def _checked_inputs(params: ShirtParams, frames, masks):
     frames = jnp.asarray(frames)
     if frames.ndim != 4 or frames.shape[0] != params.n_cams or frames.shape[-1] != 3:
         raise ValueError(f"step: frames must be ({params.n_cams}, H, W, 3) RGB, got {frames.shape}")
@@ -901,7 +907,37 @@ def step(
         masks = jnp.asarray(masks, bool)
         if masks.shape != frames.shape[:3]:
             raise ValueError(f"step: masks must be {frames.shape[:3]}, got {masks.shape}")
-    return _step_jit(params, state, frames, masks)
+    return frames, masks
+
+
+def compile_step(
+    params: ShirtParams,
+) -> Callable[..., tuple[ShirtState, ShirtOutput]]:
+    """:func:`step` with ``params`` bound, for frame loops: ``(state, frames, masks=None) ->
+    (state, output)``, the same results.
+
+    On its first call without masks it takes the program shipped for the demo's set-up when
+    that applies (:mod:`jaxmocap.trackers.shirt_export`: the step traced ahead of time, so the
+    first frame only waits for XLA's compile, ~6 s less on an empty cache); otherwise it says
+    why in one line on stderr and traces :func:`step` as usual."""
+    from jaxmocap.trackers import shirt_export
+
+    chosen: dict[bool, Callable | None] = {}
+
+    def fn(state, frames, masks=None):
+        frames, masks = _checked_inputs(params, frames, masks)
+        plain = masks is None
+        if plain not in chosen:
+            program, why = shirt_export.load(params, state, frames, masks)
+            if program is None:
+                print(f"jaxmocap: shirt step: {why}; tracing it", file=sys.stderr)
+            chosen[plain] = program
+        program = chosen[plain]
+        if program is None:
+            return _step_jit(params, state, frames, masks)
+        return program(state, frames)
+
+    return fn
 
 
 def run(
