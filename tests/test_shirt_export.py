@@ -16,9 +16,9 @@ import textwrap
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_shirt import setup  # noqa: F401  (the shirt tests' two-camera scene, a fixture)
 
 from jaxmocap.trackers import shirt_export
-from tests.test_shirt import setup  # noqa: F401  (the shirt tests' two-camera scene, a fixture)
 
 _CHECK = textwrap.dedent(
     """
