@@ -58,6 +58,17 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def scene_config(n_frames: int):
+    """The demo's two-webcam scene of ``n_frames`` frames (module docstring, step 1)."""
+    from jaxmocap.synth import SceneConfig
+
+    return SceneConfig(clip=DEMO_CLIP, n_frames=n_frames, rig="webcams",
+                       width=DEMO_SIZE[0], height=DEMO_SIZE[1],
+                       lamp_off=min(DEMO_LAMP_OFF, n_frames - 1),
+                       occluder=DEMO_OCCLUDER if n_frames > DEMO_OCCLUDER[1] else None,
+                       noise_sigma=0.01, seed=0)
+
+
 def _setup(seq, progress: bool):
     """Pose database (small, cached), then the capture-session set-up of §5.1
     (:func:`jaxmocap.trackers.shirt.setup_for_sequence`)."""
@@ -183,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxmocap.cli import UsageError
     from jaxmocap.io.atomic import AtomicFiles, check_output_folder
     from jaxmocap.io.export import pose_track, write_exports
-    from jaxmocap.synth import SceneConfig, render_sequence
+    from jaxmocap.synth import render_sequence
 
     if args.frames < 2:
         raise UsageError(f"--frames: expected an integer >= 2, got {args.frames}")
@@ -193,11 +204,7 @@ def run(args: argparse.Namespace) -> int:
           f"webcams, {args.frames} frames, lamp off at frame {DEMO_LAMP_OFF}, occluder during "
           f"frames {DEMO_OCCLUDER[0]}-{DEMO_OCCLUDER[1]}")
     t0 = time.perf_counter()
-    config = SceneConfig(clip=DEMO_CLIP, n_frames=args.frames, rig="webcams",
-                         width=DEMO_SIZE[0], height=DEMO_SIZE[1],
-                         lamp_off=min(DEMO_LAMP_OFF, args.frames - 1),
-                         occluder=DEMO_OCCLUDER if args.frames > DEMO_OCCLUDER[1] else None,
-                         noise_sigma=0.01, seed=0)
+    config = scene_config(args.frames)
     seq = render_sequence(config, progress=progress)
     print(f"  rendered in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()

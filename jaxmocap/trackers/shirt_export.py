@@ -171,7 +171,7 @@ def load(params, state, frames, masks=None) -> tuple[Callable | None, str]:
     out_tree = _output_tree(state)
     if out_tree.num_leaves != manifest["n_outputs"]:
         return None, "the shipped program's outputs do not match ShirtOutput (regenerate it)"
-    params_leaves = _split(params, state)[0][: _n_param_leaves(params)]
+    params_leaves = jax.tree.leaves(eqx.filter(params, eqx.is_array))  # fixed for the loop
     compiled: list = []
 
     def fn(state, frames):
@@ -185,18 +185,12 @@ def load(params, state, frames, masks=None) -> tuple[Callable | None, str]:
     return fn, "the shipped program"
 
 
-def _n_param_leaves(params) -> int:
-    return len(jax.tree.leaves(eqx.filter(params, eqx.is_array)))
-
-
 def _demo_inputs():
     from jaxmocap import demo
-    from jaxmocap.synth import SceneConfig, render_sequence
+    from jaxmocap.synth import render_sequence
     from jaxmocap.trackers import shirt
 
-    config = SceneConfig(clip=demo.DEMO_CLIP, n_frames=2, rig="webcams", width=demo.DEMO_SIZE[0],
-                         height=demo.DEMO_SIZE[1], noise_sigma=0.01, seed=0)  # fmt: skip
-    seq = render_sequence(config, progress=False)
+    seq = render_sequence(demo.scene_config(2), progress=False)
     _, params, w0, q0 = demo._setup(seq, False)
     return params, shirt.init(params, w0, q0), seq.frames
 
