@@ -1,6 +1,6 @@
 """The shirt tracker's first frame on an empty compilation cache (issue 21: <= 20 s), on the demo's
 set-up (two 320x240 webcams, bundled body and shirt, 3,000-pose database): the program shipped
-ahead of time (``shirt.compile_step``, :mod:`jaxmocap.trackers.shirt_export`: XLA's compile
+ahead of time (``shirt.compile_step``, :mod:`jaxmocap.trackers.shirt.export`: XLA's compile
 only) against tracing the step (``shirt.step``: trace + lower + compile), each in a fresh
 process with no persistent compilation cache, alternated (A, B, A, B, ...): this machine's
 speed drifts by tens of per cent over minutes. Both give bit-identical poses (checked in each
@@ -24,7 +24,8 @@ from benchmarks._common import Row, write_results
 
 _CHILD = """
 import json, sys, time, jax, numpy as np
-from jaxmocap.trackers import shirt, shirt_export
+from jaxmocap.trackers import shirt
+from jaxmocap.trackers.shirt import export as shirt_export
 params, state, frames = shirt_export._demo_inputs()
 mode = sys.argv[1]
 t0 = time.perf_counter(); c0 = time.process_time()

@@ -2,7 +2,7 @@
 same frame split into the paper's stages, each jitted and timed alone beside the NumPy/OpenCV
 baseline of that stage where ``benchmarks/`` has one (measured in the same run).
 
-Stages of the paper's frame (``jaxmocap.trackers.shirt._step`` with the tracker's extensions
+Stages of the paper's frame (``jaxmocap.trackers.shirt.frame._step`` with the tracker's extensions
 switched off by :func:`paper_frame` — per-view anchors, repeated IK rounds, robust centroid
 loss, second IK start — rebuilt from the same library calls, both cameras per stage;
 :func:`staged_step` composes them and :func:`stage_rows` checks that the composition
@@ -71,6 +71,8 @@ from jaxmocap.render import (
     window_from_mask,
 )
 from jaxmocap.trackers import shirt
+from jaxmocap.trackers.shirt import frame as shirt_frame
+from jaxmocap.trackers.shirt import image as shirt_image
 
 PAPER_MS = 120.0  # Wang et al. §7: 120 ms per frame, two 640x480 cameras
 GOAL_MS = 10.0  # docs/PERF-NOTES.md
@@ -266,7 +268,7 @@ def stage_database(params, ids, windows, found):
         win_c = window_from_mask(ids_i > 0)
         q_db = estimate_pose(params.db, resample_ids(ids_i, win_c, TINY_SIZE))[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
-        win_q = shirt._crop_to_image(win_c, window, params.work_size)
+        win_q = shirt_image._crop_to_image(win_c, window, params.work_size)
         return q_db, win_q, hits.patch, win_db, found_i & (jnp.sum(ids_i > 0) > 0)
 
     q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(ids, windows, found)
@@ -284,7 +286,7 @@ def stage_global(params, q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b):
         tiny_patch, win_qs
     )
     c_xy, c_vis = cons.xy, cons.valid & okq[:, None]
-    guesses = jax.vmap(lambda *a: shirt._root_guess(params, *a))(
+    guesses = jax.vmap(lambda *a: shirt_frame._root_guess(params, *a))(
         params.cams, q_dbs, win_dbs, win_qs
     )
     root0, _ = initial_root(
@@ -336,7 +338,8 @@ def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
 
     def one(cam, refs_i, crop, window, W_i, ok_i):
         uv = shirt.crop_uv(window, params.work_size)
-        r_star = shirt._erode(render_uv(params.render_body, params.garment, q_star, cam, uv).colour)
+        r_star = shirt_image._erode(
+            render_uv(params.render_body, params.garment, q_star, cam, uv).colour)
         W_star = white_balance_from_ids(
             params.color, crop, r_star, W_i, None, min_pixels=shirt.REFERENCE_PIXELS
         )

@@ -110,17 +110,18 @@ def _pf(default: bool):
 def _shirt():
     import jax.numpy as jnp
 
-    from jaxmocap import demo
     from jaxmocap.synth import SceneConfig, render_sequence
     from jaxmocap.trackers import shirt
+    from jaxmocap.trackers.shirt import export as demo
+    from jaxmocap.trackers.shirt import sequence as shirt_sequence
 
     seq = render_sequence(SceneConfig(clip=demo.DEMO_CLIP, n_frames=2, rig="webcams",
                                       width=demo.DEMO_SIZE[0], height=demo.DEMO_SIZE[1],
                                       noise_sigma=0.01, seed=0), progress=False)
-    _, params, w0, q0 = demo._setup(seq, False)
+    _, params, w0, q0 = demo.demo_setup(seq, False)
     state = shirt.init(params, w0, q0)
     frames = jnp.asarray(seq.frames[0])
-    return lambda: shirt._step_jit.lower(params, state, frames, None)
+    return lambda: shirt_sequence._step_jit.lower(params, state, frames, None)
 
 
 def main() -> None:

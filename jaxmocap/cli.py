@@ -1,6 +1,6 @@
 """The ``jaxmocap`` command.
 
-Each sub-command lives beside the code it drives and registers itself here: a module listed in
+Each sub-command is a module of :mod:`jaxmocap.commands` registered here: a module listed in
 ``SUBCOMMANDS`` exposes ``add_parser(subparsers)``, which adds its parser and sets
 ``func=run`` (``run(args) -> int``). Bad user input raises :class:`UsageError` (or one of the
 library's file-format errors, all :class:`~jaxmocap.errors.InputError` subclasses): it is
@@ -25,27 +25,23 @@ import signal
 import sys
 import threading
 
-from jaxmocap.errors import InputError
+from jaxmocap.errors import InputError, UsageError
 
 SUBCOMMANDS = (
-    "jaxmocap.demo",
-    "jaxmocap.posedb",
-    "jaxmocap.synth.dataset",
+    "jaxmocap.commands.demo",
+    "jaxmocap.commands.build_db",
+    "jaxmocap.commands.synth",
     "jaxmocap.commands.calibrate",
     "jaxmocap.commands.colors",
     "jaxmocap.commands.track",
     "jaxmocap.commands.evaluate",
     "jaxmocap.commands.body",
-    "jaxmocap.synth.world.cli",
-    "jaxmocap.experiment",
+    "jaxmocap.commands.synth_world",
+    "jaxmocap.commands.experiment",
 )
 
 
 EXIT_INTERRUPTED = 130
-
-
-class UsageError(InputError):
-    """Bad command-line usage: reported as one line on stderr with exit code 2."""
 
 
 class Terminated(KeyboardInterrupt):

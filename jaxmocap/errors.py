@@ -9,3 +9,7 @@ keeps its traceback.
 
 class InputError(ValueError):
     """Bad user input (a file, a field, an argument): a one-line, actionable message."""
+
+
+class UsageError(InputError):
+    """Bad command-line usage: reported as one line on stderr with exit code 2."""

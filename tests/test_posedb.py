@@ -20,6 +20,7 @@ from jaxmocap import posedb
 from jaxmocap.body import default_body, keypoint_index, keypoints
 from jaxmocap.camera import look_at, to_camera
 from jaxmocap.cli import SUBCOMMANDS
+from jaxmocap.commands import build_db as build_db_command
 from jaxmocap.errors import InputError
 from jaxmocap.garment import default_garment, single_colour_garment
 from jaxmocap.posedb import _build
@@ -299,9 +300,9 @@ def test_files_and_cli(tmp_path, capsys):
         posedb.load_database(bad)
     with pytest.raises(InputError, match="maps"):
         posedb.make_posedb(np.zeros((3, 40, 40), np.int32), np.zeros((3, 24)), 10)
-    assert "jaxmocap.posedb" in SUBCOMMANDS
+    assert "jaxmocap.commands.build_db" in SUBCOMMANDS
     parser = argparse.ArgumentParser(prog="jaxmocap")
-    posedb.add_parser(parser.add_subparsers(dest="command"))
+    build_db_command.add_parser(parser.add_subparsers(dest="command"))
 
     def build_db(*argv):
         args = parser.parse_args(["build-db", *argv])

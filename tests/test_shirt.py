@@ -21,6 +21,8 @@ from jaxmocap.posedb._sample import SamplingConfig, canonical_camera, sample_pos
 from jaxmocap.posedb._search import make_posedb
 from jaxmocap.render import render_rgb, tiny_id_maps
 from jaxmocap.trackers import shirt
+from jaxmocap.trackers.shirt import frame as shirt_frame
+from jaxmocap.trackers.shirt import image as shirt_image
 
 W_IMG, H_IMG = 240, 180
 ROOT = np.array([0.0, 0.0, 0.85])
@@ -45,7 +47,7 @@ def test_crop_windows_map_back_to_image():
     n = 32
     uv = np.asarray(shirt.crop_uv(crop, n))
     win_c = jnp.asarray([3.5, 5.5, 8.0, 8.0])  # covers working pixels 4..11 x 6..13
-    win = np.asarray(shirt._crop_to_image(win_c, crop, n))
+    win = np.asarray(shirt_image._crop_to_image(win_c, crop, n))
     k = 64.0 / n
     np.testing.assert_allclose(win[:2], uv[6, 4] - k / 2)  # left/top edge of pixel (6, 4)
     np.testing.assert_allclose(win[2:], [8 * k, 8 * k])
@@ -147,9 +149,9 @@ def test_widened_temporal_covariance_matches_numpy(rng):
         (a, B, np.diag(a) + B),
         (B, a, B + np.diag(a)),
     ):
-        got = shirt._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(True))
+        got = shirt_frame._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(True))
         np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-12)
-        kept = shirt._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(False))
+        kept = shirt_frame._widened(jnp.asarray(prior), jnp.asarray(blend), jnp.asarray(False))
         np.testing.assert_allclose(np.asarray(kept), np.diag(prior) if ref.ndim > prior.ndim
                                    else prior, rtol=1e-12)  # fmt: skip
 
@@ -182,7 +184,7 @@ def test_ablation_switches_change_the_program(setup):
     frames = jnp.asarray(setup["frames"])
 
     def n_eqns(params):
-        jaxpr = jax.make_jaxpr(lambda s, f: shirt._step(params, s, f, None))(state, frames)
+        jaxpr = jax.make_jaxpr(lambda s, f: shirt_frame._step(params, s, f, None))(state, frames)
         return len(str(jaxpr))
 
     full = n_eqns(p)

@@ -1,4 +1,4 @@
-"""The shirt step shipped ahead of time for the demo's set-up (jaxmocap.trackers.shirt_export).
+"""The shirt step shipped ahead of time for the demo's set-up (jaxmocap.trackers.shirt.export).
 
 The shipped program must be current (a stale one is never used, but then the demo's first frame
 traces again) and must be exactly the step that tracing produces: the oracle is the traced
@@ -18,13 +18,14 @@ import numpy as np
 import pytest
 from test_shirt import setup  # noqa: F401  (the shirt tests' two-camera scene, a fixture)
 
-from jaxmocap.trackers import shirt_export
+from jaxmocap.trackers.shirt import export as shirt_export
 
 _CHECK = textwrap.dedent(
     """
     import json, jax, numpy as np
     from jaxmocap._config import enable_compilation_cache
-    from jaxmocap.trackers import shirt, shirt_export
+    from jaxmocap.trackers import shirt
+    from jaxmocap.trackers.shirt import export as shirt_export
     enable_compilation_cache()
     params, state, frames = shirt_export._demo_inputs()
     program, why = shirt_export.load(params, state, frames[0])
@@ -65,7 +66,7 @@ def test_shipped_program_is_current_and_equals_the_traced_step():
 
 def test_manifest_names_existing_modules_and_pinned_libraries():
     m = json.loads(shirt_export.MANIFEST.read_text())
-    assert "trackers/shirt.py" in m["modules"] and "trackers/shirt_export.py" in m["modules"]
+    assert "trackers/shirt/frame.py" in m["modules"] and "trackers/shirt/export.py" in m["modules"]
     assert all((shirt_export.PACKAGE_ROOT / rel).is_file() for rel in m["modules"])
     assert set(m["libraries"]) == {"jax", "jaxlib", "equinox", "optimistix", "lineax"}
     stale = shirt_export._stale_reason(m)

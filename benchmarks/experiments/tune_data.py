@@ -29,7 +29,7 @@ SHIRT_HELDOUT = ("humanoid3d_punch", "humanoid3d_dance_b", "walker/turn_left0")
 OCCLUDED = {"humanoid3d_kick": (10, 16)}  # frames during which a panel hides part of the body
 STEREO_TRAIN = ("humanoid3d_walk", "humanoid3d_dance_a")
 STEREO_HELDOUT = ("humanoid3d_punch",)
-DB_SIZE = 3000  # the demo's database (jaxmocap.demo.DEMO_DB_SIZE)
+DB_SIZE = 3000  # the demo's database (jaxmocap.trackers.shirt.export.DEMO_DB_SIZE)
 WORK_SIZE = 96
 
 

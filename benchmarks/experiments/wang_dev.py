@@ -1,7 +1,7 @@
 """Development harness for the colour-shirt tracker (diagnostic, small scale).
 
 Tracks rendered sequences with given covariances / flags and prints per-frame shirt-joint
-errors, so that a change to ``jaxmocap/trackers/shirt.py`` can be measured on both held-out
+errors, so that a change to ``jaxmocap/trackers/shirt/`` can be measured on both held-out
 clips and on the recovery sequence without the whole of ``wang_accuracy.py``. Rendered
 sequences and trained covariances are cached under ``/tmp/wang_dev``.
 

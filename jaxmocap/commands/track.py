@@ -491,7 +491,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
                          f"shirt has {garment.n_colours}; fit one colour per shirt colour")
     W0 = room = None
     if args.white_balance:
-        from jaxmocap.commands.colors import load_room_colors, load_white_balance
+        from jaxmocap.io.white_balance import load_room_colors, load_white_balance
 
         W0 = load_white_balance(args.white_balance, names)
         room = load_room_colors(args.white_balance)

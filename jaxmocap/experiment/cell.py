@@ -5,7 +5,7 @@ up the way a user sets up a capture session, tracks every frame and returns the 
 validity flags, per-frame diagnostics and timings. :func:`cell_metrics` turns them into the
 metrics (in the driver, which writes the cell's folder):
 
-* per-joint error (cm) through :func:`jaxmocap.commands.evaluate.evaluate` (the frames the
+* per-joint error (cm) through :func:`jaxmocap.metrics.evaluate` (the frames the
   tracker reported valid) on the method's evaluated joints (the shirt: what its patches observe,
   ``jaxmocap.demo.EVAL_JOINTS``; the stereo filter: Azad's shoulders, elbows and hands,
   ``jaxmocap.demo.PF_JOINTS``);
@@ -207,7 +207,7 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         color = shirt.fit_color_model_from_renders(body, garment, q_model, seq.cameras[0],
                                                    seed=seed)
     if "white_balance" in opts:
-        from jaxmocap.commands.colors import load_white_balance
+        from jaxmocap.io.white_balance import load_white_balance
 
         W0 = load_white_balance(opts.pop("white_balance"), names)
     else:
@@ -384,8 +384,8 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
     import jax.numpy as jnp
 
     from jaxmocap.body import keypoints
-    from jaxmocap.commands.evaluate import evaluate
     from jaxmocap.io.export import load_track
+    from jaxmocap.metrics import evaluate
 
     gt = load_track(Path(gt_folder) / "groundtruth.npz")
     names = list(body.keypoint_names)

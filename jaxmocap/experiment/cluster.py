@@ -125,7 +125,7 @@ def run_on_cluster(specs: list[dict], fn: Callable[[dict], dict],
     completes (``distributed.as_completed``)."""
     from distributed import as_completed
 
-    from jaxmocap.experiment.runner import _one_line, guarded
+    from jaxmocap.experiment._guard import _one_line, guarded
 
     client, cluster = client_for(workers, scheduler, cluster_kwargs)
     try:

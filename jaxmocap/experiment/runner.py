@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxmocap.errors import InputError
+from jaxmocap.experiment._guard import _one_line, guarded
 from jaxmocap.experiment.cell import cell_metrics, compute_cell, diagnostics_csv, eval_joints
 from jaxmocap.experiment.config import (
     ExperimentConfig,
@@ -42,21 +43,6 @@ RESULT = "result.json"
 
 def cell_name(seq: str, config: str, seed: int) -> str:
     return f"{seq}__{config}__{seed}"
-
-
-def _one_line(err: BaseException) -> str:
-    msg = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {msg[0] if msg else ''}".rstrip(": ")
-
-
-def guarded(fn: Callable[[dict], dict], spec: dict) -> dict:
-    """Run ``fn(spec)``; bad input (:class:`InputError`, deterministic) comes back as
-    ``{"error": line}`` instead of raising, so the cluster does not retry it. Anything else
-    raises (and is retried)."""
-    try:
-        return fn(spec)
-    except InputError as e:
-        return {"error": _one_line(e)}
 
 
 def check_inputs(exp: ExperimentConfig, seqs: list[Sequence]) -> None:

@@ -6,7 +6,8 @@ take our pose estimate to be a weighted blend of the poses corresponding to thes
 * ``_sample``: the sampled poses (train clips, blends, mirrors, camera-relative orientations),
   the canonical camera, and :func:`pose_in_camera` (a database pose in a real camera's world);
 * ``_search``: the id-map distance, exact and fast 10-NN search, the blend ``q_b``;
-* ``_build``: rendering, the versioned ``.npz`` cache, ``jaxmocap build-db``.
+* ``_build``: rendering, the versioned ``.npz`` cache (``jaxmocap build-db``:
+  :mod:`jaxmocap.commands.build_db`).
 
     db = load_or_build()                                  # 80,000 poses, cached
     tiny = tiny_from_classified(colour_ids)               # a classified crop -> 40x40
@@ -16,7 +17,6 @@ take our pose estimate to be a weighted blend of the poses corresponding to thes
 
 from ._build import (
     CODE_VERSION,
-    add_parser,
     build_database,
     cache_path,
     check_built_for,
@@ -24,7 +24,6 @@ from ._build import (
     load_database,
     load_or_build,
     render_maps,
-    run,
     save_database,
 )
 from ._sample import (
@@ -64,9 +63,9 @@ from ._search import (
 )
 
 __all__ = [
-    "CODE_VERSION", "add_parser", "build_database", "cache_path", "check_built_for",
+    "CODE_VERSION", "build_database", "cache_path", "check_built_for",
     "database_key",
-    "load_database", "load_or_build", "render_maps", "run", "save_database",
+    "load_database", "load_or_build", "render_maps", "save_database",
     "CANON_DISTANCE", "DEFAULT_SIZE", "Mirror", "SamplingConfig", "SamplingError",
     "canonical_camera", "mirror_pose", "mirror_table", "pose_in_camera", "sample_poses",
     "source_pool", "BACKGROUND_WEIGHT", "BLEND_SIGMA", "COARSE_PHASES", "K_NEIGHBOURS",

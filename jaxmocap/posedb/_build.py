@@ -1,4 +1,4 @@
-"""Building, caching and loading the pose database; the ``jaxmocap build-db`` command.
+"""Building, caching and loading the pose database (the command: :mod:`jaxmocap.commands.build_db`).
 
 A database file is a ``.npz`` with ``maps`` (n, 40, 40) ``uint8`` colour ids, ``poses``
 (n, n_dof) float32 and ``meta`` (JSON: key, sampling settings, DOF and colour names). It is
@@ -22,7 +22,6 @@ by the jitted renderer, so each geom runs only its own primitive's test (``rende
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from pathlib import Path
@@ -37,9 +36,7 @@ from ..body import BodyModel, default_body, fk, geom_world_poses, rest_pose
 from ..body.geometry import BOX, CAPSULE, CYLINDER, SPHERE
 from ..garment import Garment, default_garment, garment_digest
 from ._sample import (
-    DEFAULT_SIZE,
     SamplingConfig,
-    SamplingError,
     canonical_camera,
     model_digest,
     sample_poses,
@@ -303,49 +300,3 @@ def load_or_build(
     if path.exists():
         return load_database(path, key, model)
     return build_database(config, model, garment, out=path, progress=progress)
-
-
-# ----------------------------------------------------------------------------- CLI
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("build-db", help="build (or find in the cache) the pose database "
-                       "of Wang et al. §5.2")
-    p.add_argument("--size", type=int, default=DEFAULT_SIZE,
-                   help="number of poses (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="sampling seed (default: %(default)s)")
-    p.add_argument("--out", default=None,
-                   help="write the database .npz here (default: the user's cache folder)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    from ..commands._body import add_body_args
-
-    add_body_args(p)
-    p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    from ..cli import UsageError
-    from ..commands._body import body_from_args, garment_from_args
-    from ..io.atomic import check_output_file
-    from ..io.preflight import check_outputs
-
-    try:
-        config = SamplingConfig(size=args.size, seed=args.seed).validate()
-    except SamplingError as err:
-        raise UsageError(f"--size/--seed: {err}") from None
-    model = body_from_args(args)
-    garment = garment_from_args(args, model)
-    if args.out is not None:
-        out = Path(args.out)
-        if out.suffix != ".npz":
-            raise UsageError(f"--out {args.out}: expected a path ending in .npz")
-        check_output_file(out)
-        check_outputs([out], [args.body, args.garment])
-        db = build_database(config, model, garment, out=out, progress=not args.quiet)
-        where = out
-    else:
-        check_output_file(cache_path(database_key(config, model, garment)))
-        db = load_or_build(config, model, garment, progress=not args.quiet)
-        where = cache_path(db.key)
-    print(f"pose database: {db.size} poses, key {db.key}, {where}")
-    return 0

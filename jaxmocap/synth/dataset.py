@@ -1,4 +1,4 @@
-"""Synthetic datasets on disk and the ``jaxmocap synth`` command.
+"""Synthetic datasets on disk (written by ``jaxmocap synth``: :mod:`jaxmocap.commands.synth`).
 
 A dataset folder holds
 
@@ -17,19 +17,17 @@ a target either does not exist or is complete. :func:`load_dataset` reads it bac
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
 
 import cv2
-import jax.numpy as jnp
 import numpy as np
 
 from jaxmocap.camera import load_cameras, save_cameras
 from jaxmocap.errors import InputError
-from jaxmocap.synth.scene import RIGS, SCENE_JSON_VERSION, SceneConfig, SceneError
-from jaxmocap.synth.sequence import Sequence, render_sequence
+from jaxmocap.synth.scene import SCENE_JSON_VERSION, SceneConfig, SceneError
+from jaxmocap.synth.sequence import Sequence
 
 VIDEO_CODEC = "mp4v"
 GT_FRAME_KEYS = ("q", "keypoints", "patch_ids", "illuminant", "intensity", "visible",
@@ -222,117 +220,3 @@ def load_dataset(folder: str | os.PathLike) -> Sequence:
         for n in names], axis=1)
     return Sequence(frames=frames, cameras=cams, camera_names=cam_names, groundtruth=gt,
                     config=config)
-
-
-# ----------------------------------------------------------------------------- CLI
-
-# option -> SceneConfig field
-_SCENE_OPTIONS = {
-    "clip": "clip", "fps": "fps", "start": "start", "frames": "n_frames", "preset": "rig",
-    "cameras": "n_cameras", "width": "width", "height": "height", "baseline": "baseline",
-    "distance": "distance", "k1": "k1", "garment": "garment", "shirt_rgb": "shirt_rgb",
-    "intensity": "intensity", "noise": "noise_sigma", "drift": "drift", "lamp_off": "lamp_off",
-    "lamp_share": "lamp_share",
-    "blur": "motion_blur", "shutter": "shutter", "background": "background",
-    "distractors": "n_distractors", "moving_object": "moving_object", "occluder": "occluder",
-    "leave_view": "leave_view", "colour_ids": "colour_ids", "seed": "seed",
-}  # fmt: skip
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "synth", help="render a synthetic sequence with ground truth into a dataset folder",
-        description="Render a retargeted mocap clip with a camera rig and the papers' "
-        "nuisances into OUT: one video per camera, cameras.json, groundtruth.npz, scene.json. "
-        "Unset options take SceneConfig's defaults (or the --scene file's values).")
-    p.add_argument("out", help="dataset folder to create (must not exist or be empty)")
-    p.add_argument("--scene", help="scene.json of an earlier dataset: regenerate it; other "
-                   "options override its settings")
-    a = p.add_argument
-    a("--clip", help="DeepMimic clip name (default humanoid3d_punch, held out)")
-    a("--fps", type=float)
-    a("--start", type=int, help="first clip frame")
-    a("--frames", type=int, help="number of frames (default: the whole clip)")
-    a("--preset", choices=sorted(RIGS), help="camera rig: stereo (Azad) or webcams (Wang)")
-    a("--cameras", type=int, help="number of cameras, 1-4")
-    a("--width", type=int)
-    a("--height", type=int)
-    a("--baseline", type=float, help="metres between neighbouring cameras")
-    a("--distance", type=float, help="metres from the subject")
-    a("--k1", type=float, help="radial distortion k1")
-    a("--garment", choices=("shirt", "single"))
-    a("--shirt-rgb", type=float, nargs=3, metavar=("R", "G", "B"))
-    a("--intensity", type=float, help="light intensity (1 normal, <1 dim)")
-    a("--noise", type=float, help="sensor noise sigma, fraction of 255")
-    a("--drift", type=float, help="relative amplitude of the lamp's smooth drift")
-    a("--lamp-off", type=int, metavar="FRAME", help="switch the lamp off at this frame")
-    a("--lamp-share", type=float, metavar="S",
-      help="the switched lamp's share of the light in (0, 1) (default: the mild built-in mix; "
-           "0.7 makes switching it off a sudden, strongly bluer and darker change)")
-    a("--blur", type=int, metavar="S", help="motion blur: odd number of sub-frames")
-    a("--shutter", type=float, help="exposure as a fraction of the frame interval")
-    a("--background", choices=("plain", "clutter"))
-    a("--distractors", type=int)
-    a("--moving-object", action=argparse.BooleanOptionalAction, default=None)
-    a("--occluder", type=int, nargs=2, metavar=("FIRST", "LAST"))
-    a("--leave-view", type=int, nargs=2, metavar=("FIRST", "LAST"))
-    a("--colour-ids", action=argparse.BooleanOptionalAction, default=None)
-    a("--seed", type=int)
-    a("--png", action="store_true", help="also write lossless PNG frames")
-    a("--no-video", action="store_true", help="do not write the mp4 videos (needs --png)")
-    a("--quiet", action="store_true", help="no progress bar")
-    a("--contact-sheet", action="store_true", help="also write contact_sheet.png (8 frames)")
-    from jaxmocap.synth.world.cli import add_world_options
-
-    add_world_options(p)
-    p.set_defaults(func=run)
-
-
-def config_from_args(args: argparse.Namespace) -> SceneConfig:
-    """The SceneConfig of the command line (over a ``--scene`` file when given)."""
-    base: dict = {}
-    if args.scene:
-        from jaxmocap.io.preflight import read_json
-
-        path = Path(args.scene)
-        doc = read_json(path, "a scene.json of `jaxmocap synth`", DatasetError)
-        if not isinstance(doc, dict) or not isinstance(doc.get("scene"), dict):
-            raise DatasetError(f"{path}: field 'scene': expected an object of settings")
-        base = dict(doc["scene"])
-    for opt, field in _SCENE_OPTIONS.items():
-        v = getattr(args, opt)
-        if v is not None:
-            base[field] = tuple(v) if isinstance(v, list) else v
-    return SceneConfig.from_dict(base, args.scene or "command line")
-
-
-def run(args: argparse.Namespace) -> int:
-    import time
-
-    if getattr(args, "renderer", "jax") == "mujoco":
-        from jaxmocap.synth.world.cli import run_mujoco
-
-        return run_mujoco(args)
-    world_only = [o for o in ("world", "body_height", "shoulder_width", "upper_arm", "forearm",
-                              "naming", "limbs", "layout", "lamps", "dim", "yaw", "spin",
-                              "jpeg", "camera_height", "fov", "fill")
-                  if getattr(args, o, None) is not None]
-    if world_only:
-        raise DatasetError(f"--{world_only[0].replace('_', '-')}: needs --renderer mujoco")
-    if args.no_video and not args.png:
-        raise DatasetError("--no-video needs --png (otherwise no frames would be written)")
-    config = config_from_args(args)
-    _check_target(Path(args.out))
-    from jaxmocap.io.atomic import check_output_folder
-
-    check_output_folder(args.out)
-    t0 = time.perf_counter()
-    seq = render_sequence(config, progress=not args.quiet)
-    dt = time.perf_counter() - t0
-    folder = write_dataset(seq, args.out, video=not args.no_video, png=args.png,
-                           dtype_name=str(jnp.dtype(jnp.result_type(float))),
-                           sheet=args.contact_sheet)
-    t, n_cams, h, w, _ = seq.frames.shape
-    print(f"jaxmocap synth: wrote {t} frames x {n_cams} cameras ({w}x{h}) to {folder} "
-          f"in {dt:.1f} s ({t / dt:.1f} frames/s)")
-    return 0

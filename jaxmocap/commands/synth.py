@@ -1,5 +1,6 @@
-"""``jaxmocap synth --renderer mujoco`` (one sequence) and ``jaxmocap synth-world`` (the
-dev / test sets of :mod:`jaxmocap.synth.world.split`)."""
+"""``jaxmocap synth``: render a synthetic sequence with ground truth into a dataset folder
+(:mod:`jaxmocap.synth.dataset`), with the trackers' own renderer or, with ``--renderer
+mujoco``, the independent test world (:mod:`jaxmocap.synth.world`)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,12 @@ import json
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
+
 from jaxmocap.errors import InputError
+from jaxmocap.synth.dataset import DatasetError, _check_target, write_dataset
+from jaxmocap.synth.scene import RIGS, SceneConfig
+from jaxmocap.synth.sequence import render_sequence
 from jaxmocap.synth.world.spec import GARMENT_LAYOUTS, LAMP_COLOURS, WorldError, WorldSpec
 
 # synth options the MuJoCo world cannot honour (said in one line, not ignored)
@@ -96,7 +102,6 @@ def spec_from_args(args: argparse.Namespace) -> WorldSpec:
 
 
 def run_mujoco(args: argparse.Namespace) -> int:
-    from jaxmocap.synth.dataset import _check_target
     from jaxmocap.synth.world.render import render_world, write_world
 
     if args.no_video and not args.png:
@@ -113,72 +118,109 @@ def run_mujoco(args: argparse.Namespace) -> int:
     return 0
 
 
-# ----------------------------------------------------------------------------- synth-world
 
-
-EPILOG = """examples:
-  jaxmocap synth-world world --split dev
-  jaxmocap synth-world world --split test --tracker shirt
-  jaxmocap synth-world quick --split dev --only shirt_00 pf_00 --frames 10
-
-Sequences already in OUT are kept (delete a folder to render it again).
-"""
+# option -> SceneConfig field
+_SCENE_OPTIONS = {
+    "clip": "clip", "fps": "fps", "start": "start", "frames": "n_frames", "preset": "rig",
+    "cameras": "n_cameras", "width": "width", "height": "height", "baseline": "baseline",
+    "distance": "distance", "k1": "k1", "garment": "garment", "shirt_rgb": "shirt_rgb",
+    "intensity": "intensity", "noise": "noise_sigma", "drift": "drift", "lamp_off": "lamp_off",
+    "lamp_share": "lamp_share",
+    "blur": "motion_blur", "shutter": "shutter", "background": "background",
+    "distractors": "n_distractors", "moving_object": "moving_object", "occluder": "occluder",
+    "leave_view": "leave_view", "colour_ids": "colour_ids", "seed": "seed",
+}  # fmt: skip
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
-        "synth-world", help="render the independent test world (dev or test split, MuJoCo)",
-        description="Render the test world's sequences of one split (jaxmocap/synth/world/"
-        "test_world.json; docs/results/test_world.md) into OUT/<name>/, each a jaxmocap "
-        "synth dataset folder. Tune on dev only.", epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("out", help="folder to write the sequences into (created)")
-    p.add_argument("--split", choices=("dev", "test", "all"), required=True,
-                   help="which sequences: dev (tune on these), test (report on these) or all")
-    p.add_argument("--tracker", choices=("shirt", "pf", "both"), default="both",
-                   help="shirt (2 x 640x480), pf (320x240 stereo) or both (default)")
-    p.add_argument("--only", nargs="+", metavar="NAME", help="only these sequences")
-    p.add_argument("--frames", type=int, metavar="N", help="at most N frames per sequence "
-                   "(quick checks; the split's numbers are for the full length)")
-    p.add_argument("--png", action="store_true", help="also write lossless PNG frames")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+        "synth", help="render a synthetic sequence with ground truth into a dataset folder",
+        description="Render a retargeted mocap clip with a camera rig and the papers' "
+        "nuisances into OUT: one video per camera, cameras.json, groundtruth.npz, scene.json. "
+        "Unset options take SceneConfig's defaults (or the --scene file's values).")
+    p.add_argument("out", help="dataset folder to create (must not exist or be empty)")
+    p.add_argument("--scene", help="scene.json of an earlier dataset: regenerate it; other "
+                   "options override its settings")
+    a = p.add_argument
+    a("--clip", help="DeepMimic clip name (default humanoid3d_punch, held out)")
+    a("--fps", type=float)
+    a("--start", type=int, help="first clip frame")
+    a("--frames", type=int, help="number of frames (default: the whole clip)")
+    a("--preset", choices=sorted(RIGS), help="camera rig: stereo (Azad) or webcams (Wang)")
+    a("--cameras", type=int, help="number of cameras, 1-4")
+    a("--width", type=int)
+    a("--height", type=int)
+    a("--baseline", type=float, help="metres between neighbouring cameras")
+    a("--distance", type=float, help="metres from the subject")
+    a("--k1", type=float, help="radial distortion k1")
+    a("--garment", choices=("shirt", "single"))
+    a("--shirt-rgb", type=float, nargs=3, metavar=("R", "G", "B"))
+    a("--intensity", type=float, help="light intensity (1 normal, <1 dim)")
+    a("--noise", type=float, help="sensor noise sigma, fraction of 255")
+    a("--drift", type=float, help="relative amplitude of the lamp's smooth drift")
+    a("--lamp-off", type=int, metavar="FRAME", help="switch the lamp off at this frame")
+    a("--lamp-share", type=float, metavar="S",
+      help="the switched lamp's share of the light in (0, 1) (default: the mild built-in mix; "
+           "0.7 makes switching it off a sudden, strongly bluer and darker change)")
+    a("--blur", type=int, metavar="S", help="motion blur: odd number of sub-frames")
+    a("--shutter", type=float, help="exposure as a fraction of the frame interval")
+    a("--background", choices=("plain", "clutter"))
+    a("--distractors", type=int)
+    a("--moving-object", action=argparse.BooleanOptionalAction, default=None)
+    a("--occluder", type=int, nargs=2, metavar=("FIRST", "LAST"))
+    a("--leave-view", type=int, nargs=2, metavar=("FIRST", "LAST"))
+    a("--colour-ids", action=argparse.BooleanOptionalAction, default=None)
+    a("--seed", type=int)
+    a("--png", action="store_true", help="also write lossless PNG frames")
+    a("--no-video", action="store_true", help="do not write the mp4 videos (needs --png)")
+    a("--quiet", action="store_true", help="no progress bar")
+    a("--contact-sheet", action="store_true", help="also write contact_sheet.png (8 frames)")
+    add_world_options(p)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from jaxmocap.io.atomic import check_output_folder
-    from jaxmocap.synth.world.render import render_world, write_world
-    from jaxmocap.synth.world.split import load_split
+def config_from_args(args: argparse.Namespace) -> SceneConfig:
+    """The SceneConfig of the command line (over a ``--scene`` file when given)."""
+    base: dict = {}
+    if args.scene:
+        from jaxmocap.io.preflight import read_json
 
-    out = check_output_folder(args.out)
-    if args.frames is not None and args.frames < 1:
-        raise InputError(f"--frames {args.frames}: expected a number of frames >= 1")
-    seqs = [s for s in load_split()
-            if (args.split == "all" or s["split"] == args.split)
-            and (args.tracker == "both" or s["tracker"] == args.tracker)]
-    if args.only:
-        known = {s["name"] for s in load_split()}
-        bad = sorted(set(args.only) - known)
-        if bad:
-            raise InputError(f"--only: unknown sequence(s) {bad}; known: {sorted(known)}")
-        seqs = [s for s in seqs if s["name"] in args.only]
-    todo = [s for s in seqs if not (out / s["name"]).exists()]
-    if len(todo) < len(seqs):
-        print(f"jaxmocap synth-world: {len(seqs) - len(todo)} sequence(s) already in {out}, "
-              "kept")
-    out.mkdir(parents=True, exist_ok=True)
-    total = time.perf_counter()
-    for s in todo:
-        spec_d = dict(s["world"])
-        if args.frames is not None:
-            spec_d["n_frames"] = min(args.frames, spec_d["n_frames"] or args.frames)
-        spec = WorldSpec.from_dict(spec_d, s["name"])
-        seq = render_world(spec, progress=not args.quiet)
-        write_world(seq, out / s["name"], png=args.png)
-        t, c = seq.frames.shape[:2]
-        print(f"jaxmocap synth-world: {s['name']} ({s['split']}, {t} frames x {c} cameras "
-              f"{seq.frames.shape[3]}x{seq.frames.shape[2]}) in {seq.seconds:.1f} s "
-              f"(frame loop {1000 * seq.render_seconds / t:.0f} ms per frame)")
-    print(f"jaxmocap synth-world: {len(todo)} sequence(s) in {time.perf_counter() - total:.0f} s"
-          f" -> {out}")
+        path = Path(args.scene)
+        doc = read_json(path, "a scene.json of `jaxmocap synth`", DatasetError)
+        if not isinstance(doc, dict) or not isinstance(doc.get("scene"), dict):
+            raise DatasetError(f"{path}: field 'scene': expected an object of settings")
+        base = dict(doc["scene"])
+    for opt, field in _SCENE_OPTIONS.items():
+        v = getattr(args, opt)
+        if v is not None:
+            base[field] = tuple(v) if isinstance(v, list) else v
+    return SceneConfig.from_dict(base, args.scene or "command line")
+
+
+def run(args: argparse.Namespace) -> int:
+
+    if getattr(args, "renderer", "jax") == "mujoco":
+        return run_mujoco(args)
+    world_only = [o for o in ("world", "body_height", "shoulder_width", "upper_arm", "forearm",
+                              "naming", "limbs", "layout", "lamps", "dim", "yaw", "spin",
+                              "jpeg", "camera_height", "fov", "fill")
+                  if getattr(args, o, None) is not None]
+    if world_only:
+        raise DatasetError(f"--{world_only[0].replace('_', '-')}: needs --renderer mujoco")
+    if args.no_video and not args.png:
+        raise DatasetError("--no-video needs --png (otherwise no frames would be written)")
+    config = config_from_args(args)
+    _check_target(Path(args.out))
+    from jaxmocap.io.atomic import check_output_folder
+
+    check_output_folder(args.out)
+    t0 = time.perf_counter()
+    seq = render_sequence(config, progress=not args.quiet)
+    dt = time.perf_counter() - t0
+    folder = write_dataset(seq, args.out, video=not args.no_video, png=args.png,
+                           dtype_name=str(jnp.dtype(jnp.result_type(float))),
+                           sheet=args.contact_sheet)
+    t, n_cams, h, w, _ = seq.frames.shape
+    print(f"jaxmocap synth: wrote {t} frames x {n_cams} cameras ({w}x{h}) to {folder} "
+          f"in {dt:.1f} s ({t / dt:.1f} frames/s)")
     return 0

@@ -29,12 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
-DEMO_CLIP = "humanoid3d_punch"  # held out from the database and covariances (docs/DATA.md)
-DEMO_FRAMES = 20
-DEMO_SIZE = (320, 240)
-DEMO_DB_SIZE = 3000
-DEMO_LAMP_OFF = 12  # frame at which the lamp is switched off
-DEMO_OCCLUDER = (5, 8)  # frames during which a panel passes in front
+from jaxmocap.errors import UsageError
+from jaxmocap.trackers.shirt.export import (
+    DEMO_CLIP,
+    DEMO_DB_SIZE,
+    DEMO_FRAMES,
+    DEMO_LAMP_OFF,
+    DEMO_OCCLUDER,
+    DEMO_SIZE,
+    demo_scene,
+    demo_setup,
+)
+
 EVAL_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
                "neck", "chest")  # what the shirt's patches observe
 PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")  # Azad's
@@ -56,36 +62,6 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", type=int_range(2), default=DEMO_FRAMES,
                    help="number of frames to render and track (default: %(default)s)")
     p.set_defaults(func=run)
-
-
-def scene_config(n_frames: int):
-    """The demo's two-webcam scene of ``n_frames`` frames (module docstring, step 1)."""
-    from jaxmocap.synth import SceneConfig
-
-    return SceneConfig(clip=DEMO_CLIP, n_frames=n_frames, rig="webcams",
-                       width=DEMO_SIZE[0], height=DEMO_SIZE[1],
-                       lamp_off=min(DEMO_LAMP_OFF, n_frames - 1),
-                       occluder=DEMO_OCCLUDER if n_frames > DEMO_OCCLUDER[1] else None,
-                       noise_sigma=0.01, seed=0)
-
-
-def _setup(seq, progress: bool):
-    """Pose database (small, cached), then the capture-session set-up of §5.1
-    (:func:`jaxmocap.trackers.shirt.setup_for_sequence`)."""
-    import jax.numpy as jnp
-
-    from jaxmocap.body import default_body
-    from jaxmocap.garment import default_garment
-    from jaxmocap.posedb import SamplingConfig, load_or_build
-    from jaxmocap.trackers import shirt
-
-    model = default_body()
-    db = load_or_build(SamplingConfig(size=DEMO_DB_SIZE), model, default_garment(model),
-                       progress=progress)
-    # the bundled covariances, trained on other clips (the demo's clip is held out)
-    cov = shirt.trained_covariances(model.n_dof)
-    params, W0, _ = shirt.setup_for_sequence(seq, db, cov=cov, work_size=96)
-    return model, params, W0, jnp.zeros(model.n_dof)
 
 
 def _track(params, W0, q0, frames, progress: bool):
@@ -191,7 +167,6 @@ def _plot(files, path: Path, times, kp_est, kp_true, names) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxmocap.cli import UsageError
     from jaxmocap.io.atomic import AtomicFiles, check_output_folder
     from jaxmocap.io.export import pose_track, write_exports
     from jaxmocap.synth import render_sequence
@@ -204,11 +179,11 @@ def run(args: argparse.Namespace) -> int:
           f"webcams, {args.frames} frames, lamp off at frame {DEMO_LAMP_OFF}, occluder during "
           f"frames {DEMO_OCCLUDER[0]}-{DEMO_OCCLUDER[1]}")
     t0 = time.perf_counter()
-    config = scene_config(args.frames)
+    config = demo_scene(args.frames)
     seq = render_sequence(config, progress=progress)
     print(f"  rendered in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
-    model, params, W0, q0 = _setup(seq, progress)
+    model, params, W0, q0 = demo_setup(seq, progress)
     print(f"  set-up (pose database of {DEMO_DB_SIZE} poses, colour model, white balance) in "
           f"{time.perf_counter() - t0:.1f} s")
     res, step_s = _track(params, W0, q0, seq.frames, progress)

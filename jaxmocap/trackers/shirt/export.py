@@ -1,8 +1,9 @@
-"""The colour-shirt step exported ahead of time for the demo's set-up (issue 21: cold start).
+"""The colour-shirt step exported ahead of time for the demo's set-up (cold start), and that
+set-up itself (:func:`demo_scene`, :func:`demo_setup`; ``jaxmocap demo`` runs it).
 
 A first frame on an empty compilation cache spends ~6 s tracing the step in Python (tens of
-thousands of primitives) before XLA compiles it for ~16 s (``docs/results/realtime_profile.md``,
-session 17). For the one set-up every newcomer runs -- ``jaxmocap demo``: two 320x240 webcams,
+thousands of primitives) before XLA compiles it for ~16 s (``docs/results/realtime_profile.md``).
+For the one set-up every newcomer runs -- ``jaxmocap demo``: two 320x240 webcams,
 the bundled body and shirt, the demo's pose database -- the package ships the step already
 traced and lowered (``jax.export``, StableHLO), so that first frame only compiles it.
 
@@ -16,7 +17,7 @@ The shipped program applies only where it is exactly the step that tracing would
 Array values (database, colour model, cameras, covariances, white balance) are arguments of
 the program, not baked into it. Where the program does not apply, :func:`load` says why in
 one line and the caller traces the step as usual (the compilation cache still keeps it for
-the next run). ``python -m jaxmocap.trackers.shirt_export`` writes the program again; a test
+the next run). ``python -m jaxmocap.trackers.shirt.export`` writes the program again; a test
 fails while the shipped one is stale.
 """
 
@@ -36,16 +37,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 EXPORT_DIR = Path(__file__).resolve().with_name("exported")
 PROGRAM = EXPORT_DIR / "shirt_step_demo.jaxexport.gz"
 MANIFEST = EXPORT_DIR / "shirt_step_demo.json"
 SETUP = "jaxmocap demo's set-up: 2 webcams 320x240, bundled body and shirt, 3,000-pose database"
-REGENERATE = "python -m jaxmocap.trackers.shirt_export"
+REGENERATE = "python -m jaxmocap.trackers.shirt.export"
 # LAPACK calls of the IK's least-squares solve (QR): jax.export guarantees compatibility only
 # for a list of custom calls; the fingerprint pins the exact jax / jaxlib instead
 _CUSTOM_CALLS = ("lapack_sgeqrf_ffi", "lapack_sormqr_ffi")
 _LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax")
+
+# The demo's set-up (``jaxmocap demo``): a held-out clip (docs/DATA.md), two 320x240 webcams, a
+# lamp switched off and an occluder passing in front, a small pose database.
+DEMO_CLIP = "humanoid3d_punch"  # held out from the database and covariances (docs/DATA.md)
+DEMO_FRAMES = 20
+DEMO_SIZE = (320, 240)
+DEMO_DB_SIZE = 3000
+DEMO_LAMP_OFF = 12  # frame at which the lamp is switched off
+DEMO_OCCLUDER = (5, 8)  # frames during which a panel passes in front
 
 
 def _static_token(x) -> str:
@@ -103,7 +113,7 @@ def _loaded_modules() -> list[str]:
 def _output_tree(state) -> jax.tree_util.PyTreeDef:
     """The tree of ``(ShirtState, ShirtOutput)`` (every leaf an array; built from the classes,
     so that the program's flat outputs become the step's outputs without tracing it)."""
-    from jaxmocap.trackers.shirt import FrameSignals, ShirtOutput
+    from jaxmocap.trackers.shirt.params import FrameSignals, ShirtOutput
 
     signals = FrameSignals(*([0] * len(FrameSignals._fields)))
     out = ShirtOutput(**{f.name: signals if f.name == "signals" else 0
@@ -112,7 +122,7 @@ def _output_tree(state) -> jax.tree_util.PyTreeDef:
 
 
 def _flat_step(treedef, static):
-    from jaxmocap.trackers.shirt import _step
+    from jaxmocap.trackers.shirt.frame import _step
 
     def flat(leaves, frames):
         params, state = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
@@ -185,14 +195,42 @@ def load(params, state, frames, masks=None) -> tuple[Callable | None, str]:
     return fn, "the shipped program"
 
 
-def _demo_inputs():
-    from jaxmocap import demo
-    from jaxmocap.synth import render_sequence
-    from jaxmocap.trackers import shirt
+def demo_scene(n_frames: int):
+    """The demo's two-webcam scene of ``n_frames`` frames (:class:`jaxmocap.synth.SceneConfig`)."""
+    from jaxmocap.synth import SceneConfig
 
-    seq = render_sequence(demo.scene_config(2), progress=False)
-    _, params, w0, q0 = demo._setup(seq, False)
-    return params, shirt.init(params, w0, q0), seq.frames
+    return SceneConfig(clip=DEMO_CLIP, n_frames=n_frames, rig="webcams",
+                       width=DEMO_SIZE[0], height=DEMO_SIZE[1],
+                       lamp_off=min(DEMO_LAMP_OFF, n_frames - 1),
+                       occluder=DEMO_OCCLUDER if n_frames > DEMO_OCCLUDER[1] else None,
+                       noise_sigma=0.01, seed=0)
+
+
+def demo_setup(seq, progress: bool):
+    """Pose database (small, cached), then the capture-session set-up of §5.1
+    (:func:`jaxmocap.trackers.shirt.setup_for_sequence`). Returns ``(body, params, W0, q0)``."""
+    from jaxmocap.body import default_body
+    from jaxmocap.garment import default_garment
+    from jaxmocap.posedb import SamplingConfig, load_or_build
+    from jaxmocap.trackers.shirt.covariances import trained_covariances
+    from jaxmocap.trackers.shirt.session import setup_for_sequence
+
+    model = default_body()
+    db = load_or_build(SamplingConfig(size=DEMO_DB_SIZE), model, default_garment(model),
+                       progress=progress)
+    # the bundled covariances, trained on other clips (the demo's clip is held out)
+    cov = trained_covariances(model.n_dof)
+    params, W0, _ = setup_for_sequence(seq, db, cov=cov, work_size=96)
+    return model, params, W0, jnp.zeros(model.n_dof)
+
+
+def _demo_inputs():
+    from jaxmocap.synth import render_sequence
+    from jaxmocap.trackers.shirt.params import init
+
+    seq = render_sequence(demo_scene(2), progress=False)
+    _, params, w0, q0 = demo_setup(seq, False)
+    return params, init(params, w0, q0), seq.frames
 
 
 def main() -> None:

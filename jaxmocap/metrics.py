@@ -1,0 +1,95 @@
+"""Metrics of a track against a ground truth: per-joint position error and jitter (``jaxmocap
+eval``: :mod:`jaxmocap.commands.evaluate`; ``jaxmocap experiment``'s cells).
+
+Both files hold keypoint trajectories (:func:`jaxmocap.io.export.load_track`): our
+``poses.npz`` / ``poses.csv`` and a synthetic dataset's ``groundtruth.npz`` (or the dataset
+folder). Keypoints are matched by name. Metrics (all in **centimetres**):
+
+* **MPJPE** — mean over the frames the tracker produced of ``||x_pred - x_gt||`` per joint,
+  and over all joints (frames it did not produce are counted separately, not averaged in);
+* **jitter** — mean ``||x_{t+1} - 2 x_t + x_{t-1}||`` over consecutive tracked triples (cm per
+  frame^2, the second difference), for the prediction and for the ground truth — tracking
+  noise shows as prediction jitter well above the ground truth's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxmocap.errors import InputError
+from jaxmocap.io.export import PoseFileError, load_track
+
+__all__ = ["evaluate", "format_table"]
+
+
+def _jitter(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Per-joint mean second-difference norm over triples with all three frames ``ok``."""
+    if len(x) < 3:
+        return np.full(x.shape[1], np.nan)
+    acc = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)  # (T-2, k)
+    m = ok[2:] & ok[1:-1] & ok[:-2]
+    return acc[m].mean(axis=0) if m.any() else np.full(x.shape[1], np.nan)
+
+
+def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:
+    """The metrics of the module docstring as a JSON-ready dict."""
+    gt_path = Path(gt_path)
+    if gt_path.is_dir():
+        gt_path = gt_path / "groundtruth.npz"
+    pred, gt = load_track(pred_path), load_track(gt_path)
+    if not np.all(np.isfinite(gt.keypoints)):
+        t = int(np.argwhere(~np.isfinite(gt.keypoints))[0, 0])
+        raise PoseFileError(f"{gt_path}: field 'keypoints' holds NaN/inf (first at frame {t}); "
+                            "a ground truth must be complete")
+    if np.isinf(pred.keypoints).any():
+        t = int(np.argwhere(np.isinf(pred.keypoints))[0, 0])
+        raise PoseFileError(f"{pred_path}: field 'keypoints' holds inf at frame {t} (missing "
+                            "frames must be NaN)")
+    if pred.n_frames != gt.n_frames:
+        raise InputError(f"{pred_path} has {pred.n_frames} frames, {gt_path} has {gt.n_frames}; "
+                         "evaluate a tracking of the whole ground-truth sequence")
+    names = [n for n in gt.keypoint_names if n in pred.keypoint_names]
+    if not names:
+        raise InputError(f"{pred_path} and {gt_path} share no keypoint names "
+                         f"({list(pred.keypoint_names)[:4]}... vs "
+                         f"{list(gt.keypoint_names)[:4]}...)")
+    ip = [pred.keypoint_names.index(n) for n in names]
+    ig = [gt.keypoint_names.index(n) for n in names]
+    xp, xg = pred.keypoints[:, ip] * 100.0, gt.keypoints[:, ig] * 100.0  # cm
+    ok = pred.valid & np.isfinite(xp).all(axis=(1, 2))
+    if not ok.any():
+        raise InputError(f"{pred_path}: no tracked frame to evaluate (all {pred.n_frames} "
+                         "frames are missing)")
+    err = np.linalg.norm(xp[ok] - xg[ok], axis=-1)  # (n_ok, k)
+    per_joint = err.mean(axis=0)
+    jp, jg = _jitter(xp, ok), _jitter(xg, np.ones_like(ok))
+    return {
+        "prediction": str(pred_path),
+        "groundtruth": str(gt_path),
+        "frames": int(pred.n_frames),
+        "frames_tracked": int(ok.sum()),
+        "mpjpe_cm": float(err.mean()),
+        "median_error_cm": float(np.median(err)),
+        "jitter_cm_per_frame2": float(np.nanmean(jp)) if np.isfinite(jp).any() else None,
+        "jitter_groundtruth_cm_per_frame2": float(np.nanmean(jg)) if np.isfinite(jg).any()
+        else None,
+        "joints": {n: {"mpjpe_cm": float(per_joint[i]),
+                       "jitter_cm_per_frame2": None if np.isnan(jp[i]) else float(jp[i])}
+                   for i, n in enumerate(names)},
+    }
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:8.2f}"
+
+
+def format_table(res: dict) -> str:
+    lines = [f"{'joint':<12} {'MPJPE cm':>8} {'jitter':>8}"]
+    for n, r in res["joints"].items():
+        lines.append(f"{n:<12} {_fmt(r['mpjpe_cm'])} {_fmt(r['jitter_cm_per_frame2'])}")
+    lines.append(f"{'all':<12} {_fmt(res['mpjpe_cm'])} {_fmt(res['jitter_cm_per_frame2'])}")
+    lines.append(f"tracked {res['frames_tracked']} of {res['frames']} frames; ground-truth "
+                 f"jitter {_fmt(res['jitter_groundtruth_cm_per_frame2']).strip()} cm/frame^2")
+    return "\n".join(lines)

@@ -1,0 +1,504 @@
+"""The colour-shirt frame step (Wang et al. 2011 §5.2), one function per paper step; ``_step``
+chains them under one jit (the frame walk: :mod:`jaxmocap.trackers.shirt`)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int, UInt8
+
+from jaxmocap.camera import Camera, camera_center, pixel_rays, to_camera
+from jaxmocap.color import (
+    classify_views_with_references,
+    histogram_search,
+    maybe_add_reference,
+    white_balance_from_ids,
+)
+from jaxmocap.color.classify import THRESHOLD
+from jaxmocap.color.illumination import MIN_CLASSIFIED_FRACTION, ReferenceClassification
+from jaxmocap.color.pose_assisted import (
+    POSE_THRESHOLD,
+    PRIOR_SCALE,
+    PatchCentroids,
+    patch_centroids,
+    patch_distance_maps,
+    pose_assisted_classify,
+)
+from jaxmocap.ik import (
+    IKCovariances,
+    initial_root,
+    solve_global,
+    solve_ik,
+)
+from jaxmocap.ik import view_anchors as _view_anchors
+from jaxmocap.posedb._sample import pose_in_camera
+from jaxmocap.posedb._search import estimate_pose
+from jaxmocap.render import (
+    TINY_SIZE,
+    Hits,
+    render_rays,
+    render_uv,
+    resample_ids,
+    tiny_hits,
+    window_from_mask,
+)
+from jaxmocap.trackers.shirt.image import (
+    _crop_to_image,
+    _erode,
+    crop_uv,
+    crop_window,
+    sample_bilinear,
+    sample_nearest,
+)
+from jaxmocap.trackers.shirt.params import (
+    MAX_ROOT_OFFSET,
+    MIN_VALID_PATCHES,
+    REFERENCE_PIXELS,
+    TIE_BREAK_WEIGHT,
+    FrameSignals,
+    ShirtOutput,
+    ShirtParams,
+    ShirtState,
+)
+
+
+def _root_guess(
+    params: ShirtParams, cam: Camera, q_db: Array, win_db: Array, win_q: Array
+) -> Array:
+    """Root (6) of the database pose placed in camera ``cam`` so that its canonical window
+    ``win_db`` lands on the query window ``win_q``: the root's pixel keeps its normalised
+    position in the window and its depth scales with the window side and focal length."""
+    canon = params.canon
+    dt = q_db.dtype
+    root_c = canon.t.astype(dt)  # root at the origin: its canonical camera-frame position
+    p_c = canon.K.astype(dt) @ root_c
+    p_c = p_c[:2] / p_c[2]
+    p_i = win_q[:2] + (p_c - win_db[:2]) * win_q[2] / win_db[2]
+    depth = root_c[2] * (cam.K[0, 0] / canon.K[0, 0]) * (win_db[2] / win_q[2])
+    o, d = pixel_rays(cam, p_i)
+    X = o + d * depth / to_camera(cam, o + d)[2]
+    q = pose_in_camera(q_db, cam, to_camera(cam, X))
+    return q[:6]
+
+
+def _widened(prior: Array, blend: Array, fresh: Array) -> Array:
+    """``Sigma_p + Sigma_b`` where ``fresh``, else ``Sigma_p`` (each a matrix or a vector of
+    variances; a matrix if either is)."""
+    if prior.ndim != blend.ndim:
+        prior = jnp.diag(prior) if prior.ndim == 1 else prior
+        blend = jnp.diag(blend) if blend.ndim == 1 else blend
+    return jnp.where(fresh, prior + blend.astype(prior.dtype), prior)
+
+
+class Views(NamedTuple):
+    """Steps 0–1, stacked over cameras: resampled crops, their foregrounds (or None), crop
+    windows, scales ``s'``, whether the search found the shirt, step-1 classification."""
+
+    crops: UInt8[Array, "n_cams n n 3"]
+    fgs: Bool[Array, "n_cams n n"] | None
+    windows: Float[Array, "n_cams 4"]
+    s_found: Float[Array, " n_cams"]
+    found: Bool[Array, " n_cams"]
+    cls: ReferenceClassification
+
+
+class DatabasePose(NamedTuple):
+    """Step 2, stacked over cameras: blended database pose, query window (image px),
+    ``q_db``'s tiny patch map and canonical window; ``okq`` cameras that found the shirt; the
+    joint angles averaged over them."""
+
+    q_dbs: Float[Array, "n_cams n_dof"]
+    win_qs: Float[Array, "n_cams 4"]
+    tiny_patch: Int[Array, "n_cams t t"]
+    win_dbs: Float[Array, "n_cams 4"]
+    okq: Bool[Array, " n_cams"]
+    joints: Array
+
+
+class RoundContext(NamedTuple):
+    """What every round of steps 3–4 shares: the views, ``okq``, the placed blend ``q_g``,
+    the temporal prior ``q_h``, the IK covariances, the crops' pixel grids and their rays
+    (``(origins, dirs)`` stacked over cameras: every render of the frame casts the same rays,
+    so the grid is undistorted once per frame, not once per render)."""
+
+    views: Views
+    okq: Array
+    q_g: Array
+    q_h: Array
+    cov: IKCovariances
+    uvs: Float[Array, "n_cams n n 2"]
+    rays: tuple[Float[Array, "n_cams 3"], Float[Array, "n_cams n n 3"]]
+
+
+def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
+    """§4 + §5.2 step 1: histogram search and crop resampling per camera (unrolled: the
+    search under vmap ran 9.3 -> 10.8 ms), then the classification of every crop with its
+    reference illuminations in one ``vmap`` (:func:`classify_views_with_references`)."""
+    n, dt = params.work_size, state.q.dtype
+    crops, fgs, windows, s_found, found = [], [], [], [], []
+    for i in range(params.n_cams):
+        mask_i = None if masks is None else masks[i]
+        res = histogram_search(frames[i], mask_i, scales=params.scales)
+        win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt), params.crop_factor)
+        uv = crop_uv(win, n)
+        crops.append(sample_bilinear(frames[i], uv))
+        fgs.append(None if masks is None else sample_nearest(masks[i], uv))
+        windows.append(win), s_found.append(res.s.astype(dt)), found.append(res.found)
+    crops = jnp.stack(crops)
+    fgs = None if masks is None else jnp.stack(fgs)
+    cls = classify_views_with_references(
+        params.color, state.refs, state.W, crops, fgs, THRESHOLD,
+        min_fraction=MIN_CLASSIFIED_FRACTION if params.adaptive_white_balance else 0.0,
+        gain=params.shading, background=params.scene_colors,
+    )  # fmt: skip
+    return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
+
+
+def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
+    """§5.2 step 2: the database pose of every camera (one ``vmap``), joint angles averaged
+    over the cameras that found the shirt."""
+    n = params.work_size
+
+    def one(ids, window, found):
+        win_c = window_from_mask(ids > 0)
+        tiny = resample_ids(ids, win_c, TINY_SIZE)
+        q_db = estimate_pose(params.db, tiny)[0].astype(dt)
+        hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
+        ok = found & (jnp.sum(ids > 0) > 0)
+        return q_db, _crop_to_image(win_c, window, n), hits.patch, win_db, ok
+
+    q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(
+        views.cls.ids, views.windows, views.found
+    )
+    wq = okq.astype(dt) / jnp.maximum(jnp.sum(okq), 1)
+    joints = jnp.sum(wq[:, None] * q_dbs[:, 6:], axis=0)
+    return DatabasePose(q_dbs, win_qs, tiny_patch, win_dbs, okq, joints)
+
+
+def global_placement(params: ShirtParams, db: DatabasePose, dt) -> Array:
+    """§5.2 step 2 (global): the centroids of ``r^b``'s patches in each query window are 2D
+    constraints of a 6-DOF IK from a closed-form root guess; returns the placed blend ``q_g``."""
+    P, cams = params.garment.n_patches, params.cams
+    cons = jax.vmap(lambda t, w: patch_centroids(t, P, w, min_pixels=2, dtype=dt))(
+        db.tiny_patch, db.win_qs
+    )
+    c_xy, c_vis = cons.xy, cons.valid & db.okq[:, None]
+    best = jnp.argmax(db.okq)  # first camera that found the shirt
+    guesses = jax.vmap(lambda *a: _root_guess(params, *a))(cams, db.q_dbs, db.win_dbs, db.win_qs)
+    q_b = jnp.concatenate([jnp.zeros(6, dt), db.joints])
+    root0, _ = initial_root(
+        cams, params.body.chain, params.anchors, c_xy, c_vis, q_b, guesses[best]
+    )
+    glob = solve_global(
+        params.body.chain, cams, params.anchors, c_xy, c_vis, q_b, root0, params.cov.centroid
+    )
+    return glob.q
+
+
+def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g) -> RoundContext:
+    """The shared inputs of steps 3–4; the temporal prior widened by Sigma_b for
+    ``reacquire_frames`` frames after a loss (its ``q_h`` comes from a cold start)."""
+    uvs = jax.vmap(lambda w: crop_uv(w, params.work_size))(views.windows)
+    q_h = jnp.where(state.valid, state.q, q_g)
+    cov = params.cov
+    if params.reacquire_frames:
+        fresh = state.tracked < params.reacquire_frames
+        cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
+    rays = jax.vmap(lambda cam, uv: (camera_center(cam), pixel_rays(cam, uv)[1]))(params.cams, uvs)
+    return RoundContext(views, okq, q_g, q_h, cov, uvs, rays)
+
+
+def render_views(params: ShirtParams, ctx: RoundContext, q) -> Hits:
+    """The model at ``q`` rendered on every camera's crop grid (patch, colour, 3D point), one
+    ``vmap`` over the cameras; Hits stacked over cameras."""
+    body, garment = params.render_body, params.garment
+    return jax.vmap(lambda o, d, z: render_rays(body, garment, q, o, d, z))(
+        *ctx.rays, params.cams.R[:, 2]
+    )
+
+
+def pose_assisted_centroids(
+    params: ShirtParams, ctx: RoundContext, patch_maps, plain
+) -> PatchCentroids:
+    """§5.2 step 3 in every camera (one ``vmap``): one exact EDT per patch of the rendered
+    ``patch_maps`` (n_cams, n, n), the pose-assisted classification (``C = 6/s'``, ``T = 5``;
+    with ``plain`` the ablation's measurement: step-1 threshold, distance only a tie-break)
+    and its patch centroids, stacked over cameras."""
+    n, P, dt = params.work_size, params.garment.n_patches, ctx.q_g.dtype
+    v = ctx.views
+    patch_colour = params.garment.patch_colour
+
+    def one(patch_map, W, crop, fg, s_found, window):
+        dist = patch_distance_maps(patch_map, P, dt)
+        if params.pose_prior:
+            weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
+            weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
+            thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
+        else:
+            weight, thr = TIE_BREAK_WEIGHT, THRESHOLD
+        pa = pose_assisted_classify(
+            params.color, W, crop, dist, patch_colour, weight, fg, thr, params.shading,
+            params.scene_colors,
+        )  # fmt: skip
+        return patch_centroids(pa.patch, P, window, dtype=dt)
+
+    fg_ax = None if v.fgs is None else 0
+    c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0))(
+        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows
+    )
+    return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
+
+
+def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False):
+    """One round of steps 3 + 4 with the model rendered at ``q`` (``hits``, stacked over
+    cameras): measured centroids in every camera, then the full IK (per-view anchors from
+    ``hits``)."""
+    meas = pose_assisted_centroids(params, ctx, hits.patch, plain)
+    c_obs, v_obs = meas.xy, meas.valid
+    chain = params.body.chain
+    if params.view_anchors:
+        anchors = _view_anchors(chain, params.anchors, params.cams, q, hits.patch, hits.point,
+                                ctx.uvs)  # fmt: skip
+    else:
+        anchors = params.anchors
+    sol = solve_ik(chain, params.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov, q,
+                   robust=params.robust)  # fmt: skip
+    return sol.q, c_obs, v_obs
+
+
+def agreement(params: ShirtParams, ctx: RoundContext, hits: Hits) -> Array:
+    """Agreement of a render ``hits`` (stacked over cameras) with the step-1 classification:
+    agreeing minus disagreeing pixels over the rendered shirt pixels of the cameras that found
+    the shirt (shared by all starts, so comparable between them)."""
+    dt = ctx.q_g.dtype
+    c1, r = ctx.views.cls.ids, hits.colour
+    ok = ctx.okq[:, None, None]
+    both = (r > 0) & (c1 > 0) & ok
+    score = jnp.sum(both & (r == c1)) - jnp.sum(both & (r != c1))
+    shown = jnp.sum((r > 0) & ok)
+    return score.astype(dt) / jnp.maximum(shown, 1).astype(dt)
+
+
+def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
+    """The starts of the first round, ``(starts, plain, n)``: the placed blend and the previous
+    pose (after a loss: the blend measured without the pose prior); on (re)acquisition frames
+    and ``reacquire_frames`` after, a third: the last valid pose measured without the pose
+    prior. ``n`` (2 or 3) is traced; without ``temporal_start`` the blend alone."""
+    q_g = ctx.q_g
+    if not params.temporal_start:
+        return q_g[None], jnp.zeros((1,), bool), jnp.asarray(1)
+    reacquire = ~state.valid
+    starts = [q_g, jnp.where(state.valid, state.q, q_g)]
+    plain = [jnp.array(False), reacquire & params.reacquire_start]
+    n = jnp.asarray(2)
+    if params.held_start:
+        starts.append(state.q)
+        plain.append(jnp.array(True))
+        fresh = reacquire | (state.tracked < params.reacquire_frames)
+        n = n + fresh.astype(n.dtype)
+    return jnp.stack(starts), jnp.stack(plain), n
+
+
+def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
+    """Steps 3–4 of the frame: the first round from every start (:func:`starts_of`), the
+    best-agreeing result kept (the first of equals), then ``n_more`` (traced) more rounds from
+    it, each with the model re-rendered at the last pose. Returns ``(q, c_obs, v_obs, hits,
+    agreement)``: the last round's pose and centroids, the render of the pose, and the
+    agreement of the kept start's first round.
+
+    One loop of ``2 n + n_more`` iterations, each one render and at most one IK round (under
+    ``lax.cond``, which runs one branch on CPU): iteration ``2s`` renders start ``s`` and runs
+    its round, ``2s + 1`` renders the result and scores it; after the last start's score and
+    after each extra render the next round runs from the kept result. XLA compiles one render
+    and one round for the whole frame where a loop per phase compiled three renders and two
+    rounds: cold compile + first call 39.4 / 37.9 -> 32.4 / 25.6 s, steady frame 86.3 / 65.5 ->
+    64.1 / 56.2 ms in interleaved runs (docs/results/step_ab_session12.json)."""
+    starts, plain, n = starts_of(params, state, ctx)
+    total = 2 * n + n_more
+    dt = ctx.q_g.dtype
+    P = params.garment.n_patches
+    hits0 = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
+                         jax.eval_shape(lambda: render_views(params, ctx, ctx.q_g)))  # fmt: skip
+    c0 = jnp.zeros((params.n_cams, P, 2), dt)
+    v0 = jnp.zeros((params.n_cams, P), bool)
+    pick = lambda b, x, y: jax.tree.map(lambda u, w: jnp.where(b, u, w), x, y)  # noqa: E731
+
+    def body(k, carry):
+        pose, ik_out, best = carry
+        hits = render_views(params, ctx, pose)
+        s = jnp.minimum(k // 2, starts.shape[0] - 1)
+        in_starts = k < 2 * n
+        is_start = in_starts & (k % 2 == 0)
+        is_check = in_starts & (k % 2 == 1)
+        score = agreement(params, ctx, hits)
+        # a start's first round scored: kept if it agrees better than every earlier start
+        best = pick(is_check & (score > best[-1]), (*ik_out, hits, score), best)
+        # an extra round's render: that round's result is the frame's (agreement kept)
+        best = pick(~in_starts, (*ik_out, hits, best[-1]), best)
+        last_check = is_check & (s == n - 1)
+        more = k + 1 < total
+        do_ik = is_start | ((last_check | ~in_starts) & more)
+        q_src = jnp.where(is_start, pose, best[0])
+        hits_src = pick(is_start, hits, best[3])
+        plain_k = is_start & plain[s]
+        ik_out = jax.lax.cond(
+            do_ik,
+            lambda: ik_round(params, ctx, q_src, hits_src, plain_k),
+            lambda: ik_out,
+        )
+        nxt = starts[jnp.minimum(s + 1, starts.shape[0] - 1)]
+        pose = jnp.where(is_check & ~last_check, nxt, ik_out[0])
+        return pose, ik_out, best
+
+    init = (starts[0], (ctx.q_g, c0, v0), (ctx.q_g, c0, v0, hits0, jnp.asarray(-jnp.inf, dt)))
+    _, _, best = jax.lax.fori_loop(0, total, body, init)
+    return best
+
+
+def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> Array:
+    """Found in some camera, ``min_patches`` centroids measured, and (when step 1
+    classified ``gate_min_fraction`` of some crop: after a sudden lighting change it
+    classifies almost nothing until W is re-fitted) the agreement gate passed."""
+    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= params.min_patches)
+    frac = jnp.max(ctx.views.cls.fraction * ctx.okq)
+    seen = frac >= params.gate_min_fraction
+    return valid & ((agreement >= params.min_agreement) | ~seen)
+
+
+def reported_validity(
+    params: ShirtParams, ctx: RoundContext, v_obs, signals: FrameSignals, valid, own
+) -> Array:
+    """The ``valid`` flag reported for the frame: ``valid`` (the tracker's own, which also
+    decides what the state keeps) unless ``make_params`` set a reporting rule: then
+    ``report_patches`` centroids measured and, in every camera that found the shirt, the
+    final pose's centroid residual at most ``max_residual`` and its recall at least
+    ``min_recall`` (:class:`FrameSignals`; calibrated on ground truth, issue 17), and the
+    output pose is this frame's own solution (``own``: the signals describe it; a held pose,
+    ``hold_invalid``, is never reported valid by them)."""
+    if params.report_patches is None and params.max_residual is None \
+            and params.min_recall is None:
+        return valid
+    n = params.min_patches if params.report_patches is None else params.report_patches
+    ok = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= n)
+    if params.max_residual is not None:
+        ok = ok & jnp.all((signals.residual <= params.max_residual) | ~ctx.okq)
+    if params.min_recall is not None:
+        ok = ok & jnp.all((signals.recall >= params.min_recall) | ~ctx.okq)
+    return ok & own
+
+
+def frame_signals(
+    params: ShirtParams, state: ShirtState, ctx: RoundContext, db: DatabasePose, q, c_obs,
+    v_obs, hits,
+) -> FrameSignals:
+    """:class:`FrameSignals` of the final pose ``q`` (``hits`` its render on the crops,
+    ``c_obs`` / ``v_obs`` the last round's measured centroids)."""
+    P, dt = params.garment.n_patches, q.dtype
+
+    def one(patch_map, window, c_obs_i, v_obs_i, c1, r):
+        model = patch_centroids(patch_map, P, window, dtype=dt)
+        use = v_obs_i & model.valid
+        d = jnp.linalg.norm(c_obs_i - model.xy, axis=-1)
+        mean_d = jnp.sum(jnp.where(use, d, 0.0)) / jnp.maximum(jnp.sum(use), 1)
+        same = jnp.sum((c1 > 0) & (r == c1)).astype(dt)
+        return (mean_d / window[2], same / jnp.maximum(jnp.sum(c1 > 0), 1),
+                same / jnp.maximum(jnp.sum(r > 0), 1))  # fmt: skip
+
+    res, cov, rec = jax.vmap(one)(hits.patch, ctx.views.windows, c_obs, v_obs,
+                                  ctx.views.cls.ids, hits.colour)  # fmt: skip
+    rms = lambda a: jnp.sqrt(jnp.mean(jnp.square(a)))  # noqa: E731
+    spread = rms(db.q_dbs[0][6:] - db.q_dbs[1][6:]) if params.n_cams > 1 else jnp.zeros((), dt)
+    jump = jnp.where(state.valid, jnp.linalg.norm(q[:3] - state.q[:3]), 0.0)
+    return FrameSignals(res, cov, rec,
+                        rms(q[6:] - ctx.q_g[6:]), spread.astype(dt), jump.astype(dt))
+
+
+def near_placement(ctx: RoundContext, q) -> Array:
+    """Whether ``q`` is finite and its root within ``MAX_ROOT_OFFSET`` of the placed blend's
+    (step 2's root, from where and how large the shirt appears in the crops): an IK that ran
+    off (too few or wrong centroids) lands metres away."""
+    off = jnp.linalg.norm(q[:3] - ctx.q_g[:3])
+    return jnp.all(jnp.isfinite(q)) & (off < MAX_ROOT_OFFSET)
+
+
+def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid):
+    """§5.2 step 5: ``W*`` per camera refitted on ``r*`` (the final pose's render, eroded by
+    one pixel), joining the reference illuminations when new. Returns ``(W, refs, added)``
+    stacked over cameras."""
+    v = ctx.views
+    if not params.adaptive_white_balance:
+        return state.W, state.refs, jnp.zeros(params.n_cams, bool)
+
+    def one(refs_i, colour, crop, W_i, fg, ok_cam):
+        r_star = _erode(colour)  # q* rendered in the crop (unused if not valid)
+        W_star = white_balance_from_ids(
+            params.color, crop, r_star, W_i, fg, min_pixels=REFERENCE_PIXELS
+        )
+        ok = valid & ok_cam & jnp.all(jnp.isfinite(W_star))
+        W_star = jnp.where(ok, W_star, W_i)
+        refs_i2, add = maybe_add_reference(refs_i, W_star)
+        refs_i = jax.tree.map(lambda a, b: jnp.where(ok, a, b), refs_i2, refs_i)
+        return W_star, refs_i, add & ok
+
+    fg_ax = None if v.fgs is None else 0
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, fg_ax, 0))(
+        state.refs, hits.colour, v.crops, v.cls.W, v.fgs, ctx.okq
+    )
+
+
+def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
+    dt = state.q.dtype
+    views = locate_and_classify(params, state, frames, masks)
+    db = database_pose(params, views, dt)
+    q_g = global_placement(params, db, dt)
+    ctx = round_context(params, state, views, db.okq, q_g)
+    # ik_passes - 1 more rounds, and reacquire_passes more after a loss
+    n_more = params.ik_passes - 1 + jnp.where(state.valid, 0, params.reacquire_passes)
+    q_sol, c_obs, v_obs, hits, agree = rounds(params, state, ctx, n_more)
+    valid = frame_validity(params, ctx, v_obs, agree)
+    q_star = jnp.where(valid, q_sol, state.q)
+    W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
+    tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
+    new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
+    if params.hold_invalid:
+        q_out, own = q_star, valid
+    else:  # this frame's estimate where there was something to fit (else it is unconstrained)
+        measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+        own = measured & near_placement(ctx, q_sol)
+        q_out = jnp.where(own, q_sol, state.q)
+    signals = frame_signals(params, state, ctx, db, q_sol, c_obs, v_obs, hits)
+    out = ShirtOutput(
+        q=q_out,
+        q_blend=q_g,
+        valid=reported_validity(params, ctx, v_obs, signals, valid, own),
+        window=views.windows,
+        fraction=views.cls.fraction,
+        used_reference=views.cls.used_reference,
+        added_reference=added,
+        centroids=c_obs,
+        visible=v_obs,
+        agreement=agree,
+        signals=signals,
+    )
+    return new_state, out
+
+
+@eqx.filter_jit
+def model_centroids(
+    params: ShirtParams, q: Float[Array, " n_dof"], windows: Float[Array, "n_cams 4"]
+) -> PatchCentroids:
+    """The model's patch centroids at pose ``q`` as the tracker sees them: ``q`` rendered on
+    each camera's ``params.work_size`` crop grid of ``windows`` (e.g. ``ShirtOutput.window``),
+    centroids in image pixels, batched over cameras. With ``q`` the ground truth these are
+    what per-view anchors predict there, the model term of covariance training
+    (:func:`jaxmocap.ik.estimate_covariances` ``predicted=``)."""
+    n, P = params.work_size, params.garment.n_patches
+
+    def one(cam, win):
+        ids = render_uv(params.render_body, params.garment, q, cam, crop_uv(win, n)).patch
+        return patch_centroids(ids, P, win, dtype=q.dtype)
+
+    return jax.vmap(one)(params.cams, windows.astype(q.dtype))

@@ -1,0 +1,341 @@
+"""Parameters and state of the colour-shirt tracker (Wang et al. 2011 §4–5): the paper's
+constants and the extensions' defaults, :class:`ShirtParams`, :class:`ShirtState`,
+:class:`ShirtOutput`, :func:`make_params` and :func:`init`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxmocap.body import BodyModel
+from jaxmocap.camera import Camera
+from jaxmocap.color import (
+    ColorModel,
+    ReferenceIlluminations,
+    init_references,
+)
+from jaxmocap.color.model import shading_problem
+from jaxmocap.garment import Garment
+from jaxmocap.ik import (
+    IKCovariances,
+    PatchAnchors,
+)
+from jaxmocap.posedb._sample import canonical_camera
+from jaxmocap.posedb._search import PoseDB
+
+# Not in the paper: crop side relative to the histogram search's scale s' (the shirt's
+# extent is about 2 s' with the arms out) and the working size of the resampled crop.
+CROP_FACTOR = 2.6
+WORK_SIZE = 128
+MIN_VALID_PATCHES = 4  # measured patch centroids (all cameras) for a frame to count
+# Ablation without pose prior: the per-pixel cost of distance that only breaks colour ties
+# between the two patches of one colour (standard deviations per working pixel).
+TIE_BREAK_WEIGHT = 1e-4
+# Not in the paper: rounds of (render, pose-assisted classification, IK) per frame, each with
+# the model re-rendered at the previous round's pose (the paper renders r^b once, at q_b).
+IK_PASSES = 2
+# Not in the paper: Cauchy scale (standard deviations of Sigma_c) of the IK's centroid terms
+# (jaxmocap.ik.solve_ik(robust=...)); None: the paper's plain least squares.
+ROBUST_SCALE = 3.0
+# Not in the paper: a frame is valid only if the render of its first-round pose agrees with the
+# step-1 colour classification on at least this share of the rendered shirt pixels (agreeing
+# minus disagreeing): when the subject has left the view the search finds some clutter, and
+# tracking it would corrupt W and the temporal prior.
+MIN_AGREEMENT = 0.25
+# Not in the paper: after a loss (first frame, or after an invalid frame) the second start's
+# first round uses the step-1 classification (no pose prior) and this many extra rounds run.
+REACQUIRE_PASSES = 2
+# Not in the paper: frames after a loss during which the temporal prior is widened by Sigma_b.
+REACQUIRE_FRAMES = 3
+MAX_ROOT_OFFSET = 1.0  # metres: an invalid frame's estimate this far from the blend is not shown
+GATE_MIN_FRACTION = 0.2  # the gate applies only if step 1 classified this share in some camera
+REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
+
+
+def scales_for_width(width: int, stride: int = 6) -> tuple[int, ...]:
+    """The histogram search's six scales (Wang §4) for an image ``width`` pixels wide: the
+    640-pixel defaults of :data:`jaxmocap.color.DEFAULT_SCALES` scaled, each a multiple of
+    ``2 stride`` (at least one per size)."""
+    from jaxmocap.color import DEFAULT_SCALES
+
+    step = 2 * stride
+    out = sorted({max(step, int(round(s * width / 640 / step)) * step) for s in DEFAULT_SCALES})
+    return tuple(out)
+
+
+class ShirtParams(eqx.Module):
+    """Everything the tracker needs that does not change over a sequence.
+
+    ``cams`` is a stacked :class:`~jaxmocap.camera.Camera` (leading axis = cameras); ``db`` a
+    :class:`jaxmocap.PoseDB`. Static switches select the ablations (module docstring).
+    """
+
+    color: ColorModel
+    body: BodyModel
+    garment: Garment
+    cams: Camera
+    anchors: PatchAnchors
+    cov: IKCovariances
+    db: PoseDB
+    canon: Camera  # the database's canonical camera
+    scene_colors: ColorModel | None = None  # Gaussians of the room (jaxmocap.color.scene_colors)
+    pose_prior: bool = eqx.field(static=True, default=True)
+    adaptive_white_balance: bool = eqx.field(static=True, default=True)
+    work_size: int = eqx.field(static=True, default=WORK_SIZE)
+    scales: tuple[int, ...] = eqx.field(static=True, default=())
+    crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
+    view_anchors: bool = eqx.field(static=True, default=True)
+    ik_passes: int = eqx.field(static=True, default=IK_PASSES)
+    robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
+    temporal_start: bool = eqx.field(static=True, default=True)
+    min_agreement: float = eqx.field(static=True, default=MIN_AGREEMENT)
+    reacquire_start: bool = eqx.field(static=True, default=True)
+    reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
+    reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
+    held_start: bool = eqx.field(static=True, default=True)
+    # ``static_kinds``: the renders inside the step use the body's geom kinds as constants
+    # (``geom_kinds``), so that the ray caster tests each geom against its own primitive only;
+    # with traced kinds it evaluates every primitive kind for every geom and selects (2x slower
+    # per crop pair: 19.4 vs 9.8 ms). The two paths round differently on a few silhouette
+    # pixels; paired over 8 held-out sequences with the 80,000-pose database the mean error is
+    # 4.85 cm static vs 4.90 traced, within the rounding noise of the tracker
+    # (docs/results/realtime_profile.md, session 10). False: the traced-kinds path.
+    static_kinds: bool = eqx.field(static=True, default=True)
+    geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
+    # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance
+    # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
+    shading: tuple[float, float] | None = eqx.field(static=True, default=None)
+    # ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose (default); off:
+    # this frame's own estimate where MIN_VALID_PATCHES centroids were measured and its root is
+    # near the placed blend's (near_placement; still flagged invalid; the state keeps the last
+    # valid pose).
+    hold_invalid: bool = eqx.field(static=True, default=True)
+    # the validity rule's counts (frame_validity): measured centroids, and the step-1 share
+    # from which on the agreement gate applies (0: always)
+    min_patches: int = eqx.field(static=True, default=MIN_VALID_PATCHES)
+    gate_min_fraction: float = eqx.field(static=True, default=GATE_MIN_FRACTION)
+    # the reported flag's own rule (reported_validity; the state still follows
+    # frame_validity): measured centroids and the final pose's image checks (frame_signals)
+    # in every camera that found the shirt; all None: the tracker's own flag is reported
+    report_patches: int | None = eqx.field(static=True, default=None)
+    max_residual: float | None = eqx.field(static=True, default=None)
+    min_recall: float | None = eqx.field(static=True, default=None)
+
+    @property
+    def n_cams(self) -> int:
+        return self.cams.K.shape[0]
+
+    @property
+    def render_body(self) -> BodyModel:
+        """``body`` with its geom kinds as constants (``geom_kinds``) for the ray caster's
+        per-kind tests inside the jitted step (the same body; traced kinds otherwise)."""
+        if not self.static_kinds or len(self.geom_kinds) != self.body.geometry.kind.shape[0]:
+            return self.body
+        kinds = np.asarray(self.geom_kinds, self.body.geometry.kind.dtype)
+        return eqx.tree_at(lambda b: b.geometry.kind, self.body, kinds)
+
+
+class ShirtState(eqx.Module):
+    """What carries over between frames: per-camera white balance and reference
+    illuminations, the previous pose and whether the previous frame was valid."""
+
+    W: Float[Array, "n_cams 3 3"]
+    refs: ReferenceIlluminations  # batched over cameras
+    q: Float[Array, " n_dof"]
+    valid: Bool[Array, ""]
+    tracked: Int[Array, ""]  # consecutive valid frames up to the previous one (0: lost)
+
+
+class FrameSignals(NamedTuple):
+    """How well the final pose ``q*`` explains the frame (:func:`frame_signals`; the inputs
+    of the reported validity rule, :func:`reported_validity`), per camera where marked.
+
+    ``residual``: mean distance of the measured patch centroids from the centroids of ``q*``'s
+    render (the IK's reprojection residual) over the crop side (a crop is ``CROP_FACTOR``
+    shirt sizes), 0 without centroids; ``coverage``: share of the step-1 classified crop pixels
+    that lie on ``q*``'s render of the same colour (shirt pixels the pose does not explain
+    lower it); ``recall``: share of ``q*``'s rendered shirt pixels that step 1 classified as
+    the rendered colour; ``blend_distance``: RMS joint-angle difference (rad) of ``q*`` and
+    the placed database blend; ``db_spread``: RMS joint-angle difference (rad) of the two
+    first cameras' database poses (0 with one camera); ``root_jump``: root displacement (m)
+    from the previous frame's pose (0 after a loss)."""
+
+    residual: Float[Array, " n_cams"]
+    coverage: Float[Array, " n_cams"]
+    recall: Float[Array, " n_cams"]
+    blend_distance: Float[Array, ""]
+    db_spread: Float[Array, ""]
+    root_jump: Float[Array, ""]
+
+
+class ShirtOutput(eqx.Module):
+    """Per-frame results. ``q`` the final pose ``q*``, ``q_blend`` the globally placed blended
+    database pose; per camera: crop ``window`` (x0, y0, s, s) image pixels, the step-1
+    classified ``fraction``, whether a reference illumination was used / added, the measured
+    ``centroids`` (pixels) and their ``visible`` flags."""
+
+    q: Float[Array, " n_dof"]
+    q_blend: Float[Array, " n_dof"]
+    valid: Bool[Array, ""]
+    window: Float[Array, "n_cams 4"]
+    fraction: Float[Array, " n_cams"]
+    used_reference: Bool[Array, " n_cams"]
+    added_reference: Bool[Array, " n_cams"]
+    centroids: Float[Array, "n_cams n_patches 2"]
+    visible: Bool[Array, "n_cams n_patches"]
+    agreement: Float[Array, ""]  # render vs step-1 classification (the validity gate)
+    signals: FrameSignals  # the final pose checked against the images (frame_signals)
+
+
+def make_params(
+    color: ColorModel,
+    body: BodyModel,
+    garment: Garment,
+    cams: Camera,
+    anchors: PatchAnchors,
+    cov: IKCovariances,
+    db: PoseDB,
+    *,
+    pose_prior: bool = True,
+    adaptive_white_balance: bool = True,
+    work_size: int = WORK_SIZE,
+    scales: Sequence[int] | None = None,
+    crop_factor: float = CROP_FACTOR,
+    view_anchors: bool = True,
+    ik_passes: int = IK_PASSES,
+    robust: float | None = ROBUST_SCALE,
+    temporal_start: bool = True,
+    min_agreement: float = MIN_AGREEMENT,
+    reacquire_start: bool = True,
+    reacquire_passes: int = REACQUIRE_PASSES,
+    reacquire_frames: int = REACQUIRE_FRAMES,
+    held_start: bool = True,
+    static_kinds: bool = True,
+    shading: Sequence[float] | None = None,
+    scene_colors: ColorModel | None = None,
+    hold_invalid: bool = True,
+    min_patches: int = MIN_VALID_PATCHES,
+    gate_min_fraction: float = GATE_MIN_FRACTION,
+    report_patches: int | None = None,
+    max_residual: float | None = None,
+    min_recall: float | None = None,
+) -> ShirtParams:
+    """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
+
+    ``view_anchors`` (default on) predicts each patch's centroid from the model's render in
+    the camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
+    centroid; ``ik_passes`` rounds of pose-assisted classification + IK per frame, each with
+    the model re-rendered at the last round's pose; ``robust`` the Cauchy scale of the IK's
+    centroid terms (None: plain least squares, as the paper); ``temporal_start`` runs the
+    rounds from two starts, the placed blend ``q_b`` and the previous frame's pose, under
+    ``jax.vmap``, keeping the result whose render agrees best with the step-1 colour
+    classification (the paper starts from ``q_b`` only; a bad database match then leaves
+    the IK in a wrong basin although the previous frame was right); a frame is valid only if
+    that render agrees with the step-1 classification on ``min_agreement`` of its pixels.
+
+    After a loss (the first frame, or any frame after an invalid one) there is no previous
+    pose to start from: with ``reacquire_start`` (and ``temporal_start``) the second start
+    is then the placed blend measured *without* the pose prior (step-1 classification, each
+    pixel given to the nearer patch of its colour), which a blend in a wrong basin cannot
+    mislead; ``reacquire_passes`` extra rounds run on such frames (the loop of the extra
+    rounds runs longer: no cost on tracked frames). For the ``reacquire_frames`` frames after
+    a loss the temporal term's covariance is ``Sigma_p + Sigma_b``: its ``q_h`` comes from a
+    cold start, whose error is of the blend's order, not the tracked steady state that
+    ``Sigma_p`` was trained on. All three off (``reacquire_start=False, reacquire_passes=0,
+    reacquire_frames=0``): the session-2 behaviour. ``held_start`` adds a third start on
+    those frames (reacquisition and the ``reacquire_frames`` after it): the last valid pose
+    measured without the pose prior (a subject re-entering fast is far from it, and a prior
+    rendered there misleads the pose-assisted classification); on other frames it repeats
+    the blend start.
+    ``static_kinds`` (default) renders with the body's geom kinds as constants inside the step
+    (each geom runs its own primitive's ray test; ``False``: every primitive evaluated and
+    selected per geom, 2x slower renders, rounding differs; see :class:`ShirtParams`).
+
+    Footage under spot lamps (not in the paper; both off by default): ``shading = (lo, hi)``
+    compares every pixel to every colour at its best brightness in ``[lo, hi]`` (steps 1 and 3;
+    the colour model should then be fitted with the same ``gain``,
+    :func:`jaxmocap.color.fit_color_model`); ``scene_colors`` (Gaussians of the room's colours,
+    :func:`jaxmocap.color.fit_scene_colors`) makes a pixel nearer one of them than every shirt
+    colour background in steps 1 and 3.
+
+    A reported validity of its own (not in the paper; off by default): with any of
+    ``report_patches``, ``max_residual``, ``min_recall`` the output's ``valid`` is that
+    ``report_patches`` (default ``min_patches``) centroids were measured and, in every camera
+    that found the shirt, the measured centroids' mean distance from the final pose's
+    rendered ones is at most ``max_residual`` crop sides and at least ``min_recall`` of its
+    rendered shirt pixels carry the rendered colour in step 1 (:class:`FrameSignals`). The
+    state (temporal prior, W re-fit) still follows the tracker's own rule: gating it with the
+    stricter rule lost shirt_03 of the dev split (9.4 -> 22.6 cm, docs/results/shirt.md)."""
+    if ik_passes < 1:
+        raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
+    if reacquire_frames < 0:
+        raise ValueError(f"make_params: reacquire_frames must be >= 0, got {reacquire_frames}")
+    if reacquire_passes < 0:
+        raise ValueError(f"make_params: reacquire_passes must be >= 0, got {reacquire_passes}")
+    if cams.K.ndim != 3:
+        raise ValueError("make_params: cams must be stacked (jaxmocap.camera.stack_cameras)")
+    if anchors.n_patches != garment.n_patches:
+        raise ValueError(
+            f"make_params: {anchors.n_patches} patch anchors for a garment with "
+            f"{garment.n_patches} patches"
+        )
+    if color.n_colors != garment.n_colours:
+        raise ValueError(
+            f"make_params: colour model has {color.n_colors} colours, garment {garment.n_colours}"
+        )
+    if work_size < 16:
+        raise ValueError(f"make_params: work_size must be >= 16, got {work_size}")
+    sc = tuple(int(s) for s in scales) if scales is not None else scales_for_width(cams.width)
+    if shading is not None:
+        problem = shading_problem(shading)
+        if problem:
+            raise ValueError(f"make_params: shading: {problem}")
+        shading = tuple(float(g) for g in shading)
+    for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
+        if v is not None and not 0 <= v <= 1:
+            raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
+    if report_patches is not None and report_patches < 0:
+        raise ValueError(f"make_params: report_patches must be None or >= 0, got {report_patches}")
+    return ShirtParams(
+        color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
+        scene_colors, pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
+        bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
+        bool(temporal_start), float(min_agreement), bool(reacquire_start),
+        int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
+        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, bool(hold_invalid),
+        int(min_patches), float(gate_min_fraction),
+        None if report_patches is None else int(report_patches),
+        None if max_residual is None else float(max_residual),
+        None if min_recall is None else float(min_recall),
+    )  # fmt: skip
+
+
+def init(
+    params: ShirtParams, W0: Float[Array, "n_cams 3 3"], q0: Float[Array, " n_dof"]
+) -> ShirtState:
+    """Initial state: the user-labelled white balance ``W0`` per camera (§5.1), which also
+    starts each camera's reference illuminations, and a pose ``q0`` (e.g. the rest pose);
+    the first frame is treated as after a loss (no temporal prior)."""
+    W0 = jnp.asarray(W0)
+    if W0.shape != (params.n_cams, 3, 3):
+        raise ValueError(f"init: W0 must be ({params.n_cams}, 3, 3), got {W0.shape}")
+    refs = jax.vmap(init_references)(W0)
+    return ShirtState(
+        W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False), tracked=jnp.array(0, jnp.int32)
+    )
+
+
+# ----------------------------------------------------------------------------- the frame step
+#
+# ``_step`` is the paper's steps in order, each a module-level function (per camera lists;
+# the bench and the profile time them separately): ``locate_and_classify`` (§4, §5.2 step 1),
+# ``database_pose`` (step 2, 10-NN), ``global_placement`` (step 2, 6-DOF IK),
+# ``pose_assisted_centroids`` + ``ik_round`` (steps 3 + 4, run from every start of
+# ``starts_of`` and ``ik_passes - 1`` more times, all in the one loop of ``rounds``),
+# ``frame_validity`` and ``white_balance_refit`` (step 5).
