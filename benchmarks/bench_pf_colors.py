@@ -33,6 +33,7 @@ from jaxmocap.pf import colors as pc  # noqa: E402
 from jaxmocap.segment import HSVInterval, SegmentParams, segment_cv  # noqa: E402
 from jaxmocap.synth.scene import make_cameras  # noqa: E402
 from jaxmocap.trackers import stereo_pf as sp  # noqa: E402
+from jaxmocap.trackers.stereo_pf import observation as sp_observation  # noqa: E402
 
 CLIP, FRAMES = "humanoid3d_punch", 40
 
@@ -87,8 +88,8 @@ def _frame_rows(d, colors: pc.CaptureColors, n: int) -> list[Row]:
     step_fn(state, first)
     orig = pc.masks
     for label, compiled in (("direct NumPy maps", False), ("fused XLA maps", True)):
-        # sp._segment calls pf.colors.masks through its module-level name
-        sp.color_masks = lambda c, i, compiled=compiled: orig(c, i, compiled=compiled)
+        # stereo_pf.observation._segment calls pf.colors.masks through its module-level name
+        sp_observation.color_masks = lambda c, i, compiled=compiled: orig(c, i, compiled=compiled)
         bstate = {"s": blobs.init(sp.BLOB_PARAMS)}
 
         def live_closed(bstate=bstate):
@@ -117,7 +118,7 @@ def _frame_rows(d, colors: pc.CaptureColors, n: int) -> list[Row]:
         rows.append(Row("live stream with capture colours (stereo_pf.live, host/device "
                         "overlap), per frame", label, 1e3 * float(np.median(per_frame)),
                         1e3 * float(np.min(per_frame)), len(per_frame)))  # fmt: skip
-    sp.color_masks = orig
+    sp_observation.color_masks = orig
     return rows
 
 

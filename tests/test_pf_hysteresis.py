@@ -15,6 +15,7 @@ from test_pf_colors import SKIN_RGB, H, W, scene, scribbles
 from jaxmocap.errors import InputError
 from jaxmocap.pf import colors as PC
 from jaxmocap.trackers import stereo_pf as sp
+from jaxmocap.trackers.stereo_pf import observation as sp_observation
 
 HAND = (40, 100, 7)  # u, v, r: at the torso's lower left corner
 SHADE = 0.66  # the shaded half's brightness factor
@@ -79,7 +80,7 @@ def test_make_params_skin_grow_feeds_the_blob_line(rng, colors):
     img = np.zeros((240, 320, 3), np.uint8)
     img[:H, :W] = shaded_scene(rng)[0]
     params = sp.make_params(cams, colors=colors, skin_grow=8, n_particles=10)
-    seg = sp._segment(params, img)
+    seg = sp_observation._segment(params, img)
     np.testing.assert_array_equal(seg.skin, PC.hysteresis_masks(colors, img, 8)[0])
     with pytest.raises(InputError, match="skin_grow"):
         sp.make_params(cams, skin_grow=4, n_particles=10)  # no colour model

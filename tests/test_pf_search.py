@@ -1,5 +1,5 @@
 """Tests for the prediction-guided head / hand search of the stereo particle filter
-(``jaxmocap.trackers.stereo_pf_search``).
+(``jaxmocap.trackers.stereo_pf.search``).
 
 Scene (OpenCV drawing; projections by ``cv2.projectPoints``, the oracle): the stereo pair of
 ``test_blobs`` (11 cm baseline, 320x240, f = 300 px, 2.2 m away), a blue shirt quad, a skin head
@@ -16,7 +16,7 @@ from jaxmocap import blobs as B
 from jaxmocap.errors import InputError
 from jaxmocap.pf import colors as PC
 from jaxmocap.trackers import stereo_pf as sp
-from jaxmocap.trackers import stereo_pf_search as SS
+from jaxmocap.trackers.stereo_pf import search as SS
 
 SHIRT = (40, 70, 190)
 HEAD = np.array([0.0, 0.0, 1.6])

@@ -20,6 +20,9 @@ from jaxmocap import pf
 from jaxmocap.body import default_body, dof_index, fk, keypoint_index, keypoints
 from jaxmocap.errors import InputError
 from jaxmocap.trackers import stereo_pf as sp
+from jaxmocap.trackers.stereo_pf import filter as sp_filter
+from jaxmocap.trackers.stereo_pf import observation as sp_observation
+from jaxmocap.trackers.stereo_pf import params as sp_params
 
 W, H = 320, 240
 SHIRT = (26, 64, 204)
@@ -136,7 +139,7 @@ def test_tracker_initialises_and_tracks(scene):
         degenerate.append(bool(np.any(est.degenerate)))
     err0, err = np.array(err0), np.array(err)
     # prior: arms uniform in their limits -> mean joint error of the prior ~ 20 cm
-    prior = sp._prior(params, jax.random.key(1), jax.tree.map(lambda a: a[0], obs))
+    prior = sp_filter._prior(params, jax.random.key(1), jax.tree.map(lambda a: a[0], obs))
     err_prior = _errors(model, params.full_q(prior.particles[:50]), np.repeat(kp[:1], 50, 0))
     assert err_prior.mean() > 0.12
     assert np.median(err0) < 0.10, err0
@@ -366,7 +369,8 @@ def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, 
     np.testing.assert_array_equal(moved[:, :6], s[:, :6])
     np.testing.assert_array_equal(moved[:, [9, 13]], s[:, [9, 13]])
     a3 = jnp.asarray(rng.uniform(-1.4, 1.4, (20, 3)))
-    np.testing.assert_allclose(jax.vmap(lambda v: sp._angles_xyz(sp._rot_xyz(v)))(a3), a3,
+    round_trip = jax.vmap(lambda v: sp_params._angles_xyz(sp_params._rot_xyz(v)))
+    np.testing.assert_allclose(round_trip(a3), a3,
                                atol=1e-9)  # fmt: skip
     # the whole move on a particle set: only `fraction` of the particles change
     x = jnp.tile(s[:1], (50, 1))
@@ -460,7 +464,7 @@ def test_online_tracker_takes_the_capture_colours_and_skin_grow(scene, tmp_path)
     path = save_capture_colors(tmp_path / "pf_colors.json", colors)
     tr = StereoPFFrameTracker(cams, 20, 0, pf_colors=str(path), skin_grow=4)
     assert tr.params.skin_grow == 4 and tr.params.reach is not None
-    seg = sp._segment(tr.params, frames[0, 0])
+    seg = sp_observation._segment(tr.params, frames[0, 0])
     np.testing.assert_array_equal(seg.skin, hysteresis_masks(tr.params.colors, frames[0, 0],
                                                              4)[0])
     args = argparse.Namespace(method="pf", garment=None, pf_colors=None, skin="default",
@@ -493,7 +497,7 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
     toward a darker, redder colour (a lamp on the subject only); the fixed model loses the head
     on the last frame, the adapted one (updated from the head the filter agrees with) still
     triangulates it."""
-    from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
+    from jaxmocap.trackers.stereo_pf.adapt import observe_adaptive
 
     model, cams, frames, qs, kp, _, _ = scene
     colors = _scene_colors(scene)

@@ -288,7 +288,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
                             **kw)
     key = jax.random.key(seed)
     if search != "off":  # ... with the prediction-guided search (the filter alongside)
-        from jaxmocap.trackers import stereo_pf_search as pfs
+        from jaxmocap.trackers.stereo_pf import search as pfs
 
         heads, hands = search in ("head", "all"), search in ("hands", "all")
         sparams = pfs.SearchParams(entities=(heads, hands, hands))
@@ -299,7 +299,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         def observe():  # host image line + blob tracker
             return sp.observe_sequence(params, seq.frames, blob)
     else:  # ... with the colour model re-fitted on line (the filter alongside)
-        from jaxmocap.trackers.stereo_pf_adapt import observe_adaptive
+        from jaxmocap.trackers.stereo_pf.adapt import observe_adaptive
 
         def observe():
             return observe_adaptive(params, key, seq.frames, blob)[0]

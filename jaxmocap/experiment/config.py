@@ -90,7 +90,7 @@ SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors":
                "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,), "validity": (bool,), "search": (str,)}
-PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf_search: the entities searched
+PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
 SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db", "scene_colors"}
 PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype", "colors"}
 PF_SKINS = ("synth", "default", "scribbles", "auto")

@@ -293,7 +293,7 @@ def skin_evidence(
     """Per pixel of an RGB uint8 image: (squared Mahalanobis distance to the skin class, the
     same to the shirt class, log p(skin) - log p(background), +inf without a background
     histogram) -- the quantities :func:`masks` thresholds, for searches that relax them in a
-    window (:mod:`jaxmocap.trackers.stereo_pf_search`)."""
+    window (:mod:`jaxmocap.trackers.stereo_pf.search`)."""
     f = features(image)
     d_skin = colors.skin.mahalanobis_sq(f)
     d_shirt = colors.shirt.mahalanobis_sq(f)

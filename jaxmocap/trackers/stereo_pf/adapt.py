@@ -9,7 +9,7 @@ host's image line and re-fits the classes (:func:`jaxmocap.pf.colors.adapt_captu
 exponential forgetting) from the tracked subject's pixels:
 
 * **confident frame**: the head is triangulated and the filter's head is within
-  :data:`~jaxmocap.trackers.stereo_pf_checks.VALID_HEAD_M` of it (the head blob is the model's
+  :data:`~jaxmocap.trackers.stereo_pf.checks.VALID_HEAD_M` of it (the head blob is the model's
   head, not a prop): skin from a disc of :data:`ADAPT_HEAD_M` around the triangulated head in
   each view, shirt from the box of the estimate's projected keypoints;
 * otherwise nothing is adapted. (Adapting also from the filter's own head on the frames
@@ -37,8 +37,10 @@ from jaxmocap.camera import project, to_camera
 from jaxmocap.errors import InputError
 from jaxmocap.pf.colors import adapt_capture_colors
 from jaxmocap.pf.cues import Observation
-from jaxmocap.trackers import stereo_pf as sp
-from jaxmocap.trackers.stereo_pf_checks import VALID_HEAD_M
+from jaxmocap.trackers.stereo_pf.checks import VALID_HEAD_M
+from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
+from jaxmocap.trackers.stereo_pf.observation import observe
+from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, StereoPFParams
 
 ADAPT_HEAD_M = 0.06  # radius (m) of the disc taken as face pixels around the head keypoint
 BODY_MARGIN_PX = 4  # margin of the projected keypoints' box taken as shirt candidates
@@ -65,7 +67,7 @@ def _masks(cams, centre: np.ndarray, kp: np.ndarray | None, shape: tuple[int, in
 
 
 def observe_adaptive(
-    params: sp.StereoPFParams,
+    params: StereoPFParams,
     key: PRNGKeyArray,
     frames: UInt8[np.ndarray, "t 2 h w 3"],
     blob_params: bloblib.BlobParams | None = None,
@@ -79,15 +81,15 @@ def observe_adaptive(
     ``skin_px`` / ``shirt_px`` (T,) pixels used; ``skin_mean`` (T, 3) the skin class
     after the frame's update."""
     if params.adapt is None or params.colors is None:
-        raise InputError("stereo_pf_adapt.observe_adaptive: params without adapt_colors "
+        raise InputError("stereo_pf.adapt.observe_adaptive: params without adapt_colors "
                             "(make_params(colors=..., adapt_colors=True))")
     skin_rate, shirt_rate, spread = params.adapt
     model = params.model
     head_i = keypoint_index(model, "head")[0]
     kp_fn = jax.jit(lambda q: keypoints(model, q))
     cams = params.likelihood.cams
-    step = sp.compile_step(params)
-    blob_state = bloblib.init(blob_params or sp.BLOB_PARAMS)
+    step = compile_step(params)
+    blob_state = bloblib.init(blob_params or BLOB_PARAMS)
     colors = params.colors
     n = len(frames)
     log = {"confident": np.zeros(n, bool), "skin_px": np.zeros(n, np.int64),
@@ -95,11 +97,11 @@ def observe_adaptive(
     out: list[Observation] = []
     state = None
     for t in range(n):
-        obs, blob_state = sp.observe(dataclasses.replace(params, colors=colors), frames[t],
+        obs, blob_state = observe(dataclasses.replace(params, colors=colors), frames[t],
                                      blob_state)
         out.append(obs)
         valid = np.asarray(obs.valid)
-        state, est = sp.online_frame(params, key, step, state, out, obs)
+        state, est = online_frame(params, key, step, state, out, obs)
         if est is None:
             log["skin_mean"][t] = np.asarray(colors.skin.mean)
             continue

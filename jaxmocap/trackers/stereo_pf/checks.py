@@ -17,7 +17,7 @@ from jaxmocap.body import BodyModel, keypoint_index, keypoints
 from jaxmocap.errors import InputError
 
 if TYPE_CHECKING:
-    from jaxmocap.trackers.stereo_pf import StereoPFParams
+    from jaxmocap.trackers.stereo_pf.params import StereoPFParams
 
 # Blob plausibility (issue 18, not in the paper): a hand candidate farther from the head than
 # the arm's reach (head -> shoulder -> elbow -> wrist -> hand keypoints at rest) times this

@@ -24,11 +24,11 @@ views, with relaxed colour tests inside the window only:
    (lens distortion removed) -- no area / aspect test, the views of a small hand differ --
    triangulated (:func:`jaxmocap.blobs._frame_geometry`, the blob line's own kernel) and
    accepted nearest to the prediction within ``gate_m`` of it, in front of both cameras, and
-   for a hand within the arms' reach of the head (:func:`~jaxmocap.trackers.stereo_pf_checks.
+   for a hand within the arms' reach of the head (:func:`~jaxmocap.trackers.stereo_pf.checks.
    hand_reach`, not closer than the neck).
 
 :func:`observe_search` runs the filter alongside the host's image line (as
-:func:`jaxmocap.trackers.stereo_pf_adapt.observe_adaptive` does) and fills the observation of
+:func:`jaxmocap.trackers.stereo_pf.adapt.observe_adaptive` does) and fills the observation of
 frame t with what the search finds around the prediction from the estimates of frames t - 1
 and t - 2 (constant velocity, damped).
 
@@ -58,7 +58,9 @@ from jaxmocap.body import keypoint_index, keypoints
 from jaxmocap.errors import InputError
 from jaxmocap.pf.colors import CaptureColors, hysteresis_masks
 from jaxmocap.pf.cues import Observation
-from jaxmocap.trackers import stereo_pf as sp
+from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
+from jaxmocap.trackers.stereo_pf.observation import observe
+from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, StereoPFParams
 
 ENTITIES = bloblib.ENTITY_NAMES  # head, l_hand, r_hand (keypoint names)
 
@@ -122,7 +124,7 @@ def _components(mask: np.ndarray, seeds: np.ndarray, centre: np.ndarray, min_are
 
 
 def search_entities(
-    params: sp.StereoPFParams,
+    params: StereoPFParams,
     images: UInt8[np.ndarray, "2 h w 3"],
     predicted: Float[np.ndarray, "3 3"],
     points: Float[np.ndarray, "3 3"],
@@ -151,7 +153,7 @@ def search_entities(
     f = np.asarray(cams.K, np.float64)[:, 0, 0]
     yy, xx = np.mgrid[:h, :w]
     near, far = params.reach if params.reach is not None else (0.0, np.inf)
-    m = sp.BLOB_PARAMS.max_blobs
+    m = BLOB_PARAMS.max_blobs
     for e in todo:
         ref = np.where(valid[:, None], points, predicted)  # where the others are
         uv, depth = (np.asarray(x, np.float64) for x in _project_both(
@@ -194,7 +196,7 @@ def search_entities(
 
 
 def observe_search(
-    params: sp.StereoPFParams,
+    params: StereoPFParams,
     key: PRNGKeyArray,
     frames: UInt8[np.ndarray, "t 2 h w 3"],
     blob_params: bloblib.BlobParams | None = None,
@@ -212,14 +214,14 @@ def observe_search(
     model = params.model
     idx = np.asarray([keypoint_index(model, k)[0] for k in ENTITIES])
     kp_fn = jax.jit(lambda q: keypoints(model, q)[idx])
-    step = sp.compile_step(params)
-    blob_state = bloblib.init(blob_params or sp.BLOB_PARAMS)
+    step = compile_step(params)
+    blob_state = bloblib.init(blob_params or BLOB_PARAMS)
     n = len(frames)
     log = {"found": np.zeros((n, 3), bool)}
     out: list[Observation] = []
     state, history = None, []  # history: the last two estimates' (3, 3) entity positions
     for t in range(n):
-        obs, blob_state = sp.observe(params, frames[t], blob_state)
+        obs, blob_state = observe(params, frames[t], blob_state)
         valid = np.asarray(obs.valid)
         if state is not None and len(history) >= 1 and not valid.all():
             last = history[-1]
@@ -231,7 +233,7 @@ def observe_search(
             dt = obs.points.dtype
             obs = dataclasses.replace(obs, points=jnp.asarray(pts, dt), valid=jnp.asarray(val))
         out.append(obs)
-        state, est = sp.online_frame(params, key, step, state, out, obs)
+        state, est = online_frame(params, key, step, state, out, obs)
         if est is None:
             continue
         q = np.asarray(est.q)

@@ -1,0 +1,420 @@
+"""Parameters and state of the stereo particle filter (Azad et al. 2007): the paper's settings
+and the extensions' defaults, the elbow-swivel proposal, :class:`StereoPFParams` and
+:func:`make_params`, :class:`TrackerState`, :class:`StereoEstimate`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
+
+from jaxmocap import blobs as bloblib
+from jaxmocap import pf
+from jaxmocap.body import (
+    BodyModel,
+    default_body,
+    keypoint_index,
+    keypoints,
+    require_roles,
+    stereo_dofs,
+)
+from jaxmocap.body.chain import ROOT_DOFS, so3_exp
+from jaxmocap.camera import Camera, stack_cameras
+from jaxmocap.errors import InputError
+from jaxmocap.pf import cues
+from jaxmocap.pf import guided as pf_guided
+from jaxmocap.pf.colors import ADAPT_MAX_SPREAD, ADAPT_RATE, CaptureColors
+from jaxmocap.pf.cues import StereoLikelihood
+from jaxmocap.segment import SegmentParams
+from jaxmocap.trackers.stereo_pf.checks import (
+    hand_reach,
+)
+
+N_PARTICLES = 1000  # Azad §V
+# Adaptive noise range (std per frame at 25-30 Hz; Azad give none): root translation (m), root
+# rotation (rad), arm joints (rad). The minimum keeps the set alive, the maximum re-finds a
+# lost limb within a few frames.
+SIGMA_MIN = (0.004, 0.01, 0.02)
+SIGMA_MAX = (0.02, 0.05, 0.15)
+# Energy e = -max log p (both edge cues + distance cue) at which the noise is 63% of the way to
+# the maximum: a good fit of a 320x240 pair has a mean edge value ~0.6 per camera, i.e.
+# e ~ 2 x 0.4 / (2 sigma_g^2) = 10 with sigma_g = 0.2.
+ERROR_SCALE = 15.0
+DAMPING = 0.5  # first-order motion model: s_t = s_{t-1} + delta (s_{t-1} - s_{t-2}) + noise
+# Initialisation prior (radians / metres) and annealing schedule
+INIT_YAW = 0.8  # the subject roughly faces the cameras: turn about the vertical in +-0.8 rad
+INIT_TILT = 0.1  # std of the lean about the horizontal axes
+INIT_ROOT_STD = 0.03  # std of the root position around the head-derived one
+INIT_BETAS = tuple(float(b) for b in np.geomspace(0.02, 1.0, 12))  # 12 annealing layers
+# Annealing layers per tracked frame (Deutscher et al. 2000, Azad's ref. [4]): (1.0,) is the
+# plain Condensation step of Azad §II; more layers search the 14-D space better at a cost of one
+# likelihood evaluation of the N particles per layer (see docs/results/stereo_pf.md).
+STEP_BETAS = (1.0,)
+# Distance-cue-guided proposal (an extension beyond Azad, jaxmocap.pf.guided): after the
+# prediction a fraction of the particles takes a few damped minimum-norm Gauss-Newton steps
+# toward the triangulated head / hands; the metric's unit per DOF is the noise maximum.
+GUIDED = True
+GUIDED_INIT = False  # the proposal also in the initialisation's annealing (see make_params)
+# Hand-support cue (ours, jaxmocap.pf.cues.support_loglik): a hand without a triangulated point
+# is hidden (behind the shirt or in a skin blob) or outside the image, not on plain background.
+USE_SUPPORT = True
+# make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
+AZAD_FILTER = dict(guided=False, swivel_fraction=0.0, edge_outside=None, use_support=False)
+# Elbow-swivel jumps (SwivelProposal; not in the paper): the fraction of the particles whose
+# arms are turned about their shoulder-hand lines each frame. Session 5, 3 clips x 4 keys:
+# dance_b 10.6 -> 7.8 cm, punch 11.4 -> 10.8, turn 3.1 -> 3.1 (0.05 and 0.2 tried as well).
+SWIVEL_FRACTION = 0.1
+# The tracker's blob tracker hands the distance cue a hand carried by its motion model for one
+# frame only (then missing: the support cue holds it), instead of Azad's max_coast = 8 frames:
+# a hand hidden behind the torso in a turn coasted 11-52 cm off and pulled the arm with it.
+# bloblib.BlobParams() is Azad's carry (observe_sequence(..., blob_params=BlobParams())).
+BLOB_PARAMS = bloblib.BlobParams(report_coast=1)
+FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in frame 0
+# A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
+# inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
+SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
+
+
+SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint role, hand keypoint)
+def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    """Rx(a0) Ry(a1) Rz(a2): the model's 3-DOF ball joints (x, y, z revolute links)."""
+    return so3_exp(jnp.array([1.0, 0.0, 0.0], a.dtype) * a[0]) @ (
+        so3_exp(jnp.array([0.0, 1.0, 0.0], a.dtype) * a[1])
+        @ so3_exp(jnp.array([0.0, 0.0, 1.0], a.dtype) * a[2])
+    )
+
+
+def _angles_xyz(m: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+    """The inverse of :func:`_rot_xyz` (the middle angle in [-pi/2, pi/2])."""
+    b = jnp.arcsin(jnp.clip(m[0, 2], -1.0, 1.0))
+    return jnp.stack([jnp.arctan2(-m[1, 2], m[2, 2]), b, jnp.arctan2(-m[0, 1], m[0, 0])])
+
+
+class SwivelProposal(eqx.Module):
+    """The guided proposal followed by **elbow-swivel jumps** (not in Azad's paper).
+
+    With the shoulder and the hand fixed, an arm keeps one free motion: the elbow circles the
+    shoulder-hand line (the swivel). A single-colour silhouette sees it weakly, and the filter
+    that picked the wrong side at initialisation cannot cross over by small random steps
+    while the hand stays pinned by the distance cue. For a random ``fraction`` of the
+    particles each arm (with probability 1/2) is rotated, as a rigid whole about the line
+    from its shoulder joint to its hand, by an angle uniform in [-pi, pi): the hand does not
+    move, so the distance cue is unchanged and the edge cue decides. The new shoulder angles
+    are the x-y-z decomposition of the rotated upper arm (the model's shoulders are x, y, z
+    revolute links with identity origin rotations; :func:`make_params` checks it)."""
+
+    inner: pf.GuidedProposal | None
+    model: BodyModel
+    default_q: Float[Array, " n_dof"]
+    dofs: tuple[int, ...] = eqx.field(static=True)
+    arms: tuple[tuple[tuple[int, int, int], int, int, str], ...] = eqx.field(static=True)
+    fraction: float = eqx.field(static=True)
+
+    def _swivel(self, s: Float[Array, " d"], phi: Float[Array, " a"]) -> Float[Array, " d"]:
+        q = self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
+        tr = cues.pose_transforms(self.model, q)
+        hands = cues.distance_points(self.model, tr, tuple(arm[3] for arm in self.arms))
+        for a, (cols, parent, link, _) in enumerate(self.arms):
+            u = hands[a] - tr[link, :3, 3]
+            u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
+            rp = tr[parent, :3, :3]
+            c = np.asarray(cols)
+            m = rp.T @ so3_exp(u * phi[a]) @ rp @ _rot_xyz(s[c])
+            s = s.at[c].set(_angles_xyz(m))
+        return s
+
+    def __call__(self, x: Float[Array, "n d"], observation, key: PRNGKeyArray):
+        k_inner, k_pick, k_phi, k_arm = jax.random.split(key, 4)
+        if self.inner is not None:
+            x = self.inner(x, observation, k_inner)
+        n, n_arms = x.shape[0], len(self.arms)
+        m = int(round(self.fraction * n))
+        if m == 0:
+            return x
+        idx = jax.random.permutation(k_pick, n)[:m]
+        phi = jax.random.uniform(k_phi, (m, n_arms), x.dtype, -jnp.pi, jnp.pi)
+        phi = jnp.where(jax.random.bernoulli(k_arm, 0.5, (m, n_arms)), phi, 0.0)
+        return x.at[idx].set(jax.vmap(self._swivel)(x[idx], phi))
+
+
+def _swivel_arms(model: BodyModel, dofs: np.ndarray):
+    """The arms whose shoulder DOFs (joint roles ``l_shoulder``/``r_shoulder``) are filtered,
+    as (positions of the x, y, z shoulder DOFs in the filtered state, parent link of the
+    shoulder, the shoulder's last link, hand keypoint name); raises one line if a filtered
+    shoulder is not the three x, y, z revolute links :class:`SwivelProposal` decomposes."""
+    chain, out = model.chain, []
+    roles = require_roles(model, "stereo_pf.make_params: swivel_fraction")
+    topo = chain.topology
+    pos = {int(d): i for i, d in enumerate(dofs)}
+    for joint, hand in SWIVEL_ARMS:
+        names = roles.dofs(joint)
+        idx = [chain.dof_names.index(n) for n in names]
+        if not any(i in pos for i in idx):
+            continue  # this shoulder is not filtered: nothing to swivel
+        links = [next(k for k, (_, _, d) in enumerate(topo) if d == i) for i in idx]
+        ok = (
+            len(idx) == 3
+            and all(i in pos for i in idx)
+            and topo[links[1]][0] == links[0]
+            and topo[links[2]][0] == links[1]
+            and np.allclose(np.asarray(chain.joint_axis)[links], np.eye(3))
+            and np.allclose(np.asarray(chain.joint_origin)[links, :3, :3], np.eye(3))
+            and np.allclose(np.asarray(chain.joint_origin)[links[1:], :3, 3], 0.0)
+        )
+        if not ok:
+            raise InputError(
+                f"stereo_pf.make_params: swivel_fraction > 0 needs the {joint} joint "
+                f"{names} of {roles.source} to be three filtered x, y, z revolute links with "
+                "identity origin rotations; give swivel_fraction=0 for this body"
+            )
+        out.append((tuple(pos[i] for i in idx), topo[links[0]][0], links[2], hand))
+    return tuple(out)
+
+
+class StereoPFParams(eqx.Module):
+    """Everything fixed over a sequence: the likelihood (body, cameras, cues), the particle
+    filter's box and noise, the image pipeline's parameters and the initialisation prior."""
+
+    likelihood: StereoLikelihood
+    filter: pf.PFParams
+    segment: SegmentParams
+    prior_lower: Float[Array, " d"]  # uniform prior box of the joints (subset DOFs)
+    prior_upper: Float[Array, " d"]
+    init_betas: Float[Array, " m"]
+    step_betas: Float[Array, " k"]  # annealing layers per frame; (1.0,) = plain step
+    head_rest: Float[Array, " 3"]  # head keypoint in the root frame at default_q
+    init_yaw: Float[Array, ""]
+    init_tilt: Float[Array, ""]
+    init_root_std: Float[Array, ""]
+    fallback_root: Float[Array, " 3"]
+    n_particles: int = eqx.field(static=True)
+    guided_init: bool = eqx.field(static=True, default=False)
+    # the capture's colour model (jaxmocap.pf.colors) instead of the HSV intervals; None: Azad's
+    colors: CaptureColors | None = None
+    # blob plausibility (hand_reach): (near, far) head-to-hand distances, m; None: off
+    reach: tuple[float, float] | None = eqx.field(static=True, default=None)
+    # on-line colour adaptation (jaxmocap.trackers.stereo_pf.adapt): (skin rate, shirt rate)
+    # of one frame's pixels, spread cap; None: the colour model stays as fitted
+    adapt: tuple[float, float, float] | None = eqx.field(static=True, default=None)
+    # hysteresis skin (pf.colors.hysteresis_masks): px grown into the relaxed skin map; 0: off
+    skin_grow: int = eqx.field(static=True, default=0)
+
+    @property
+    def dofs(self) -> np.ndarray:
+        return np.asarray(self.likelihood.dofs)
+
+    @property
+    def model(self) -> BodyModel:
+        return self.likelihood.model
+
+    def full_q(self, s: Float[Array, "*b d"]) -> Float[Array, "*b n_dof"]:
+        base = jnp.broadcast_to(
+            self.likelihood.default_q.astype(s.dtype), s.shape[:-1] + (self.model.n_dof,)
+        )
+        return base.at[..., self.dofs].set(s)
+
+
+def make_params(
+    cams: Sequence[Camera] | Camera,
+    model: BodyModel | None = None,
+    dofs: Sequence[int] | np.ndarray | None = None,
+    n_particles: int = N_PARTICLES,
+    use_distance: bool = True,
+    use_region: bool = False,
+    edge_form: str = "sad",
+    edge_outside: float | None = cues.EDGE_OUTSIDE,
+    use_support: bool = USE_SUPPORT,
+    support_all: bool = False,
+    sigma_s: float = cues.SIGMA_S,
+    sigma_g: float = cues.SIGMA_G,
+    sigma_d: float = cues.SIGMA_D,
+    sigma_r: float = cues.SIGMA_R,
+    points_per_line: int = cues.POINTS_PER_LINE,
+    default_q: ArrayLike | None = None,
+    segment: SegmentParams | None = None,
+    init_betas: Sequence[float] = INIT_BETAS,
+    step_betas: Sequence[float] = STEP_BETAS,
+    error_scale: float = ERROR_SCALE,
+    damping: float = DAMPING,
+    guided: bool = GUIDED,
+    guided_fraction: float = pf_guided.GUIDED_FRACTION,
+    guided_steps: int = pf_guided.GUIDED_STEPS,
+    guided_damping: float = pf_guided.GUIDED_DAMPING,
+    guided_init: bool = GUIDED_INIT,
+    swivel_fraction: float = SWIVEL_FRACTION,
+    colors: CaptureColors | None = None,
+    plausible_blobs: bool = False,
+    hand_swap: bool = False,
+    init_yaw: float = INIT_YAW,
+    adapt_colors: bool = False,
+    adapt_rate: float = ADAPT_RATE,
+    adapt_shirt_rate: float = ADAPT_RATE,
+    adapt_spread: float = ADAPT_MAX_SPREAD,
+    skin_grow: int = 0,
+    dtype=jnp.float32,
+) -> StereoPFParams:
+    """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
+
+    ``dofs``: indices of the filtered DOFs (default the 14 of :func:`stereo_dofs`; the six root
+    DOFs must be among them); the others stay at ``default_q`` (default the rest pose).
+    ``guided``: the distance-cue-guided proposal (not in Azad's paper; module docstring):
+    ``guided_fraction`` of the particles take ``guided_steps`` minimum-norm Gauss-Newton steps
+    (Levenberg damping ``guided_damping``, m^2) toward the triangulated head / hands after the
+    prediction, in the filter step and in the initialisation. ``guided=False`` is Azad's filter.
+    ``edge_outside``: the edge value of contour samples outside the image (default
+    :data:`jaxmocap.pf.cues.EDGE_OUTSIDE`; None: Azad's zero padding, which pulls a limb that
+    leaves the image back in). ``use_support``: the hand-support cue (default on; not in the
+    paper; :func:`jaxmocap.pf.cues.support_loglik`, width ``sigma_s``, on the hands without a
+    triangulated point, or on every hand with ``support_all``; :func:`observe` then adds the
+    support map to the observation). ``swivel_fraction``: the fraction of the particles
+    whose elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`;
+    default :data:`SWIVEL_FRACTION`; 0 disables). Azad's filter: ``**AZAD_FILTER``.
+    ``colors``: the capture's skin and shirt colour model (:mod:`jaxmocap.pf.colors`) used for
+    the skin map and the foreground instead of ``segment``'s HSV intervals.
+    ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
+    (:func:`hand_reach`, by keypoint roles) before they reach the distance cue.
+    ``hand_swap``: each particle pairs its hands with the triangulated ones in the nearer
+    pairing (:class:`~jaxmocap.pf.cues.StereoLikelihood`), robust to swapped blob identities.
+    ``init_yaw``: the initial prior's turn about the vertical, uniform in +-``init_yaw`` rad
+    (default :data:`INIT_YAW`, a subject facing the cameras; pi: any facing).
+    ``adapt_colors``: re-fit ``colors``' skin and shirt classes on line from the tracked head
+    and body on the frames where the filter agrees with the triangulated head
+    (:mod:`jaxmocap.trackers.stereo_pf.adapt`; one frame weighs ``adapt_rate`` /
+    ``adapt_shirt_rate``, 0 leaves that class fixed; a class's spread stays within
+    ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
+    with the filter alongside. ``skin_grow`` (px, needs ``colors``): the skin map grown into
+    a relaxed skin map by up to this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`).
+    """
+    model = default_body() if model is None else model
+    cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
+    if cams.K.ndim != 3:
+        raise InputError(
+            f"stereo_pf.make_params: cams: expected a list of cameras, got {cams.K.shape}"
+        )
+    dofs = stereo_dofs(model) if dofs is None else np.sort(np.asarray(dofs, dtype=np.int64))
+    if not set(range(ROOT_DOFS)) <= set(dofs.tolist()) or dofs.max() >= model.n_dof:
+        raise InputError(
+            f"stereo_pf.make_params: dofs: expected indices < {model.n_dof} including the root "
+            f"DOFs 0..5, got {dofs.tolist()}"
+        )
+    if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
+        raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
+                         f"capture's colours (colors=...), got {skin_grow!r}")
+    if adapt_colors and colors is None:
+        raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
+                         "(colors=...); the HSV intervals are not adapted")
+    if not (0.0 <= adapt_rate <= 1.0 and 0.0 <= adapt_shirt_rate <= 1.0 and adapt_spread > 0):
+        raise InputError("stereo_pf.make_params: adapt_rate / adapt_shirt_rate / adapt_spread: "
+                         f"expected in [0, 1] / [0, 1] / > 0, got {adapt_rate} / "
+                         f"{adapt_shirt_rate} / {adapt_spread}")
+    if n_particles < 2:
+        raise InputError(f"stereo_pf.make_params: n_particles: expected >= 2, got {n_particles}")
+    default_q = (
+        jnp.zeros(model.n_dof, dtype) if default_q is None else jnp.asarray(default_q, dtype)
+    )
+    if default_q.shape != (model.n_dof,):
+        raise InputError(
+            f"stereo_pf.make_params: default_q: expected shape ({model.n_dof},), got "
+            f"{default_q.shape}"
+        )
+    lik = StereoLikelihood(
+        model=model, limbs=cues.limb_model(model), cams=cams, default_q=default_q,
+        sigma_g=jnp.asarray(sigma_g, dtype), sigma_d=jnp.asarray(sigma_d, dtype),
+        sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
+        points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
+        use_region=use_region, sigma_s=jnp.asarray(sigma_s, dtype), use_support=use_support,
+        support_all=support_all, hand_swap=hand_swap,
+        edge_outside=None if edge_outside is None else float(edge_outside),
+    )  # fmt: skip
+    lower = np.asarray(model.chain.lower, np.float64)[dofs]
+    upper = np.asarray(model.chain.upper, np.float64)[dofs]
+    kind = np.where(dofs < 3, 0, np.where(dofs < ROOT_DOFS, 1, 2))
+    if not 0.0 <= guided_fraction <= 1.0:
+        raise InputError(
+            f"stereo_pf.make_params: guided_fraction: expected in [0, 1], got {guided_fraction}"
+        )
+    if guided_steps < 1 or guided_damping <= 0:
+        raise InputError(
+            "stereo_pf.make_params: guided_steps / guided_damping: expected >= 1 / > 0, got "
+            f"{guided_steps} / {guided_damping}"
+        )
+    proposal = None
+    if guided:
+        proposal = pf.GuidedProposal(
+            residual=lik.distance_residual,
+            linearize=lik.distance_linearize,
+            scale=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
+            damping=jnp.asarray(guided_damping, dtype),
+            fraction=float(guided_fraction),
+            n_steps=int(guided_steps),
+        )
+    if not 0.0 <= swivel_fraction <= 1.0:
+        raise InputError(
+            f"stereo_pf.make_params: swivel_fraction: expected in [0, 1], got {swivel_fraction}"
+        )
+    arms = _swivel_arms(model, dofs) if swivel_fraction > 0 else ()
+    if arms:  # no filtered x-y-z shoulder: nothing to turn
+        proposal = SwivelProposal(
+            inner=proposal, model=model, default_q=default_q, dofs=tuple(int(i) for i in dofs),
+            arms=arms, fraction=float(swivel_fraction),
+        )  # fmt: skip
+    filt = pf.PFParams(
+        loglik=lik,
+        lower=jnp.asarray(lower, dtype),
+        upper=jnp.asarray(upper, dtype),
+        sigma_min=jnp.asarray(np.asarray(SIGMA_MIN)[kind], dtype),
+        sigma_max=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
+        damping=jnp.asarray(damping, dtype),
+        error_scale=jnp.asarray(error_scale, dtype),
+        boundary="reflect",
+        proposal=proposal,
+    )
+    q0 = default_q.at[:ROOT_DOFS].set(0.0)
+    head_rest = keypoints(model, q0)[keypoint_index(model, "head")[0]]
+    return StereoPFParams(
+        likelihood=lik,
+        filter=filt,
+        segment=SegmentParams() if segment is None else segment,
+        prior_lower=jnp.asarray(np.where(np.isfinite(lower), lower, 0.0), dtype),
+        prior_upper=jnp.asarray(np.where(np.isfinite(upper), upper, 0.0), dtype),
+        init_betas=jnp.asarray(init_betas, dtype),
+        step_betas=jnp.asarray(step_betas, dtype),
+        head_rest=head_rest.astype(dtype),
+        init_yaw=jnp.asarray(init_yaw, dtype),
+        init_tilt=jnp.asarray(INIT_TILT, dtype),
+        init_root_std=jnp.asarray(INIT_ROOT_STD, dtype),
+        fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
+        n_particles=int(n_particles),
+        guided_init=bool(guided and guided_init),
+        colors=colors,
+        reach=hand_reach(model) if plausible_blobs else None,
+        adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
+        else None,
+        skin_grow=int(skin_grow),
+    )
+
+
+class TrackerState(eqx.Module):
+    """The particle set and the PRNG key of the next frame."""
+
+    particles: pf.PFState
+    key: PRNGKeyArray
+
+
+class StereoEstimate(eqx.Module):
+    """Per-frame output: full pose vectors (weighted mean and best particle), diagnostics.
+
+    With :func:`run`'s ``smooth_lag`` L > 0, ``q`` is the fixed-lag smoothed mean
+    (:func:`jaxmocap.pf.smooth.fixed_lag_smooth`) and ``q_filtered`` the filter's own mean
+    (None otherwise)."""
+
+    q: Float[Array, "*t n_dof"]
+    q_best: Float[Array, "*t n_dof"]
+    best_loglik: Float[Array, "*t"]
+    ess: Float[Array, "*t"]
+    degenerate: Bool[Array, "*t"]
+    q_filtered: Float[Array, "*t n_dof"] | None = None
