@@ -314,8 +314,7 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
     its round, ``2s + 1`` renders the result and scores it; after the last start's score and
     after each extra render the next round runs from the kept result. XLA compiles one render
     and one round for the whole frame where a loop per phase compiled three renders and two
-    rounds: cold compile + first call 39.4 / 37.9 -> 32.4 / 25.6 s, steady frame 86.3 / 65.5 ->
-    64.1 / 56.2 ms in interleaved runs (docs/results/step_ab_session12.json)."""
+    rounds (its cold and steady times: docs/results/realtime_profile_history.json)."""
     starts, plain, n = starts_of(params, state, ctx)
     total = 2 * n + n_more
     dt = ctx.q_g.dtype
