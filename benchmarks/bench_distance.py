@@ -310,8 +310,8 @@ def _patch_masks(n_poses: int, seed: int = 1) -> np.ndarray:
     from jaxmocap.body import default_body
     from jaxmocap.garment import default_garment
     from jaxmocap.render import render_ids, render_uv
+    from jaxmocap.sampling import crop_uv, crop_window
     from jaxmocap.trackers.shirt import CROP_FACTOR, WORK_SIZE
-    from jaxmocap.trackers.shirt.image import crop_uv, crop_window
 
     model = default_body()
     garment = default_garment(model)

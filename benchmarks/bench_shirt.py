@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks._common import Row, sized, time_call, time_compile, write_results
+from jaxmocap import sampling
 from jaxmocap.body import default_body
 from jaxmocap.camera import look_at, stack_cameras
 from jaxmocap.color import (
@@ -72,7 +73,6 @@ from jaxmocap.render import (
 )
 from jaxmocap.trackers import shirt
 from jaxmocap.trackers.shirt import frame as shirt_frame
-from jaxmocap.trackers.shirt import image as shirt_image
 
 PAPER_MS = 120.0  # Wang et al. §7: 120 ms per frame, two 640x480 cameras
 GOAL_MS = 10.0  # docs/PERF-NOTES.md
@@ -268,7 +268,7 @@ def stage_database(params, ids, windows, found):
         win_c = window_from_mask(ids_i > 0)
         q_db = estimate_pose(params.db, resample_ids(ids_i, win_c, TINY_SIZE))[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
-        win_q = shirt_image._crop_to_image(win_c, window, params.work_size)
+        win_q = sampling.crop_to_image(win_c, window, params.work_size)
         return q_db, win_q, hits.patch, win_db, found_i & (jnp.sum(ids_i > 0) > 0)
 
     q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(ids, windows, found)
@@ -338,7 +338,7 @@ def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
 
     def one(cam, refs_i, crop, window, W_i, ok_i):
         uv = shirt.crop_uv(window, params.work_size)
-        r_star = shirt_image._erode(
+        r_star = sampling.erode_ids(
             render_uv(params.render_body, params.garment, q_star, cam, uv).colour)
         W_star = white_balance_from_ids(
             params.color, crop, r_star, W_i, None, min_pixels=shirt.REFERENCE_PIXELS

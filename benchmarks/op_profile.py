@@ -41,7 +41,7 @@ OUT = Path(__file__).parents[1] / "docs" / "results" / "shirt_op_profile.json"
 STAGES = (
     ("search (§4)", ("color/search",)),
     ("crop + classification (§5.2 step 1)", ("color/classify", "color/illumination",
-                                             "trackers/shirt/image", "color/model")),
+                                             "sampling", "color/model")),
     ("10-NN + blend (step 2)", ("posedb/",)),
     ("render (ray caster)", ("render/", "garment")),
     ("camera model (ray grids, projection)", ("camera",)),

@@ -44,7 +44,6 @@ what was expected. ``save_cameras`` writes atomically (temporary file + ``os.rep
 """
 
 import json
-import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -56,6 +55,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxmocap.errors import InputError
+from jaxmocap.rotations import rodrigues, skew
 
 ArrayIn = Array | np.ndarray  # inputs accept NumPy arrays too
 VectorLike = ArrayLike | Sequence  # also nested lists of numbers
@@ -472,11 +472,6 @@ def triangulate(
 # ----------------------------------------------------------------------------- epipolar geometry
 
 
-def _skew(v: Array) -> Array:
-    z = jnp.zeros_like(v[0])
-    return jnp.array([[z, -v[2], v[1]], [v[2], z, -v[0]], [-v[1], v[0], z]])
-
-
 def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> Float[Array, "3 3"]:
     """Fundamental matrix F with ``x_b^T F x_a = 0`` for ideal (undistorted) pixels.
 
@@ -486,7 +481,7 @@ def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> Float[Array, "3 3"]:
     """
     R = cam_b.R @ cam_a.R.T
     t = cam_b.t - R @ cam_a.t
-    E = _skew(t) @ R
+    E = skew(t) @ R
     F = jnp.linalg.inv(cam_b.K).T @ E @ jnp.linalg.inv(cam_a.K)
     return F / jnp.linalg.norm(F)
 
@@ -519,19 +514,6 @@ def epipolar_distance_undistorted(
 
 
 # ----------------------------------------------------------------------------- cameras.json
-
-
-def _rodrigues(rvec: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(rvec))
-    if theta < 1e-12:
-        return np.eye(3) + _skew_np(rvec)
-    k = rvec / theta
-    Kx = _skew_np(k)
-    return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * (Kx @ Kx)
-
-
-def _skew_np(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=float)
 
 
 def _field_array(path, name, entry, key, shape) -> np.ndarray:
@@ -595,7 +577,7 @@ def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
                 f"off by {err:.2g}"
             )
     else:
-        R = _rodrigues(_field_array(path, name, entry, "rvec", (3,)))
+        R = rodrigues(_field_array(path, name, entry, "rvec", (3,)))
     t = _field_array(path, name, entry, "t", (3,))
     cam = Camera(
         K=jnp.asarray(K, dtype),

@@ -52,11 +52,12 @@ from jax.custom_derivatives import SymbolicZero
 from jax.dtypes import float0
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from jaxmocap.body import ROOT_DOFS, BodyModel, KinematicChain, fk, so3_exp
+from jaxmocap.body import ROOT_DOFS, BodyModel, KinematicChain, fk
 from jaxmocap.camera import Camera, project, triangulate
 from jaxmocap.errors import InputError
 from jaxmocap.garment import Garment
 from jaxmocap.render import patch_surface_points
+from jaxmocap.rotations import so3_exp, so3_log
 
 DEFAULT_MAX_STEPS = 64  # fixed iteration budget of every IK solve (static: sets the program)
 DEFAULT_RTOL = 1e-7  # relative tolerance on z and on the whitened residuals (traced)
@@ -686,35 +687,6 @@ def _solve_ik(
 
 
 # ----------------------------------------------------------------------------- global 6-DOF solve
-
-
-def so3_log(R: Float[Array, "3 3"]) -> Float[Array, 3]:
-    """Rotation vector (rad) of a rotation matrix; the inverse of ``so3_exp`` on |w| <= pi.
-
-    Through the unit quaternion by Shepperd's method (largest diagonal pivot), so it is
-    accurate near 0 and near pi; NaN-free ("safe where" before the division).
-    """
-    m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
-    tr = m00 + m11 + m22
-    a, b, c = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]  # antisymmetric part
-    d, e, f = R[0, 1] + R[1, 0], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1]  # symmetric part
-    cands = jnp.stack(
-        [
-            jnp.stack([1 + tr, a, b, c]),
-            jnp.stack([a, 1 + m00 - m11 - m22, d, e]),
-            jnp.stack([b, d, 1 - m00 + m11 - m22, f]),
-            jnp.stack([c, e, f, 1 - m00 - m11 + m22]),
-        ]
-    )
-    quat = cands[jnp.argmax(jnp.stack([tr, m00, m11, m22]))]
-    quat = quat / jnp.linalg.norm(quat)
-    quat = jnp.where(quat[0] < 0, -quat, quat)
-    w, v = quat[0], quat[1:]
-    vn2 = jnp.sum(v * v)
-    small = vn2 < jnp.finfo(R.dtype).eps
-    vn = jnp.sqrt(jnp.where(small, 1.0, vn2))
-    scale = jnp.where(small, 2.0 / w - (2.0 / 3.0) * vn2 / w**3, 2.0 * jnp.arctan2(vn, w) / vn)
-    return scale * v
 
 
 def _kabsch(

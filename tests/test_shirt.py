@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxmocap import sampling
 from jaxmocap.body import default_body, keypoints
 from jaxmocap.camera import look_at, stack_cameras
 from jaxmocap.garment import default_garment
@@ -22,7 +23,6 @@ from jaxmocap.posedb._search import make_posedb
 from jaxmocap.render import render_rgb, tiny_id_maps
 from jaxmocap.trackers import shirt
 from jaxmocap.trackers.shirt import frame as shirt_frame
-from jaxmocap.trackers.shirt import image as shirt_image
 
 W_IMG, H_IMG = 240, 180
 ROOT = np.array([0.0, 0.0, 0.85])
@@ -47,7 +47,7 @@ def test_crop_windows_map_back_to_image():
     n = 32
     uv = np.asarray(shirt.crop_uv(crop, n))
     win_c = jnp.asarray([3.5, 5.5, 8.0, 8.0])  # covers working pixels 4..11 x 6..13
-    win = np.asarray(shirt_image._crop_to_image(win_c, crop, n))
+    win = np.asarray(sampling.crop_to_image(win_c, crop, n))
     k = 64.0 / n
     np.testing.assert_allclose(win[:2], uv[6, 4] - k / 2)  # left/top edge of pixel (6, 4)
     np.testing.assert_allclose(win[2:], [8 * k, 8 * k])

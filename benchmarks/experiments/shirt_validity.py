@@ -48,7 +48,7 @@ def _crop_stats(shirt, params, state, frames, colour_ids):
     from jaxmocap.color import classify
     from jaxmocap.color.classify import THRESHOLD
     from jaxmocap.color.whitebalance import white_balance_from_ids
-    from jaxmocap.trackers.shirt.image import crop_uv
+    from jaxmocap.sampling import crop_uv
 
     views = shirt.locate_and_classify(params, state, jnp.asarray(frames), None)
     rows = []

@@ -30,6 +30,9 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float, Int
 
+from jaxmocap.rotations import skew
+from jaxmocap.rotations import so3_exp as so3_exp
+
 FIXED, REVOLUTE, PRISMATIC = 0, 1, 2
 ROOT_DOFS = 6  # q[0:3] root translation, q[3:6] root rotation vector
 
@@ -120,31 +123,6 @@ class KinematicChain(eqx.Module):
             raise ValueError(f"unknown link {name!r}; links are {self.link_names}") from None
 
 
-def _skew(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    o = jnp.zeros_like(x)
-    return jnp.stack(
-        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
-    )
-
-
-def so3_exp(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
-    """Rotation matrix ``exp([w]_x)`` of a rotation vector ``w`` (rad), Rodrigues' formula.
-
-    NaN-free values and gradients at ``w = 0``: the "safe where" substitutes a dummy angle
-    before the division and a Taylor branch is used below a per-dtype threshold (as jaxlie).
-    """
-    theta2 = jnp.sum(w * w, axis=-1)
-    small = theta2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
-    theta2_safe = jnp.where(small, jnp.ones_like(theta2), theta2)
-    theta_safe = jnp.sqrt(theta2_safe)
-    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta_safe) / theta_safe)
-    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta_safe)) / theta2_safe)
-    k = _skew(w)
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=w.dtype), k.shape)
-    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
-
-
 def _mm(a: Array, b: Array) -> Array:
     """3x3 @ 3x3 as a dot (measured: broadcast multiply-sum forms fuse along the chain and
     recompute parents, 10x slower under vmap at 1000 poses; see benchmarks/bench_fk.py)."""
@@ -178,7 +156,7 @@ def _fk_plain(
     # Local joint motions for all links at once (vectorised over links, outside the loop):
     # revolute Rot(a, theta) = I + sin K + (1 - cos) K^2 with K = [a]_x, so
     # origin_R @ Rot = origin_R + sin (origin_R K) + (1 - cos)(origin_R K^2).
-    k = _skew(axis)
+    k = skew(axis)
     ok, okk = _mm(o_rot, k), _mm(o_rot, _mm(k, k))
     rev = (types == REVOLUTE)[:, None, None]
     s = jnp.where(rev, jnp.sin(theta)[:, None, None], 0.0)

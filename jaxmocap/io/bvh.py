@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmocap.body import FIXED, PRISMATIC, BodyModel, default_body, fk, require_roles
-from jaxmocap.synth._rotations import Y_UP_TO_Z_UP
+from jaxmocap.rotations import Y_UP_TO_Z_UP
 from jaxmocap.synth.retarget import (
     Retargeted,
     SourcePose,

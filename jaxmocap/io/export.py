@@ -50,7 +50,7 @@ from jaxmocap.body.model import ROOT_DOF_NAMES
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, atomic_path, write_text
 from jaxmocap.io.bvh import body_to_bvh, format_bvh
-from jaxmocap.synth._rotations import Y_UP_TO_Z_UP
+from jaxmocap.rotations import Y_UP_TO_Z_UP
 
 __all__ = [
     "FORMATS",

@@ -54,6 +54,8 @@ from jaxmocap.body import CAPSULE, CYLINDER, BodyModel, fk, keypoint_index, requ
 from jaxmocap.body.roles import CONTOUR_LIMBS, geom_support, limb_axis
 from jaxmocap.camera import Camera, project
 from jaxmocap.errors import InputError
+from jaxmocap.rotations import so3_left_jacobian
+from jaxmocap.sampling import sample_bilinear, sample_nearest
 
 __all__ = [
     "DISTANCE_NAMES",
@@ -376,47 +378,12 @@ def region_samples(
     return _line_points(s, e, m)
 
 
-def sample_bilinear(image: Float[Array, "h w"], uv: Float[Array, "*n 2"]) -> Float[Array, "*n"]:
-    """Bilinear interpolation of ``image`` at pixel positions ``uv = (x, y)`` (pixel centres at
-    integers); a neighbour outside the image counts 0 (no edge / background).
-
-    Implementation: the image is zero-padded by 2 px and its 2x2 neighbourhoods are stacked
-    into a (h+3, w+3, 4) table once (it does not depend on ``uv``, so under ``vmap`` over
-    particles it is built once per image); each sample is then ONE gather of 4 contiguous
-    values instead of four scattered ones (the gathers dominate the likelihood's cost).
-    """
-    h, w = image.shape
-    x, y = uv[..., 0], uv[..., 1]
-    x0f, y0f = jnp.floor(x), jnp.floor(y)
-    fx, fy = (x - x0f).astype(image.dtype), (y - y0f).astype(image.dtype)
-    # p[y + 2, x + 2] = image[y, x]; quad[j, i] = (p[j, i], p[j, i+1], p[j+1, i], p[j+1, i+1])
-    p = jnp.pad(image, 2)
-    quad = jnp.stack([p[:-1, :-1], p[:-1, 1:], p[1:, :-1], p[1:, 1:]], axis=-1)
-    # a corner index clipped into the padding reads zeros only (all four neighbours outside)
-    i = jnp.clip(x0f + 2, 0, w + 2).astype(jnp.int32)
-    j = jnp.clip(y0f + 2, 0, h + 2).astype(jnp.int32)
-    v = quad.reshape(-1, 4)[j * (w + 3) + i]
-    top = v[..., 0] * (1 - fx) + v[..., 1] * fx
-    bottom = v[..., 2] * (1 - fx) + v[..., 3] * fx
-    return top * (1 - fy) + bottom * fy
-
-
 def _inside(uv: Float[Array, "*n 2"], shape: tuple[int, ...]) -> Bool[Array, "*n"]:
     """Whether pixel positions lie inside an image of ``shape`` (h, w) (pixel centres at
     integers, the image spans [-0.5, w - 0.5] x [-0.5, h - 0.5])."""
     h, w = shape[-2:]
     x, y = uv[..., 0], uv[..., 1]
     return (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
-
-
-def sample_nearest(image: Array, uv: Float[Array, "*n 2"]) -> Array:
-    """``image`` at the nearest pixel of ``uv`` (0 / False outside the image)."""
-    h, w = image.shape
-    xi = jnp.round(jnp.clip(uv[..., 0], -1, w)).astype(jnp.int32)
-    yi = jnp.round(jnp.clip(uv[..., 1], -1, h)).astype(jnp.int32)
-    inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-    v = image.reshape(-1)[jnp.clip(yi, 0, h - 1) * w + jnp.clip(xi, 0, w - 1)]
-    return jnp.where(inside, v, jnp.zeros((), image.dtype))
 
 
 def edge_loglik(
@@ -489,24 +456,7 @@ def pose_transforms(model: BodyModel, q: Float[Array, " n_dof"]) -> Float[Array,
     return fk(model.chain, q)
 
 
-def _skew(v: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    o = jnp.zeros_like(x)
-    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1),
-                      jnp.stack([-y, x, o], -1)], -2)  # fmt: skip
 
-
-def _so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    """J_l(w) = I + (1 - cos t) / t^2 [w]_x + (t - sin t) / t^3 [w]_x^2, t = |w| (Taylor
-    branch near 0, "safe where" so that values and gradients stay finite)."""
-    t2 = jnp.sum(w * w)
-    small = t2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
-    t2s = jnp.where(small, 1.0, t2)
-    t = jnp.sqrt(t2s)
-    a = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2s)
-    b = jnp.where(small, 1.0 / 6.0 - t2 / 120.0, (t - jnp.sin(t)) / (t2s * t))
-    k = _skew(w)
-    return jnp.eye(3, dtype=w.dtype) + a * k + b * (k @ k)
 
 
 def _ancestry(topology) -> np.ndarray:
@@ -639,7 +589,7 @@ class StereoLikelihood(eqx.Module):
         link_of_dof = {d: i for i, (_, jt, d) in enumerate(topo) if d >= 0}
         axis = model.chain.joint_axis.astype(s.dtype)
         rel_root = f - q[None, :3]
-        jl = _so3_left_jacobian(q[3:6])
+        jl = so3_left_jacobian(q[3:6])
         # column c of -[p - t]_x J_l is J_l[:, c] x (p - t)
         d_rot = jnp.stack([jnp.cross(jl[:, c][None, :], rel_root) for c in range(3)], -1)
         cols = []

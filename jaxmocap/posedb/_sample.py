@@ -43,7 +43,7 @@ from jaxtyping import Array, Float
 from ..body import ROOT_DOFS, BodyModel, require_roles, so3_exp
 from ..camera import Camera, look_at
 from ..errors import InputError
-from ..synth._rotations import matrix_to_rotvec
+from ..rotations import matrix_to_rotvec
 
 DEFAULT_SIZE = 80_000  # Wang et al. §5.2: "a database of 80,000 upper-body poses"
 CANON_DISTANCE = 3.0  # m, canonical camera to body (only the window-normalised map matters)

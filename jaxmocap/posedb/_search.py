@@ -53,7 +53,7 @@ from jaxtyping import Array, Float, Int, Integer, UInt8, UInt32
 from ..body import ROOT_DOFS
 from ..errors import InputError
 from ..render import TINY_SIZE, resample_ids, window_from_mask
-from ..synth._rotations import quat_to_rotvec
+from ..rotations import quat_to_rotvec
 
 K_NEIGHBOURS = 10  # Wang et al. §5.2: "the ten nearest neighbors"
 BACKGROUND_WEIGHT = 0.5  # cost of a colour/background mismatch (module docstring)

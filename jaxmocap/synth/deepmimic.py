@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxmocap.synth._rotations import mm, mv, normalize_quat, quat_to_matrix, slerp
+from jaxmocap.rotations import mm, mv, normalize_quat, quat_to_matrix, slerp
 
 # pybullet_envs/deep_mimic/env/humanoid_stable_pd.py loads humanoid.urdf with globalScaling=0.25
 DEEPMIMIC_SCALE = 0.25

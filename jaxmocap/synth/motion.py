@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxmocap.body import BodyModel, default_body, require_roles
-from jaxmocap.synth._rotations import Y_UP_TO_Z_UP, mm, mv
+from jaxmocap.rotations import Y_UP_TO_Z_UP, mm, mv
 from jaxmocap.synth.deepmimic import LINKS, Clip, deepmimic_skeleton, resample, skeleton_fk
 from jaxmocap.synth.retarget import (
     Retargeted,

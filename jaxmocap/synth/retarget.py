@@ -43,7 +43,7 @@ from jaxtyping import Array, Float
 from jaxmocap.body import FIXED, BodyModel, require_roles, so3_exp
 from jaxmocap.body.chain import path_to_root
 from jaxmocap.errors import InputError
-from jaxmocap.synth._rotations import axis_angle_matrix, euler_xyz, matrix_to_rotvec, mm, mtm, mv
+from jaxmocap.rotations import axis_angle_matrix, euler_xyz, matrix_to_rotvec, mm, mtm, mv
 
 # Where the bone of each driven segment of the bundled body ends: a descendant link (its rest
 # origin) or a keypoint on the segment or below it. For any body with roles: role_bone_ends.

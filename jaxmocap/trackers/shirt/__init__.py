@@ -1,7 +1,7 @@
 """The colour-shirt tracker of Wang et al. 2011 (§4–5): ``init`` and the per-frame ``step``.
 
 Files, one per stage of the paper: :mod:`.params` (constants, parameters, state, ``make_params``,
-``init``), :mod:`.image` (crop window and sampling), :mod:`.frame` (the frame step, one function
+``init``), :mod:`.frame` (the frame step, one function
 per paper step), :mod:`.sequence` (``step``, ``compile_step``, ``run``, ``run_scan``),
 :mod:`.session` (the capture-session set-up of §5.1), :mod:`.covariances` (the bundled trained
 IK covariances, by role for any body) and :mod:`.export` (the step shipped already traced for
@@ -62,6 +62,8 @@ masks computed on the host per frame), ``run_scan`` runs a whole sequence under
 
 from __future__ import annotations
 
+from jaxmocap.sampling import crop_uv, crop_window, sample_nearest
+from jaxmocap.sampling import sample_bilinear_clamped as sample_bilinear
 from jaxmocap.trackers.shirt.covariances import (
     TRAINED_COV_FILE,
     covariances_for_body,
@@ -87,12 +89,6 @@ from jaxmocap.trackers.shirt.frame import (
     rounds,
     starts_of,
     white_balance_refit,
-)
-from jaxmocap.trackers.shirt.image import (
-    crop_uv,
-    crop_window,
-    sample_bilinear,
-    sample_nearest,
 )
 from jaxmocap.trackers.shirt.params import (
     CROP_FACTOR,

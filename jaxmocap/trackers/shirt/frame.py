@@ -45,12 +45,12 @@ from jaxmocap.render import (
     tiny_hits,
     window_from_mask,
 )
-from jaxmocap.trackers.shirt.image import (
-    _crop_to_image,
-    _erode,
+from jaxmocap.sampling import (
+    crop_to_image,
     crop_uv,
     crop_window,
-    sample_bilinear,
+    erode_ids,
+    sample_bilinear_clamped,
     sample_nearest,
 )
 from jaxmocap.trackers.shirt.params import (
@@ -144,7 +144,7 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
         res = histogram_search(frames[i], mask_i, scales=params.scales)
         win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt), params.crop_factor)
         uv = crop_uv(win, n)
-        crops.append(sample_bilinear(frames[i], uv))
+        crops.append(sample_bilinear_clamped(frames[i], uv))
         fgs.append(None if masks is None else sample_nearest(masks[i], uv))
         windows.append(win), s_found.append(res.s.astype(dt)), found.append(res.found)
     crops = jnp.stack(crops)
@@ -168,7 +168,7 @@ def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
         q_db = estimate_pose(params.db, tiny)[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
         ok = found & (jnp.sum(ids > 0) > 0)
-        return q_db, _crop_to_image(win_c, window, n), hits.patch, win_db, ok
+        return q_db, crop_to_image(win_c, window, n), hits.patch, win_db, ok
 
     q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(
         views.cls.ids, views.windows, views.found
@@ -432,7 +432,7 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
         return state.W, state.refs, jnp.zeros(params.n_cams, bool)
 
     def one(refs_i, colour, crop, W_i, fg, ok_cam):
-        r_star = _erode(colour)  # q* rendered in the crop (unused if not valid)
+        r_star = erode_ids(colour)  # q* rendered in the crop (unused if not valid)
         W_star = white_balance_from_ids(
             params.color, crop, r_star, W_i, fg, min_pixels=REFERENCE_PIXELS
         )

@@ -1,4 +1,8 @@
-"""Rotation maths shared by clip decoding, retargeting and BVH I/O (NaN-safe, batched).
+"""Rotations, one home for the whole package (floor 1: imports nothing of jaxmocap).
+
+SO(3) exp / log, its left Jacobian and the cross-product matrix (NaN-safe near 0 as jaxlie:
+a "safe where" before each division, a Taylor branch below a per-dtype threshold), quaternions,
+Euler angles, batched 3x3 products, axis-swap constants, and a NumPy Rodrigues for file I/O.
 
 Conventions: quaternions are ``(w, x, y, z)`` (DeepMimic's order), rotation matrices act on
 column vectors, rotation vectors are ``angle * unit axis`` (rad). Every function broadcasts
@@ -7,7 +11,10 @@ over leading axes and follows the dtype of its input.
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -143,3 +150,88 @@ def euler_xyz(r: Float[Array, "*b 3 3"]) -> Float[Array, "*b 3"]:
 # Y-up source frames (DeepMimic, BVH: x forward, y up, z to the right) -> our Z-up world
 # (x forward, y left, z up): v_ours = Y_UP_TO_Z_UP @ v_source, a +90 deg turn about x.
 Y_UP_TO_Z_UP = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
+
+
+# ----------------------------------------------------------------------------- SO(3)
+
+
+def skew(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+    """The cross-product matrix ``[w]_x`` (``[w]_x v = w x v``), batched."""
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
+    )
+
+
+def so3_exp(w: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+    """Rotation matrix ``exp([w]_x)`` of a rotation vector ``w`` (rad), Rodrigues' formula.
+
+    NaN-free values and gradients at ``w = 0``: the "safe where" substitutes a dummy angle
+    before the division and a Taylor branch is used below a per-dtype threshold (as jaxlie).
+    """
+    theta2 = jnp.sum(w * w, axis=-1)
+    small = theta2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
+    theta2_safe = jnp.where(small, jnp.ones_like(theta2), theta2)
+    theta_safe = jnp.sqrt(theta2_safe)
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta_safe) / theta_safe)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta_safe)) / theta2_safe)
+    k = skew(w)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=w.dtype), k.shape)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(R: Float[Array, "3 3"]) -> Float[Array, 3]:
+    """Rotation vector (rad) of a rotation matrix; the inverse of ``so3_exp`` on |w| <= pi.
+
+    Through the unit quaternion by Shepperd's method (largest diagonal pivot), so it is
+    accurate near 0 and near pi; NaN-free ("safe where" before the division).
+    """
+    m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
+    tr = m00 + m11 + m22
+    a, b, c = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]  # antisymmetric part
+    d, e, f = R[0, 1] + R[1, 0], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1]  # symmetric part
+    cands = jnp.stack(
+        [
+            jnp.stack([1 + tr, a, b, c]),
+            jnp.stack([a, 1 + m00 - m11 - m22, d, e]),
+            jnp.stack([b, d, 1 - m00 + m11 - m22, f]),
+            jnp.stack([c, e, f, 1 - m00 - m11 + m22]),
+        ]
+    )
+    quat = cands[jnp.argmax(jnp.stack([tr, m00, m11, m22]))]
+    quat = quat / jnp.linalg.norm(quat)
+    quat = jnp.where(quat[0] < 0, -quat, quat)
+    w, v = quat[0], quat[1:]
+    vn2 = jnp.sum(v * v)
+    small = vn2 < jnp.finfo(R.dtype).eps
+    vn = jnp.sqrt(jnp.where(small, 1.0, vn2))
+    scale = jnp.where(small, 2.0 / w - (2.0 / 3.0) * vn2 / w**3, 2.0 * jnp.arctan2(vn, w) / vn)
+    return scale * v
+
+
+def so3_left_jacobian(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    """J_l(w) = I + (1 - cos t) / t^2 [w]_x + (t - sin t) / t^3 [w]_x^2, t = |w| (Taylor
+    branch near 0, "safe where" so that values and gradients stay finite)."""
+    t2 = jnp.sum(w * w)
+    small = t2 < jnp.sqrt(jnp.finfo(w.dtype).eps)
+    t2s = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2s)
+    a = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2s)
+    b = jnp.where(small, 1.0 / 6.0 - t2 / 120.0, (t - jnp.sin(t)) / (t2s * t))
+    k = skew(w)
+    return jnp.eye(3, dtype=w.dtype) + a * k + b * (k @ k)
+
+
+def rodrigues(rvec: np.ndarray) -> np.ndarray:
+    """NumPy rotation matrix of a rotation vector (float64; ``cameras.json``'s ``rvec``)."""
+    theta = float(np.linalg.norm(rvec))
+    if theta < 1e-12:
+        return np.eye(3) + _skew_np(rvec)
+    k = rvec / theta
+    Kx = _skew_np(k)
+    return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * (Kx @ Kx)
+
+
+def _skew_np(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=float)
