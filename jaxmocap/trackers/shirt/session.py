@@ -23,8 +23,6 @@ from jaxmocap.ik import (
 from jaxmocap.posedb._search import PoseDB
 from jaxmocap.trackers.shirt.params import WORK_SIZE, ShirtParams, make_params
 
-# ----------------------------------------------------------------------------- set-up (§5.1)
-
 SCRIBBLE_EROSION = 2  # pixels removed from every colour region to make "scribbles"
 
 

@@ -18,8 +18,6 @@ from jaxmocap.pf.cues import Observation
 from jaxmocap.segment import Segmentation, segment_cv
 from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, StereoPFParams
 
-# ----------------------------------------------------------------------------- host edge
-
 
 def support_map(
     skin: Bool[np.ndarray, "h w"],
