@@ -439,7 +439,7 @@ def test_capture_colours_give_the_blobs_of_the_drawn_scene(scene):
 def test_online_tracker_waits_for_a_triangulated_head(scene):
     """The CLI's frame tracker initialises on the first frame with a head, as the offline
     track() does: frames before it are invalid and say so."""
-    from jaxmocap.commands.track import StereoPFFrameTracker
+    from jaxmocap.trackers.driver import StereoPFFrameTracker
 
     model, cams, frames, qs, kp, params, obs = scene
     tr = StereoPFFrameTracker(cams, 20, 0)
@@ -456,8 +456,9 @@ def test_online_tracker_waits_for_a_triangulated_head(scene):
 def test_online_tracker_takes_the_capture_colours_and_skin_grow(scene, tmp_path):
     """`track --pf-colors FILE --pf-skin-grow 4`: the frame tracker's skin map is the
     hysteresis map of the colours (pf.colors.hysteresis_masks); without colours refused."""
-    from jaxmocap.commands.track import StereoPFFrameTracker, _make_tracker
+    from jaxmocap.commands.track import _make_tracker
     from jaxmocap.pf.colors import hysteresis_masks, save_capture_colors
+    from jaxmocap.trackers.driver import StereoPFFrameTracker
 
     model, cams, frames, *_ = scene
     colors = _scene_colors(scene)

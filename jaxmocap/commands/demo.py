@@ -64,25 +64,17 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _track(params, W0, q0, frames, progress: bool):
+def _track(params, W0, cams, frames, progress: bool):
+    """The shirt tracker over the frames through the driver (the shipped program: no trace)."""
     import jax
-    import jax.numpy as jnp
-    from tqdm import tqdm
 
-    from jaxmocap.trackers import shirt
+    from jaxmocap.trackers.driver import ShirtFrameTracker, drive, sequence_frames
 
-    state = shirt.init(params, W0, q0)
-    step = shirt.compile_step(params)  # the program shipped for this set-up: no trace
-    outs, times = [], []
-    for t in tqdm(range(frames.shape[0]), desc="shirt tracker", unit="frame",
-                  disable=not progress):
-        t0 = time.perf_counter()
-        state, out = step(state, frames[t])
-        jax.block_until_ready(out.q)
-        times.append(time.perf_counter() - t0)
-        outs.append(out)
-    stacked = jax.tree.map(lambda *a: np.asarray(jnp.stack(a)), *outs)
-    return stacked, np.asarray(times)
+    tracker = ShirtFrameTracker(params, W0, list(cams), [f"cam{i}" for i in range(len(cams))])
+    run = drive(tracker, sequence_frames(frames), progress=progress, keep_outputs=True,
+                desc="shirt tracker")
+    stacked = jax.tree.map(lambda *a: np.stack(a), *run.outputs)
+    return stacked, run.times
 
 
 def _track_pf(clip: str, n_frames: int, progress: bool):
@@ -93,21 +85,17 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     from jaxmocap.segment import HSVInterval, SegmentParams
     from jaxmocap.synth import SceneConfig, render_sequence
     from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.driver import stereo_offline
 
     config = SceneConfig(clip=clip, rig="stereo", garment="single", background="plain",
                          n_frames=n_frames, noise_sigma=0.01, seed=0)
     seq = render_sequence(config, progress=progress)
     params = sp.make_params(list(seq.cameras),
                             segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
-    obs = sp.observe_sequence(params, seq.frames)
+    run = stereo_offline(params, jax.random.key(0), seq.frames)
+    obs, est, cold = run.observations, run.estimate, run.timings["filter_first"]
     t0 = time.perf_counter()
-    t_init = sp.anchor_frame(obs)  # the first frame with a triangulated head
-    state, _ = sp.init_top_level(params, jax.random.key(0), jax.tree.map(lambda a: a[t_init], obs))
-    _, est = sp.run_top_level(params, state, obs)
-    jax.block_until_ready(est.q)
-    cold = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    jax.block_until_ready(sp.run_top_level(params, state, obs)[1].q)
+    jax.block_until_ready(sp.run_top_level(params, run.initial_state, obs)[1].q)
     warm_ms = 1e3 * (time.perf_counter() - t0) / n_frames
     return seq, np.asarray(est.q, np.float64), cold, warm_ms, float(jnp.mean(obs.valid))
 
@@ -183,10 +171,10 @@ def run(args: argparse.Namespace) -> int:
     seq = render_sequence(config, progress=progress)
     print(f"  rendered in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
-    model, params, W0, q0 = demo_setup(seq, progress)
+    model, params, W0, _ = demo_setup(seq, progress)
     print(f"  set-up (pose database of {DEMO_DB_SIZE} poses, colour model, white balance) in "
           f"{time.perf_counter() - t0:.1f} s")
-    res, step_s = _track(params, W0, q0, seq.frames, progress)
+    res, step_s = _track(params, W0, seq.cameras, seq.frames, progress)
 
     fps = float(config.fps)
     track = pose_track(model, res.q, res.valid, fps)

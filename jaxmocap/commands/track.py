@@ -1,24 +1,15 @@
 """``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, C3D, CSV, NPZ),
 per-frame diagnostics and an optional overlay video (H.264 MP4 at the capture's frame rate).
 
-The command drives any tracker through a small **frame protocol** (:class:`FrameTracker`):
-
-* ``start(frames)`` — called once with the first readable frame (uint8 (n_cams, H, W, 3)
-  RGB) before it is stepped: set up the state (white balance, particle set, ...);
-* ``step(frames) -> FrameResult`` — one frame: the pose ``q`` (n_dof,) of the body model
-  (:mod:`jaxmocap.body` layout), whether it is ``valid`` (the tracker found the subject) and a
-  flat ``diagnostics`` dict of floats (classified fraction, white balance, particle spread,
-  ...), whose keys are fixed by ``diagnostic_names``;
-* ``draw(frames, result) -> frames`` — RGB images with what the tracker saw drawn over them.
-
-Two adapters implement it: :class:`ShirtFrameTracker` (Wang et al. 2011,
-:mod:`jaxmocap.trackers.shirt`) and :class:`StereoPFFrameTracker` (Azad et al. 2007,
-:mod:`jaxmocap.trackers.stereo_pf`). Frames that cannot be read are not stepped: their row
-is NaN (``valid`` 0) in every output and the command reports them in one line (exit code 1).
-All outputs are written to temporaries (outside ``--out``, :func:`jaxmocap.io.atomic.staging_dir`)
-and renamed into place only at the end, together, with ``run.json`` saying whether the run was
-complete. Everything that can be refused is refused before the first frame is read: outputs
-that would touch an input, an ``--out`` holding an earlier run's results (unless
+The command drives either tracker through the frame protocol of
+:mod:`jaxmocap.trackers.driver` (:class:`~jaxmocap.trackers.driver.ShirtFrameTracker`,
+:class:`~jaxmocap.trackers.driver.StereoPFFrameTracker`, :func:`~jaxmocap.trackers.driver.drive`).
+Frames that cannot be read are not stepped: their row is NaN (``valid`` 0) in every output
+and the command reports them in one line (exit code 1). All outputs are written to
+temporaries (outside ``--out``, :func:`jaxmocap.io.atomic.staging_dir`) and renamed into place
+only at the end, together, with ``run.json`` saying whether the run was complete. Everything
+that can be refused is refused before the first frame is read: outputs that would touch an
+input, an ``--out`` holding an earlier run's results (unless
 ``--overwrite``: the earlier set is then replaced as a whole), cameras the tracker cannot use.
 
 **Interrupts.** Ctrl-C (or SIGTERM) while frames are being tracked ends the loop; the frames
@@ -38,20 +29,28 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple, Protocol, runtime_checkable
 
 import cv2
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxmocap.body import BodyModel, default_body, keypoints
-from jaxmocap.camera import Camera, load_cameras, stack_cameras
+from jaxmocap.camera import Camera, load_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
+from jaxmocap.io.overlay import BONES, draw_skeleton
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
+from jaxmocap.trackers.driver import (
+    MAX_PARTICLES,
+    VALIDITY,
+    FrameResult,
+    FrameTracker,
+    ShirtFrameTracker,
+    StereoPFFrameTracker,
+    Tracked,
+    drive,
+    shirt_params,
+)
 
 __all__ = [
     "BONES",
@@ -66,15 +65,8 @@ __all__ = [
 ]
 
 DEFAULT_FPS = 30.0  # frame folders and live cameras that do not say
-# Skeleton drawn on the overlay: pairs of keypoint names of the body model.
-BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"),
-         ("neck", "l_shoulder"), ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"),
-         ("l_wrist", "l_hand"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"),
-         ("r_elbow", "r_wrist"), ("r_wrist", "r_hand"))  # fmt: skip
-OVERLAY_ALPHA = 0.5  # weight of the classified colours over the frame
 # The particle filter's compile time grows with the particle count (XLA folds constants of
 # that size): 10,000,000 compiles for minutes; 100x the paper's 1000 is the bound.
-MAX_PARTICLES = 100_000
 MIN_BASELINE_M = 1e-3  # stereo: camera centres closer than this triangulate nothing
 EXIT_INTERRUPTED = 130
 
@@ -104,268 +96,6 @@ def result_names() -> set[str]:
                                               "eval.json"}
 
 
-class FrameResult(NamedTuple):
-    """One frame's answer of a tracker (module docstring)."""
-
-    q: np.ndarray
-    valid: bool
-    diagnostics: dict[str, float]
-
-
-@runtime_checkable
-class FrameTracker(Protocol):
-    """The frame protocol the command drives (module docstring)."""
-
-    body: BodyModel
-    diagnostic_names: tuple[str, ...]
-
-    def start(self, frames: np.ndarray) -> None: ...
-
-    def step(self, frames: np.ndarray) -> FrameResult: ...
-
-    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray: ...
-
-
-# ----------------------------------------------------------------------------- drawing
-
-
-def _project_np(cam: Camera, X: np.ndarray) -> np.ndarray:
-    R = np.asarray(cam.R, np.float64)
-    uv, _ = cv2.projectPoints(np.asarray(X, np.float64), cv2.Rodrigues(R)[0],
-                              np.asarray(cam.t, np.float64), np.asarray(cam.K, np.float64),
-                              np.asarray(cam.dist, np.float64))
-    return uv.reshape(-1, 2)
-
-
-def draw_skeleton(image: np.ndarray, cam: Camera, keypoints: np.ndarray,
-                  names: Sequence[str]) -> np.ndarray:
-    """Draw the bones (:data:`BONES`) of world keypoints (n, 3) projected by ``cam`` on a
-    copy of ``image`` (RGB uint8). Points behind the camera are skipped."""
-    out = np.ascontiguousarray(image.copy())
-    if not np.all(np.isfinite(keypoints)):
-        return out
-    depth = keypoints @ np.asarray(cam.R, np.float64)[2] + float(cam.t[2])
-    uv = _project_np(cam, keypoints)
-    idx = {n: i for i, n in enumerate(names)}
-    for a, b in BONES:
-        if a in idx and b in idx and depth[idx[a]] > 0 and depth[idx[b]] > 0:
-            pa, pb = (tuple(int(round(v)) for v in uv[idx[k]]) for k in (a, b))
-            cv2.line(out, pa, pb, (255, 255, 255), 2, cv2.LINE_AA)
-            cv2.line(out, pa, pb, (20, 20, 20), 1, cv2.LINE_AA)
-    for i in range(len(names)):
-        if depth[i] > 0:
-            cv2.circle(out, tuple(int(round(v)) for v in uv[i]), 2, (255, 220, 0), -1)
-    return out
-
-
-_keypoints_jit = jax.jit(keypoints)
-
-
-# ----------------------------------------------------------------------------- shirt
-
-
-# The shirt tracker's per-frame validity rule (``shirt.make_params``): the paper's (§5.2: the
-# agreement gate engages once step 1 classifies 20% of a crop), or the one calibrated on the
-# dev split of the independent test world (spot lamps, clutter; docs/results/shirt.md; =
-# config "validated" of benchmarks/experiments/world_shirt.toml): the tracker's own gate
-# (temporal prior, W re-fit) at agreement 0.2 always and 20 measured patch centroids, and the
-# reported flag 26 centroids, in every camera a centroid residual <= 5.3% of the crop side
-# and >= 31% of the final pose's rendered shirt pixels classified as their colour, judged on
-# the frame's own estimate (hold_invalid off: the one the signals describe).
-VALIDITY = {
-    "paper": {},
-    "footage": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
-                "hold_invalid": False, "report_patches": 26, "max_residual": 0.053,
-                "min_recall": 0.31},
-}
-
-
-class ShirtFrameTracker:
-    """Wang et al. 2011 through the frame protocol (see :mod:`jaxmocap.trackers.shirt`).
-
-    Diagnostics per camera ``c``: ``fraction_c`` (classified fraction of step 1),
-    ``W_c_rr/gg/bb`` (the diagonal of the current white balance), ``reference_used_c``,
-    ``reference_added_c``, ``residual_c`` and ``recall_c`` (how well the final pose explains
-    the crop: :class:`jaxmocap.trackers.shirt.FrameSignals`); and ``patches`` (measured patch
-    centroids, all cameras)."""
-
-    def __init__(self, cams: list[Camera], names: list[str], color, W0: np.ndarray | None,
-                 db, cov=None, work_size: int | None = None, body: BodyModel | None = None,
-                 garment=None, room=None, validity: str = "paper"):
-        from jaxmocap.garment import default_garment
-        from jaxmocap.ik import anchors_from_garment
-        from jaxmocap.trackers import shirt
-
-        self._shirt = shirt
-        self.body = default_body() if body is None else body
-        garment = default_garment(self.body) if garment is None else garment
-        if color.n_colors != garment.n_colours:
-            raise InputError(f"--colors: the colour model has {color.n_colors} colours, the "
-                             f"shirt has {garment.n_colours}; fit one colour per shirt colour")
-        if cov is None:
-            cov, defaults = shirt.covariances_for_body(self.body)
-            if defaults:
-                print(f"jaxmocap track: IK covariances transferred by role from the bundled "
-                      f"body; {len(defaults)} DOFs without a counterpart use the defaults: "
-                      f"{', '.join(defaults)} (train your own: --ik-cov)", file=sys.stderr)
-        kw = {} if work_size is None else {"work_size": work_size}
-        kw.update(VALIDITY[validity])
-        self.params = shirt.make_params(color, self.body, garment, stack_cameras(cams),
-                                        anchors_from_garment(self.body, garment), cov, db,
-                                        shading=color.shading, scene_colors=room, **kw)
-        self.color, self.cams, self.names = color, cams, names
-        self.W0 = np.stack([np.eye(3)] * len(cams)) if W0 is None else W0
-        self.diagnostic_names = tuple(
-            [f"fraction_{n}" for n in names]
-            + [f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")]
-            + [f"reference_used_{n}" for n in names]
-            + [f"reference_added_{n}" for n in names]
-            + [f"residual_{n}" for n in names] + [f"recall_{n}" for n in names] + ["patches"])
-        self.state = None
-        self._step = None
-        from jaxmocap.color import classify
-
-        self._classify = jax.jit(lambda W, im: classify(
-            color, W, im, gain=color.shading, background=room)[0])
-
-    def start(self, frames: np.ndarray) -> None:
-        dt = self.params.cams.K.dtype
-        self.state = self._shirt.init(self.params, jnp.asarray(self.W0, dt),
-                                      jnp.zeros(self.body.n_dof, dt))
-        if self._step is None:
-            self._step = self._shirt.compile_step(self.params)
-
-    def step(self, frames: np.ndarray) -> FrameResult:
-        self.state, out = self._step(self.state, frames)
-        out, W = jax.device_get((out, self.state.W))
-        d = {}
-        for c, n in enumerate(self.names):
-            d[f"fraction_{n}"] = float(out.fraction[c])
-            for i, k in enumerate(("rr", "gg", "bb")):
-                d[f"W_{n}_{k}"] = float(W[c, i, i])
-            d[f"reference_used_{n}"] = float(out.used_reference[c])
-            d[f"reference_added_{n}"] = float(out.added_reference[c])
-            d[f"residual_{n}"] = float(out.signals.residual[c])
-            d[f"recall_{n}"] = float(out.signals.recall[c])
-        d["patches"] = float(np.sum(out.visible))
-        return FrameResult(np.asarray(out.q, np.float64), bool(out.valid), d)
-
-    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
-        """Classified pixels tinted with their colour's mean (current W), then the skeleton."""
-        mean = np.clip(np.asarray(self.color.mean), 0, 255).astype(np.float64)
-        kp = np.asarray(_keypoints_jit(self.body, jnp.asarray(result.q)), np.float64) \
-            if result.valid else np.full((len(self.body.keypoint_names), 3), np.nan)
-        out = []
-        for c, cam in enumerate(self.cams):
-            ids = np.asarray(self._classify(self.state.W[c], jnp.asarray(frames[c])))
-            img = frames[c].astype(np.float64)
-            hit = ids > 0
-            img[hit] = (1 - OVERLAY_ALPHA) * img[hit] + OVERLAY_ALPHA * mean[ids[hit] - 1]
-            out.append(draw_skeleton(img.astype(np.uint8), cam, kp, self.body.keypoint_names))
-        return np.stack(out)
-
-
-# ----------------------------------------------------------------------------- stereo PF
-
-
-class StereoPFFrameTracker:
-    """Azad et al. 2007 through the frame protocol (see :mod:`jaxmocap.trackers.stereo_pf`):
-    the filter initialises on the first frame with a triangulated head (as the offline
-    ``track``; frames before it are invalid, ``waiting_for_head`` 1), then one step per frame.
-
-    Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
-    ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
-    covariance), ``blobs`` (head/hands triangulated this frame, 0..3), ``waiting_for_head``,
-    ``head_residual_m`` (model head to the triangulated head; empty when not triangulated),
-    ``calibrating`` (``pf_colors="auto"``: the first
-    :data:`jaxmocap.pf.colors.AUTO_FRAMES` frames calibrate the capture's colours and are not
-    tracked). A frame is valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says
-    so."""
-
-    diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs",
-                        "waiting_for_head", "head_residual_m", "calibrating")
-
-    def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
-                 body: BodyModel | None = None, pf_colors: str | None = None,
-                 skin_grow: int = 0):
-        from jaxmocap import blobs
-        from jaxmocap.segment import HSVInterval, SegmentParams
-        from jaxmocap.trackers import stereo_pf
-
-        if len(cams) != 2:
-            raise InputError(f"--method pf needs exactly 2 cameras (a stereo pair), "
-                             f"cameras.json has {len(cams)}")
-        if not 10 <= n_particles <= MAX_PARTICLES:
-            raise InputError(f"--particles must be between 10 and {MAX_PARTICLES:,}, got "
-                             f"{n_particles}")
-        self._pf, self._blobs = stereo_pf, blobs
-        segment, colors = None, None
-        self._calibration: list[np.ndarray] | None = None
-        if pf_colors == "auto":
-            self._calibration = []
-        elif pf_colors is not None:
-            from jaxmocap.pf.colors import load_capture_colors
-
-            colors = load_capture_colors(pf_colors)
-        elif skin == "synth":
-            lo, hi = stereo_pf.SYNTH_SKIN_HSV
-            segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
-        self._make = lambda colors: stereo_pf.make_params(
-            cams, model=body, n_particles=n_particles, segment=segment, colors=colors,
-            plausible_blobs=colors is not None, hand_swap=colors is not None,
-            skin_grow=skin_grow if colors is not None else 0)
-        self.params = self._make(colors)
-        self._step = stereo_pf.compile_step(self.params)
-        self.body = self.params.model
-        self.cams = cams
-        self.key = jax.random.PRNGKey(seed)
-        self.state = None
-
-    def start(self, frames: np.ndarray) -> None:
-        self.blob_state = self._blobs.init(self._pf.BLOB_PARAMS)
-        self.state = None
-
-    def step(self, frames: np.ndarray) -> FrameResult:
-        if self._calibration is not None:
-            from jaxmocap.pf.colors import AUTO_FRAMES, calibrate_from_frames
-
-            self._calibration.append(np.asarray(frames[0]))
-            if len(self._calibration) < AUTO_FRAMES:
-                return FrameResult(np.full(self.body.n_dof, np.nan), False, {"calibrating": 1.0})
-            self.params = self._make(calibrate_from_frames(self._calibration))
-            self._step = self._pf.compile_step(self.params)
-            self._calibration = None
-        obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
-        valid_blobs = np.asarray(obs.valid)
-        if self.state is None:
-            if not valid_blobs[0]:  # no triangulated head yet: nothing to anchor on
-                return FrameResult(np.full(self.body.n_dof, np.nan), False,
-                                   {"waiting_for_head": 1.0, "blobs": float(valid_blobs.sum())})
-            self.state, est = self._pf.init_top_level(self.params, self.key, obs)
-        else:
-            self.state, est = self._step(self.state, obs)
-        est, parts = jax.device_get((est, self.state.particles.particles))
-        root = np.asarray(parts[:, :3], np.float64)
-        q = np.asarray(est.q, np.float64)
-        res = self._pf.head_residual(self.params, q[None], np.asarray(obs.points)[None],
-                                     valid_blobs[None])[0]
-        ok = bool(np.all(np.isfinite(q))) and bool(
-            self._pf.frame_validity(self.params, q[None], np.asarray(obs.points)[None],
-                                    valid_blobs[None])[0])
-        d = {"ess": float(est.ess), "best_loglik": float(est.best_loglik),
-             "degenerate": float(est.degenerate),
-             "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
-             "blobs": float(np.sum(valid_blobs)), "waiting_for_head": 0.0,
-             "head_residual_m": float(res), "calibrating": 0.0}
-        return FrameResult(q, ok, d)
-
-    def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
-        kp = np.asarray(_keypoints_jit(self.body, jnp.asarray(result.q)), np.float64) \
-            if result.valid else np.full((len(self.body.keypoint_names), 3), np.nan)
-        return np.stack([draw_skeleton(f, c, kp, self.body.keypoint_names)
-                         for f, c in zip(frames, self.cams, strict=True)])
-
-
 # ----------------------------------------------------------------------------- the loop
 
 
@@ -392,76 +122,52 @@ def _diagnostics_csv(names: Sequence[str], rows: list[tuple[int, bool, bool, dic
     return buf.getvalue()
 
 
-class Tracked(NamedTuple):
-    """What :func:`track_frames` produced: q (T, n_dof) (NaN rows where not tracked), valid
-    (T,), the diagnostics rows, and the interrupt that ended the loop early (None: it ran to
-    the end of the input or ``--max-frames``; else "SIGINT" or "SIGTERM")."""
+def _interrupt(err: BaseException) -> str | None:
+    """The command line's reading of an exception in the frame loop (:mod:`jaxmocap.cli`):
+    the interrupt it is (however a library wrapped it), acknowledged, or None."""
+    from jaxmocap.cli import Terminated, acknowledge_interrupt, interrupt_received
 
-    q: np.ndarray
-    valid: np.ndarray
-    rows: list
-    interrupted: str | None
+    signum = interrupt_received()
+    if not (isinstance(err, KeyboardInterrupt) or signum):
+        return None
+    acknowledge_interrupt()
+    return "SIGTERM" if isinstance(err, Terminated) or signum == signal.SIGTERM else "SIGINT"
 
 
 def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, out: Path,
                  fps: float, overlay: bool = False, show: bool = False,
                  progress: bool = True) -> Tracked:
-    """Drive ``tracker`` over ``reader``; the overlay video (if asked) goes into ``files``.
-    A Ctrl-C / SIGTERM during the loop ends it (``interrupted``), keeping every frame
-    completed before it; one before any frame was stepped propagates (nothing to keep)."""
-    from tqdm import tqdm
+    """:func:`jaxmocap.trackers.driver.drive` over ``reader``, with the overlay video (if
+    asked, into ``files``) and the live window (``show``); an interrupt is read as the command
+    line reads it."""
+    state = {"writer": None, "size": None}
 
-    from jaxmocap.cli import Terminated, acknowledge_interrupt, interrupt_received
+    def on_frame(t, frames, res):
+        view = None
+        if frames is not None and (overlay or show):
+            view = np.concatenate(list(tracker.draw(frames, res)), axis=1)
+        if overlay:
+            size = state["size"]
+            if view is None:  # an unreadable instant: a dark frame keeps the timing
+                view = None if size is None else np.full((size[1], size[0], 3), 30, np.uint8)
+            if view is not None:
+                if state["writer"] is None:
+                    state["size"] = (view.shape[1], view.shape[0])
+                    state["writer"] = VideoWriter(files.path(out / "overlay.mp4"), fps,
+                                                  *state["size"])
+                state["writer"].write(view)
+        if show and view is not None:
+            cv2.imshow("jaxmocap track", view[..., ::-1])
+            if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+                return True
+        return None
 
-    n_dof = tracker.body.n_dof
-    qs, valid, rows = [], [], []
-    writer, started, size = None, False, None
-    interrupted = None
     try:
-        for t, frames in tqdm(reader, total=reader.n_frames, disable=not progress,
-                              desc="tracking", unit="frame"):
-            if frames is None:
-                qs.append(np.full(n_dof, np.nan))
-                valid.append(False)
-                rows.append((t, False, False, {}))
-                view = None
-            else:
-                if not started:
-                    tracker.start(frames)
-                    started = True
-                res = tracker.step(frames)
-                qs.append(res.q if res.valid else np.full(n_dof, np.nan))
-                valid.append(res.valid)
-                rows.append((t, True, res.valid, res.diagnostics))
-                view = np.concatenate(list(tracker.draw(frames, res)), axis=1) \
-                    if (overlay or show) else None
-            if overlay:
-                if view is None:  # an unreadable instant: a dark frame keeps the timing
-                    view = None if size is None else np.full((size[1], size[0], 3), 30, np.uint8)
-                if view is not None:
-                    if writer is None:
-                        size = (view.shape[1], view.shape[0])
-                        writer = VideoWriter(files.path(out / "overlay.mp4"), fps, *size)
-                    writer.write(view)
-            if show and view is not None:
-                cv2.imshow("jaxmocap track", view[..., ::-1])
-                if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
-                    break
-    except BaseException as err:  # e.g. a live capture ended with Ctrl-C
-        signum = interrupt_received()
-        if not (isinstance(err, KeyboardInterrupt) or signum):
-            raise
-        acknowledge_interrupt()
-        n = min(len(qs), len(valid), len(rows))  # a frame half-appended is dropped
-        if not any(r[1] for r in rows[:n]):
-            raise  # set-up or compiling the first step: nothing tracked, nothing written
-        interrupted = "SIGTERM" if isinstance(err, Terminated) or signum == signal.SIGTERM \
-            else "SIGINT"
-        del qs[n:], valid[n:], rows[n:]
+        return drive(tracker, reader, n_frames=reader.n_frames, on_frame=on_frame,
+                     progress=progress, interrupt=_interrupt)
     finally:
-        if writer is not None:
-            writer.close()
-    return Tracked(np.array(qs).reshape(-1, n_dof), np.array(valid, bool), rows, interrupted)
+        if state["writer"] is not None:
+            state["writer"].close()
 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
@@ -523,8 +229,10 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             raise InputError(str(e)) from None
     else:
         db = load_or_build(model=body, garment=garment, progress=not args.quiet)
-    return ShirtFrameTracker(cams, names, color, W0, db, cov, args.work_size, body, garment,
-                             room, args.validity)
+    options = {} if args.work_size is None else {"work_size": args.work_size}
+    params = shirt_params(color, body, garment, cams, db, cov, args.validity,
+                          shading=color.shading, scene_colors=room, **options)
+    return ShirtFrameTracker(params, W0, cams, names, color, room)
 
 
 def add_parser(sub) -> None:

@@ -166,13 +166,11 @@ def _scribbled_capture_colors(seq, n_frames: int = SCRIBBLE_FRAMES):
 
 
 def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
-    import jax
-    import jax.numpy as jnp
 
-    from jaxmocap.camera import stack_cameras
-    from jaxmocap.ik import IKCovariances, anchors_from_garment
+    from jaxmocap.ik import IKCovariances
     from jaxmocap.posedb import SamplingConfig, load_database, load_or_build
     from jaxmocap.trackers import shirt
+    from jaxmocap.trackers.driver import ShirtFrameTracker, drive, sequence_frames, shirt_params
 
     opts = dict(cfg["options"])
     body = _body(cfg, folder)
@@ -216,37 +214,15 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
     background = opts.pop("background", False)
     if scene_clusters:
         opts["scene_colors"] = _scene_colors(seq, W0, scene_clusters)
-    cams = stack_cameras(list(seq.cameras))
-    params = shirt.make_params(color, body, garment, cams, anchors_from_garment(body, garment),
-                               cov, db, **opts)
-    dt = cams.K.dtype
-    state = shirt.init(params, jnp.asarray(W0, dt), jnp.zeros(body.n_dof, dt))
-    subs = None
-    if background:
-        from jaxmocap.color import BackgroundSubtractor
-
-        subs = [BackgroundSubtractor() for _ in names]
-    qs, valid, times, rows = [], [], [], []
-    for t in range(seq.frames.shape[0]):
-        t0 = time.perf_counter()
-        masks = None
-        if subs is not None:
-            masks = np.stack([s.apply(seq.frames[t, i]) for i, s in enumerate(subs)])
-        state, out = shirt.step(params, state, seq.frames[t], masks)
-        out = jax.device_get(out)
-        times.append(time.perf_counter() - t0)
-        qs.append(np.asarray(out.q, np.float64))
-        valid.append(bool(out.valid))
-        d = {"agreement": float(out.agreement), "patches": float(np.sum(out.visible))}
-        for c, n in enumerate(names):
-            d[f"fraction_{n}"] = float(out.fraction[c])
-            d[f"reference_used_{n}"] = float(out.used_reference[c])
-            d[f"reference_added_{n}"] = float(out.added_reference[c])
-            d[f"residual_{n}"] = float(out.signals.residual[c])  # the validity signals
-            d[f"recall_{n}"] = float(out.signals.recall[c])
-        rows.append(d)
-    return {"q": np.stack(qs), "valid": np.asarray(valid), "times": np.asarray(times),
-            "diagnostics": rows, "body": body}
+    params = shirt_params(color, body, garment, list(seq.cameras), db, cov, announce=False,
+                          **opts)
+    tracker = ShirtFrameTracker(params, W0, list(seq.cameras), names, background=background,
+                                announce=False)
+    run = drive(tracker, sequence_frames(seq.frames), progress=False, keep_outputs=True)
+    # every frame's own estimate, valid or not (the cell scores both)
+    q = np.stack([np.asarray(o.q, np.float64) for o in run.outputs])
+    return {"q": q, "valid": run.valid, "times": run.times,
+            "diagnostics": [r[3] for r in run.rows], "body": body}
 
 
 def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
@@ -256,6 +232,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     from jaxmocap import blobs as bloblib
     from jaxmocap.segment import HSVInterval, SegmentParams
     from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.driver import stereo_offline
 
     if len(seq.cameras) != 2:
         raise InputError(f"method 'pf' needs a stereo pair; the sequence has "
@@ -303,25 +280,11 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
 
         def observe():
             return observe_adaptive(params, key, seq.frames, blob)[0]
-    t0 = time.perf_counter()
-    obs = observe()
-    observe_first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    observe()  # again, warm: the steady-state time
-    observe_s = time.perf_counter() - t0
-    t_init = sp.anchor_frame(obs)  # offline: initialise on the first frame with a head
-
-    def filt():
-        state, _ = sp.init_top_level(params, key, jax.tree.map(lambda a: a[t_init], obs))
-        _, est = sp.run_top_level(params, state, obs, lag)
-        return jax.block_until_ready(est)
-
-    t0 = time.perf_counter()
-    est = filt()
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    filt()  # again, compiled: the steady-state filter time
-    warm = time.perf_counter() - t0
+    run = stereo_offline(params, key, seq.frames, observe, lag, repeat=True)
+    obs, t_init, tm = run.observations, run.init_frame, run.timings
+    observe_first, observe_s = tm["observe_first"], tm["observe"]
+    first, warm = tm["filter_first"], tm["filter"]
+    est = run.estimate
     est = jax.device_get(est)
     n = seq.frames.shape[0]
     q = np.asarray(est.q, np.float64)

@@ -52,7 +52,7 @@ def _checked_inputs(params: ShirtParams, frames, masks):
 
 
 def compile_step(
-    params: ShirtParams,
+    params: ShirtParams, announce: bool = True,
 ) -> Callable[..., tuple[ShirtState, ShirtOutput]]:
     """:func:`step` with ``params`` bound, for frame loops: ``(state, frames, masks=None) ->
     (state, output)``, the same results.
@@ -60,7 +60,7 @@ def compile_step(
     On its first call without masks it takes the program shipped for the demo's set-up when
     that applies (:mod:`jaxmocap.trackers.shirt.export`: the step traced ahead of time, so the
     first frame only waits for XLA's compile, ~6 s less on an empty cache); otherwise it says
-    why in one line on stderr and traces :func:`step` as usual."""
+    why in one line on stderr (unless ``announce`` is off) and traces :func:`step` as usual."""
     from jaxmocap.trackers.shirt import export as shirt_export
 
     chosen: dict[bool, Callable | None] = {}
@@ -70,7 +70,7 @@ def compile_step(
         plain = masks is None
         if plain not in chosen:
             program, why = shirt_export.load(params, state, frames, masks)
-            if program is None:
+            if program is None and announce:
                 print(f"jaxmocap: shirt step: {why}; tracing it", file=sys.stderr)
             chosen[plain] = program
         program = chosen[plain]
