@@ -59,7 +59,7 @@ class FtolLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     optimum the sum of squares moves by rounding (~1e-6 relative), every proposal is rejected
     and the trust region shrinks by 4x per step until ``max_steps``. Measured on the shirt
     tracker's IK (bench scene, 24 DOF): converged after 14 and 9 steps, stopped after 42 and
-    31 (docs/results/realtime_profile.md, session 12). ``ftol`` defaults to 8 float eps of the
+    31 (docs/results/realtime_profile.md). ``ftol`` defaults to 8 float eps of the
     solve's dtype (the rounding of the loss); 0 turns the test off. ``y`` and the residual are
     single arrays."""
 

@@ -261,7 +261,7 @@ def _matvec(m: Float[Array, "... 3 3"], v: Float[Array, "... 3"]) -> Float[Array
     """m @ v for stacks of 3x3 matrices and 3-vectors as three broadcast multiply-adds. The
     likelihood applies such small products to 1000 particles x limbs x cameras; as batched
     dots XLA hands them to a library call each (~0.2 ms apiece in the filter step's profile,
-    ``docs/results/realtime_profile.md``, session 13), as multiply-adds they fuse."""
+    ``docs/results/realtime_profile.md``), as multiply-adds they fuse."""
     m = m.reshape((1,) * (v.ndim + 1 - m.ndim) + m.shape)  # explicit rank (no promotion)
     return m[..., 0] * v[..., 0:1] + m[..., 1] * v[..., 1:2] + m[..., 2] * v[..., 2:3]
 

@@ -109,8 +109,8 @@ def spd_solve(a: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k
     written out entry by entry (k^3 / 6 multiply-adds on scalars): under ``vmap`` over a few
     hundred particles every entry is one vector of the batch and XLA fuses the whole solve
     into a few loops, where the batched LAPACK ``cholesky`` and ``triangular_solve`` calls
-    cost ~1 ms per Gauss-Newton step of 500 9x9 systems (``docs/results/realtime_profile.md``,
-    session 13). Larger systems use ``jax.scipy.linalg.cho_solve``."""
+    cost ~1 ms per Gauss-Newton step of 500 9x9 systems (``docs/results/realtime_profile.md``).
+    Larger systems use ``jax.scipy.linalg.cho_solve``."""
     k = b.shape[0]
     if k > UNROLL_MAX:
         return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)

@@ -74,7 +74,7 @@ def _unit(v: Array) -> Array:
 # The tests below take the ray's and the size's components as separate arrays (``Vec``): the
 # ray caster evaluates them on (geoms, rays) planes, where XLA's CPU back-end vectorises along
 # the rays; with a trailing axis of 3 every product and sum strides over it, and the cast of a
-# 128x128 crop took twice as long (docs/results/realtime_profile.md, session 12).
+# 128x128 crop took twice as long (docs/results/realtime_profile.md).
 
 
 def _ellipsoid(radii: Vec, o: Vec, d: Vec) -> Array:

@@ -105,7 +105,7 @@ class ShirtParams(eqx.Module):
     # per crop pair: 19.4 vs 9.8 ms). The two paths round differently on a few silhouette
     # pixels; paired over 8 held-out sequences with the 80,000-pose database the mean error is
     # 4.85 cm static vs 4.90 traced, within the rounding noise of the tracker
-    # (docs/results/realtime_profile.md, session 10). False: the traced-kinds path.
+    # (docs/results/realtime_profile.md). False: the traced-kinds path.
     static_kinds: bool = eqx.field(static=True, default=True)
     geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
     # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance

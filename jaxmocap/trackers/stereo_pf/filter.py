@@ -27,7 +27,7 @@ from jaxmocap.trackers.stereo_pf.params import StereoEstimate, StereoPFParams, T
 # 8.9 s on this 2-core machine), ``init`` and the scan in 0.7-0.8x, with the same arithmetic
 # up to float32 rounding -- but the compiled step runs 4-10% slower, so the live step
 # (:func:`compile_step`, called every frame) keeps XLA's defaults
-# (docs/results/realtime_profile.md, session 14). XLA takes compile options only on a
+# (docs/results/realtime_profile.md). XLA takes compile options only on a
 # top-level jit, so :func:`init`, :func:`filter_step` and :func:`run` stay plain and nest in a
 # caller's jit. A jax older than the one tested may not know the option: it then compiles
 # with its own defaults.

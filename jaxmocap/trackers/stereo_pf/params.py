@@ -65,7 +65,7 @@ USE_SUPPORT = True
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
 AZAD_FILTER = dict(guided=False, swivel_fraction=0.0, edge_outside=None, use_support=False)
 # Elbow-swivel jumps (SwivelProposal; not in the paper): the fraction of the particles whose
-# arms are turned about their shoulder-hand lines each frame. Session 5, 3 clips x 4 keys:
+# arms are turned about their shoulder-hand lines each frame. 3 clips x 4 keys (stereo_pf.md):
 # dance_b 10.6 -> 7.8 cm, punch 11.4 -> 10.8, turn 3.1 -> 3.1 (0.05 and 0.2 tried as well).
 SWIVEL_FRACTION = 0.1
 # The tracker's blob tracker hands the distance cue a hand carried by its motion model for one
