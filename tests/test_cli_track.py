@@ -258,8 +258,10 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
     assert p.shading is None and p.scene_colors is None and err == ""
     from jaxmocap.trackers import shirt
 
-    assert (p.min_agreement, p.min_patches, p.gate_min_fraction) == (
-        shirt.MIN_AGREEMENT, shirt.MIN_VALID_PATCHES, shirt.GATE_MIN_FRACTION)
+    rule = p.validity  # the thresholds are traced arrays of the parameters' dtype
+    assert (float(rule.min_agreement), int(rule.min_patches),
+            float(rule.gate_min_fraction)) == pytest.approx(
+        (shirt.MIN_AGREEMENT, shirt.MIN_VALID_PATCHES, shirt.GATE_MIN_FRACTION))
     p, err = tracker("--colors", tmp_path / "shaded.json", "--white-balance",
                      tmp_path / "wb.json", "--validity", "footage")
     assert p.shading == (0.5, 4.0)
@@ -272,7 +274,9 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
     validated = next(c for c in tomllib.loads(toml.read_text())["config"]
                      if c["name"] == "validated")["options"]
     for k, v in track_cmd.VALIDITY["footage"].items():  # the rule the experiment measured
-        assert getattr(p, k) == v == validated[k], k
+        got = getattr(p.validity, k)
+        got = got if isinstance(got, bool) else float(got)
+        assert got == pytest.approx(v) and v == validated[k], k
     assert "brightness 0.5..4" in err and "2 room colours of" in err
     save_cameras(tmp_path / "cameras.json", cams)
     assert_refused(capsys, "--validity footage is the shirt tracker's rule", "track",

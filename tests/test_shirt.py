@@ -117,6 +117,27 @@ def test_step_recovers_a_database_pose_without_recompiling(setup):
     assert not bool(jnp.any(out.added_reference))
 
 
+def test_validity_thresholds_are_traced(setup):
+    """A new threshold value reuses the compiled step and changes the flag as the rule says:
+    the same frame is valid at the default patch count and invalid when more centroids are
+    asked for than the garment has."""
+    p, model = setup["params"], setup["model"]
+    state = shirt.init(p, setup["W0"], jnp.zeros(model.n_dof))
+    dt = p.cams.K.dtype
+    _, out = shirt.step(p, state, setup["frames"])
+    before = shirt.TRACE_COUNT["step"]
+    strict = dataclasses.replace(
+        p, validity=shirt.validity_rule(dt, min_patches=10 * p.garment.n_patches))
+    _, out_strict = shirt.step(strict, state, setup["frames"])
+    assert shirt.TRACE_COUNT["step"] == before  # same program, new threshold
+    assert bool(out.valid) and not bool(out_strict.valid)
+    # a check switched on is a new program (structure is static)
+    reporting = dataclasses.replace(p, validity=shirt.validity_rule(dt, min_recall=0.0))
+    _, out_rep = shirt.step(reporting, state, setup["frames"])
+    assert shirt.TRACE_COUNT["step"] == before + 1
+    assert bool(out_rep.valid) == bool(out.valid)  # recall >= 0 holds wherever it is measured
+
+
 def test_loss_and_reacquisition(setup):
     """The subject gone (a blank frame): the frame is invalid, the pose held and the tracked
     count reset; back in view, the next frame is a reacquisition (second start without the

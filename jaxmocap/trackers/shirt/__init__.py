@@ -107,9 +107,11 @@ from jaxmocap.trackers.shirt.params import (
     ShirtOutput,
     ShirtParams,
     ShirtState,
+    ValidityRule,
     init,
     make_params,
     scales_for_width,
+    validity_rule,
 )
 from jaxmocap.trackers.shirt.sequence import (
     TRACE_COUNT,
@@ -148,6 +150,7 @@ __all__ = [
     "ShirtOutput",
     "ShirtParams",
     "ShirtState",
+    "ValidityRule",
     "TIE_BREAK_WEIGHT",
     "TRACE_COUNT",
     "TRAINED_COV_FILE",
@@ -185,5 +188,6 @@ __all__ = [
     "starts_of",
     "step",
     "trained_covariances",
+    "validity_rule",
     "white_balance_refit",
 ]

@@ -361,10 +361,11 @@ def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> 
     """Found in some camera, ``min_patches`` centroids measured, and (when step 1
     classified ``gate_min_fraction`` of some crop: after a sudden lighting change it
     classifies almost nothing until W is re-fitted) the agreement gate passed."""
-    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= params.min_patches)
+    rule = params.validity
+    valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= rule.min_patches)
     frac = jnp.max(ctx.views.cls.fraction * ctx.okq)
-    seen = frac >= params.gate_min_fraction
-    return valid & ((agreement >= params.min_agreement) | ~seen)
+    seen = frac >= rule.gate_min_fraction
+    return valid & ((agreement >= rule.min_agreement) | ~seen)
 
 
 def reported_validity(
@@ -377,15 +378,14 @@ def reported_validity(
     ``min_recall`` (:class:`FrameSignals`; calibrated on ground truth, issue 17), and the
     output pose is this frame's own solution (``own``: the signals describe it; a held pose,
     ``hold_invalid``, is never reported valid by them)."""
-    if params.report_patches is None and params.max_residual is None \
-            and params.min_recall is None:
+    rule = params.validity
+    if not rule.report:
         return valid
-    n = params.min_patches if params.report_patches is None else params.report_patches
-    ok = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= n)
-    if params.max_residual is not None:
-        ok = ok & jnp.all((signals.residual <= params.max_residual) | ~ctx.okq)
-    if params.min_recall is not None:
-        ok = ok & jnp.all((signals.recall >= params.min_recall) | ~ctx.okq)
+    ok = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= rule.report_patches)
+    if rule.check_residual:
+        ok = ok & jnp.all((signals.residual <= rule.max_residual) | ~ctx.okq)
+    if rule.check_recall:
+        ok = ok & jnp.all((signals.recall >= rule.min_recall) | ~ctx.okq)
     return ok & own
 
 
@@ -462,7 +462,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
     new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
-    if params.hold_invalid:
+    if params.validity.hold_invalid:
         q_out, own = q_star, valid
     else:  # this frame's estimate where there was something to fit (else it is unconstrained)
         measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)

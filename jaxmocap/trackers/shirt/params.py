@@ -69,6 +69,59 @@ def scales_for_width(width: int, stride: int = 6) -> tuple[int, ...]:
     return tuple(out)
 
 
+class ValidityRule(eqx.Module):
+    """When a frame counts as valid (:func:`~jaxmocap.trackers.shirt.frame.frame_validity`)
+    and what the output reports (:func:`~jaxmocap.trackers.shirt.frame.reported_validity`).
+
+    The thresholds are traced arrays (in the parameters' float dtype), so a new value runs the
+    compiled step as it is; which checks apply is static (it changes the program).
+
+    * the tracker's own rule: ``min_patches`` patch centroids measured (all cameras) and, where
+      step 1 classified at least ``gate_min_fraction`` of a crop, the render of the result
+      agreeing with the step-1 classification on ``min_agreement`` of its pixels;
+    * ``report``: the output's flag has a rule of its own: ``report_patches`` centroids and,
+      in every camera that found the shirt, a centroid residual of at most ``max_residual``
+      crop sides (``check_residual``) and a recall of at least ``min_recall``
+      (``check_recall``; :class:`FrameSignals`);
+    * ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose.
+    """
+
+    min_agreement: Float[Array, ""]
+    gate_min_fraction: Float[Array, ""]
+    min_patches: Int[Array, ""]
+    report_patches: Int[Array, ""]
+    max_residual: Float[Array, ""]
+    min_recall: Float[Array, ""]
+    report: bool = eqx.field(static=True, default=False)
+    check_residual: bool = eqx.field(static=True, default=False)
+    check_recall: bool = eqx.field(static=True, default=False)
+    hold_invalid: bool = eqx.field(static=True, default=True)
+
+
+def validity_rule(dtype, min_agreement: float = MIN_AGREEMENT,
+                  gate_min_fraction: float = GATE_MIN_FRACTION,
+                  min_patches: int = MIN_VALID_PATCHES, report_patches: int | None = None,
+                  max_residual: float | None = None, min_recall: float | None = None,
+                  hold_invalid: bool = True) -> ValidityRule:
+    """A :class:`ValidityRule` from plain numbers (``None``: that check is off)."""
+    for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
+        if v is not None and not 0 <= v <= 1:
+            raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
+    if report_patches is not None and report_patches < 0:
+        raise ValueError(f"make_params: report_patches must be None or >= 0, got {report_patches}")
+    report = report_patches is not None or max_residual is not None or min_recall is not None
+    return ValidityRule(
+        min_agreement=jnp.asarray(min_agreement, dtype),
+        gate_min_fraction=jnp.asarray(gate_min_fraction, dtype),
+        min_patches=jnp.asarray(min_patches, jnp.int32),
+        report_patches=jnp.asarray(min_patches if report_patches is None else report_patches,
+                                   jnp.int32),
+        max_residual=jnp.asarray(1.0 if max_residual is None else max_residual, dtype),
+        min_recall=jnp.asarray(0.0 if min_recall is None else min_recall, dtype),
+        report=report, check_residual=max_residual is not None,
+        check_recall=min_recall is not None, hold_invalid=bool(hold_invalid))
+
+
 class ShirtParams(eqx.Module):
     """Everything the tracker needs that does not change over a sequence.
 
@@ -94,7 +147,6 @@ class ShirtParams(eqx.Module):
     ik_passes: int = eqx.field(static=True, default=IK_PASSES)
     robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
     temporal_start: bool = eqx.field(static=True, default=True)
-    min_agreement: float = eqx.field(static=True, default=MIN_AGREEMENT)
     reacquire_start: bool = eqx.field(static=True, default=True)
     reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
     reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
@@ -111,21 +163,8 @@ class ShirtParams(eqx.Module):
     # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance
     # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
     shading: tuple[float, float] | None = eqx.field(static=True, default=None)
-    # ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose (default); off:
-    # this frame's own estimate where MIN_VALID_PATCHES centroids were measured and its root is
-    # near the placed blend's (near_placement; still flagged invalid; the state keeps the last
-    # valid pose).
-    hold_invalid: bool = eqx.field(static=True, default=True)
-    # the validity rule's counts (frame_validity): measured centroids, and the step-1 share
-    # from which on the agreement gate applies (0: always)
-    min_patches: int = eqx.field(static=True, default=MIN_VALID_PATCHES)
-    gate_min_fraction: float = eqx.field(static=True, default=GATE_MIN_FRACTION)
-    # the reported flag's own rule (reported_validity; the state still follows
-    # frame_validity): measured centroids and the final pose's image checks (frame_signals)
-    # in every camera that found the shirt; all None: the tracker's own flag is reported
-    report_patches: int | None = eqx.field(static=True, default=None)
-    max_residual: float | None = eqx.field(static=True, default=None)
-    min_recall: float | None = eqx.field(static=True, default=None)
+    # when a frame is valid and what the output reports (thresholds traced)
+    validity: ValidityRule | None = None
 
     @property
     def n_cams(self) -> int:
@@ -271,7 +310,11 @@ def make_params(
     rendered ones is at most ``max_residual`` crop sides and at least ``min_recall`` of its
     rendered shirt pixels carry the rendered colour in step 1 (:class:`FrameSignals`). The
     state (temporal prior, W re-fit) still follows the tracker's own rule: gating it with the
-    stricter rule lost shirt_03 of the dev split (9.4 -> 22.6 cm, docs/results/shirt.md)."""
+    stricter rule lost shirt_03 of the dev split (9.4 -> 22.6 cm, docs/results/shirt.md).
+
+    The validity thresholds are traced (:class:`ValidityRule`): replacing
+    ``params.validity`` with another :func:`validity_rule` of the same checks reuses the
+    compiled step."""
     if ik_passes < 1:
         raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
     if reacquire_frames < 0:
@@ -297,22 +340,15 @@ def make_params(
         if problem:
             raise ValueError(f"make_params: shading: {problem}")
         shading = tuple(float(g) for g in shading)
-    for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
-        if v is not None and not 0 <= v <= 1:
-            raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
-    if report_patches is not None and report_patches < 0:
-        raise ValueError(f"make_params: report_patches must be None or >= 0, got {report_patches}")
+    rule = validity_rule(cams.K.dtype, min_agreement, gate_min_fraction, min_patches,
+                         report_patches, max_residual, min_recall, hold_invalid)
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
         scene_colors, pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
-        bool(temporal_start), float(min_agreement), bool(reacquire_start),
+        bool(temporal_start), bool(reacquire_start),
         int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
-        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, bool(hold_invalid),
-        int(min_patches), float(gate_min_fraction),
-        None if report_patches is None else int(report_patches),
-        None if max_residual is None else float(max_residual),
-        None if min_recall is None else float(min_recall),
+        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, rule,
     )  # fmt: skip
 
 
