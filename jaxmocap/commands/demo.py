@@ -71,8 +71,8 @@ def _track(params, W0, cams, frames, progress: bool):
     from jaxmocap.trackers.driver import ShirtFrameTracker, drive, sequence_frames
 
     tracker = ShirtFrameTracker(params, W0, list(cams), [f"cam{i}" for i in range(len(cams))])
-    run = drive(tracker, sequence_frames(frames), progress=progress, keep_outputs=True,
-                desc="shirt tracker")
+    run = drive(tracker, sequence_frames(frames), frames.shape[0], progress=progress,
+                keep_outputs=True, desc="shirt tracker")
     stacked = jax.tree.map(lambda *a: np.stack(a), *run.outputs)
     return stacked, run.times
 
