@@ -3,14 +3,13 @@ benchmarks/experiments/wang_lamp.py run at a tiny scale, scored against the rend
 ground-truth colour-id maps; and the scene's ``lamp_share`` setting that makes the step strong."""
 
 import dataclasses
-import importlib.util
 import json
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from benchmarks.experiments import wang_lamp  # the experiment, imported (pytest pythonpath ".")
 from jaxmocap.synth import SceneConfig
 from jaxmocap.synth.scene import (
     FLUORESCENT_RGB,
@@ -18,11 +17,6 @@ from jaxmocap.synth.scene import (
     SceneError,
     illuminant_schedule,
 )
-
-_path = Path(__file__).resolve().parents[1] / "benchmarks" / "experiments" / "wang_lamp.py"
-_spec = importlib.util.spec_from_file_location("wang_lamp", _path)
-wang_lamp = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(wang_lamp)
 
 
 def test_lamp_share_default_is_the_original_mix():
