@@ -28,6 +28,11 @@ shirt, the walls have the room's colours.
 The skin map is the skin class **within** ``near_px`` pixels of the shirt (head above the
 collar, hands at the end of the sleeves), so props and walls away from the subject are not
 blobs. All of this is host-side image processing (NumPy / OpenCV) at the I/O edge.
+
+Why one file: everything here works in the one colour space above (its features, histogram
+bins and class Gaussians): the fit, the per-pixel maps, the hysteresis skin, the on-line
+adaptation, the automatic calibration and the ``pf_colors.json`` file; split, each part would
+import the others' private helpers.
 """
 
 from __future__ import annotations
