@@ -510,6 +510,13 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
     state, _ = sp.init_top_level(p_off, key, jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs))
     _, ref = sp.run_top_level(p_off, state, obs)
     np.testing.assert_array_equal(sp.track(p_off, key, frames).q, ref.q)
+    # the driver's offline run (experiment cells, the demo) is the same filter, bit for bit
+    from jaxmocap.trackers.driver import stereo_offline
+
+    run = stereo_offline(p_off, key, frames, repeat=True)
+    np.testing.assert_array_equal(run.estimate.q, ref.q)
+    assert run.init_frame == sp.anchor_frame(obs) and set(run.timings) == {
+        "observe_first", "observe", "filter_first", "filter"}
     p_zero = sp.make_params(cams, adapt_colors=True, adapt_rate=0.0, adapt_shirt_rate=0.0, **kw)
     o_zero, log = observe_adaptive(p_zero, key, frames)
     for a, b in zip(jax.tree.leaves(o_zero), jax.tree.leaves(obs), strict=True):

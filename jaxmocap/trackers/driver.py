@@ -110,7 +110,7 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
         d[f"recall_{n}"] = float(out.signals.recall[c])
     d["agreement"] = float(out.agreement)
     d["patches"] = float(np.sum(out.visible))
-    return d
+    return {k: d[k] for k in shirt_diagnostic_names(names)}  # in column order
 
 
 def shirt_diagnostic_names(names: list[str]) -> tuple[str, ...]:
