@@ -68,33 +68,6 @@ def test_edge_cue_known_lines():
         cues.edge_loglik(gm, SIGMA, "abs")
 
 
-def test_sample_bilinear_vs_opencv_remap(rng):
-    img = rng.random((30, 40)).astype(np.float32)
-    uv = rng.uniform(-3, 43, size=(500, 2))
-    uv[:, 1] = rng.uniform(-3, 33, size=500)
-    ours = np.asarray(cues.sample_bilinear(jnp.asarray(img, jnp.float64), jnp.asarray(uv)))
-    ref = cv2.remap(
-        img.astype(np.float64),
-        uv[:, 0].astype(np.float32)[None],
-        uv[:, 1].astype(np.float32)[None],
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )[0]
-    # OpenCV quantises the sub-pixel fraction to 1/32
-    np.testing.assert_allclose(ours, ref, atol=1.5 / 32)
-    inner = (uv[:, 0] > 0) & (uv[:, 0] < 39) & (uv[:, 1] > 0) & (uv[:, 1] < 29)
-    x0, y0 = np.floor(uv[inner, 0]).astype(int), np.floor(uv[inner, 1]).astype(int)
-    fx, fy = uv[inner, 0] - x0, uv[inner, 1] - y0
-    exact = (
-        img[y0, x0] * (1 - fx) * (1 - fy)
-        + img[y0, x0 + 1] * fx * (1 - fy)
-        + img[y0 + 1, x0] * (1 - fx) * fy
-        + img[y0 + 1, x0 + 1] * fx * fy
-    )
-    np.testing.assert_allclose(ours[inner], exact, rtol=1e-6)
-
-
 def test_distance_cue_missing_points():
     f = jnp.array([[0.0, 0.0, 1.7], [0.3, 0.2, 1.0], [0.3, -0.2, 1.0]])
     c = jnp.array([[0.0, 0.0, 1.6], [0.3, 0.2, 1.0], [0.0, 0.0, 0.0]])

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from jax.extend.core import ClosedJaxpr, Jaxpr
 
-from jaxmocap import sampling
 from jaxmocap.body import default_body, keypoints
 from jaxmocap.camera import look_at, stack_cameras
 from jaxmocap.garment import default_garment
@@ -27,31 +26,6 @@ from jaxmocap.trackers.shirt import frame as shirt_frame
 
 W_IMG, H_IMG = 240, 180
 ROOT = np.array([0.0, 0.0, 0.85])
-
-
-def test_sample_bilinear_matches_cv2_remap(rng):
-    img = rng.integers(0, 256, size=(30, 40, 3), dtype=np.uint8)
-    uv = rng.uniform([1, 1], [38, 28], size=(7, 9, 2))
-    ours = np.asarray(shirt.sample_bilinear(jnp.asarray(img), jnp.asarray(uv)))
-    ref = cv2.remap(
-        img.astype(np.float32),
-        uv[..., 0].astype(np.float32),
-        uv[..., 1].astype(np.float32),
-        cv2.INTER_LINEAR,
-    )
-    np.testing.assert_allclose(ours, ref, atol=2e-2)  # cv2 uses 5-bit fixed-point weights
-
-
-def test_crop_windows_map_back_to_image():
-    """A window in working pixels maps to the image positions its pixels sample."""
-    crop = jnp.asarray([10.0, 20.0, 64.0, 64.0])
-    n = 32
-    uv = np.asarray(shirt.crop_uv(crop, n))
-    win_c = jnp.asarray([3.5, 5.5, 8.0, 8.0])  # covers working pixels 4..11 x 6..13
-    win = np.asarray(sampling.crop_to_image(win_c, crop, n))
-    k = 64.0 / n
-    np.testing.assert_allclose(win[:2], uv[6, 4] - k / 2)  # left/top edge of pixel (6, 4)
-    np.testing.assert_allclose(win[2:], [8 * k, 8 * k])
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +156,6 @@ def test_step_with_foreground_masks(setup):
     """The background-subtraction path (masks through the search and every vmapped camera
     stage): all-foreground masks give the step without masks; the shirt's silhouettes,
     dilated by 3 px, keep the frame valid and as accurate."""
-    import cv2
 
     p, model = setup["params"], setup["model"]
     state = shirt.init(p, setup["W0"], jnp.zeros(model.n_dof))
