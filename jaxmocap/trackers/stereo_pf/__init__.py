@@ -66,6 +66,7 @@ step of frame t (JAX dispatches asynchronously). Deterministic given the key.
 
 from __future__ import annotations
 
+from jaxmocap.pf.cues import Observation
 from jaxmocap.trackers.stereo_pf.checks import (
     REACH_MARGIN,
     frame_validity,
@@ -113,6 +114,7 @@ __all__ = [
     "BLOB_PARAMS",
     "COMPILER_OPTIONS",
     "N_PARTICLES",
+    "Observation",
     "REACH_MARGIN",
     "SIGMA_MAX",
     "SIGMA_MIN",
