@@ -223,7 +223,8 @@ def test_step_with_shading_and_scene_colours(setup):
     assert float(jnp.min(out.fraction)) > 0.1  # the shirt is still classified
     # every frame invalid (an agreement gate no render can pass): hold_invalid=False still
     # reports the frame's own estimate; the state keeps the last valid pose (here the initial)
-    r = dataclasses.replace(q, min_agreement=1.5, gate_min_fraction=0.0, hold_invalid=False)
+    r = dataclasses.replace(q, validity=shirt.validity_rule(
+        p.cams.K.dtype, min_agreement=1.5, gate_min_fraction=0.0, hold_invalid=False))
     state = shirt.init(r, setup["W0"], jnp.zeros(model.n_dof))
     state, out = shirt.step(r, state, setup["frames"])
     assert not bool(out.valid) and not np.any(np.asarray(state.q))
@@ -253,7 +254,9 @@ def test_frame_signals_and_the_calibrated_validity_checks(setup):
     assert bool(out.valid) and np.all(sig.residual < 0.03), sig.residual
     assert np.all(sig.recall > 0.5) and np.all(sig.coverage > 0.5), sig
     assert float(sig.root_jump) == 0.0  # first frame: after a loss
-    strict = dataclasses.replace(p, max_residual=0.0, min_recall=0.0)
+    dt = p.cams.K.dtype
+    strict = dataclasses.replace(p, validity=shirt.validity_rule(dt, max_residual=0.0,
+                                                                 min_recall=0.0))
     st2, out2 = shirt.step(strict, shirt.init(strict, setup["W0"], jnp.zeros(model.n_dof)),
                            setup["frames"])
     assert not bool(out2.valid) and bool(st2.valid)
@@ -269,7 +272,8 @@ def test_frame_signals_and_the_calibrated_validity_checks(setup):
     lenient = dict(min_agreement=1.1, gate_min_fraction=0.0, report_patches=0,
                    max_residual=1.0, min_recall=0.0)
     for hold in (True, False):
-        pl = dataclasses.replace(p, hold_invalid=hold, **lenient)
+        pl = dataclasses.replace(p, validity=shirt.validity_rule(dt, hold_invalid=hold,
+                                                                 **lenient))
         st3, out3 = shirt.step(pl, shirt.init(pl, setup["W0"], jnp.zeros(model.n_dof)),
                                setup["frames"])
         assert not bool(st3.valid)
