@@ -189,12 +189,9 @@ def load_dataset(folder: str | os.PathLike) -> Sequence:
     if not folder.is_dir():
         raise DatasetError(f"{folder}: not a dataset folder (does not exist or is a file)")
     scene_path = folder / "scene.json"
-    try:
-        doc = json.loads(scene_path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{scene_path}: missing scene file") from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{scene_path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    from jaxmocap.io.preflight import read_json
+
+    doc = read_json(scene_path, "the scene.json of a `jaxmocap synth` dataset", DatasetError)
     if not isinstance(doc, dict) or doc.get("version") != SCENE_JSON_VERSION:
         got = doc.get("version") if isinstance(doc, dict) else doc
         raise DatasetError(f"{scene_path}: field 'version': expected {SCENE_JSON_VERSION}, "
