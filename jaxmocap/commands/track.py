@@ -51,7 +51,7 @@ from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
-from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
+from jaxmocap.io.video import SYNC_MODES, SyncReader, VideoWriter, quiet_ffmpeg
 
 __all__ = [
     "BONES",
@@ -554,6 +554,12 @@ def add_parser(sub) -> None:
                    help="stop after N frames (needed to end a live capture without Ctrl-C)")
     p.add_argument("--fps", type=positive_float,
                    help=f"frame rate of the outputs (default: the video's, else {DEFAULT_FPS:g})")
+    p.add_argument("--sync", choices=SYNC_MODES, default="frames",
+                   help="how the cameras' frames are paired: 'frames' (frame t of every input "
+                   "is one instant; inputs of different frame rates or lengths are refused) "
+                   "or 'timestamps' (videos resampled to the first camera's clock: the "
+                   "nearest frame of each camera at each of its frame times; the recordings "
+                   "must start together) (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (as a whole set)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -635,7 +641,8 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
            "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
-           "method": args.method, "inputs": [str(i) for i in args.inputs]}
+           "method": args.method, "inputs": [str(i) for i in args.inputs],
+           "sync": args.sync, "sync_report": reader.sync_report}
     return json.dumps(doc, indent=2) + "\n"
 
 
@@ -670,7 +677,9 @@ def run(args: argparse.Namespace) -> int:
                          "opencv-python-headless); run without --show (use --overlay to get "
                          "a video of the tracking)")
     with SyncReader(args.inputs, names, [(c.width, c.height) for c in cams],
-                    args.max_frames) as reader:
+                    args.max_frames, sync=args.sync) as reader:
+        if reader.sync_report:
+            print(f"jaxmocap track: {reader.sync_report}")
         fps = args.fps or reader.fps or DEFAULT_FPS
         tracker = _make_tracker(args, cams, names)
         with AtomicFiles(out) as files:

@@ -53,11 +53,14 @@ __all__ = [
     "SyncReader",
     "VideoError",
     "VideoWriter",
+    "check_frame_rates",
     "open_source",
+    "resample_to_first",
     "quiet_ffmpeg",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+FPS_TOLERANCE = 1e-4  # relative; 29.97 vs 30 fps (1e-3) drift apart a frame every 33 s
 
 
 class VideoError(InputError):
@@ -220,6 +223,13 @@ class _Capture(FrameSource):
         self._t = 0
         self.ended_at: int | None = None
         self.errors: list[str] = []
+        self.times: np.ndarray | None = None  # presentation time of each frame (s, from 0)
+        self.keyframes: np.ndarray | None = None  # whether each frame decodes on its own
+        if not live:
+            with self.log.capture():
+                self.times, self.keyframes = _video_index(spec)
+        self._damaged_from: int | None = None  # the damaged frame later frames decode from
+        self.followers: dict[int, int] = {}  # damaged frame -> frames decoded from it
 
     def read(self) -> np.ndarray | None:
         if self.n_frames is not None and self._t >= self.n_frames:
@@ -240,15 +250,65 @@ class _Capture(FrameSource):
         if img.shape[:2] != (self.height, self.width):
             self.errors.append(f"frame {self._t - 1} is {img.shape[1]}x{img.shape[0]}")
             return None
+        t = self._t - 1
+        key = self.keyframes is not None and t < len(self.keyframes) and self.keyframes[t]
+        if key:
+            self._damaged_from = None
         if damage:
             msg = damage[0].split("] ", 1)[-1]
-            self.errors.append(f"frame {self._t - 1} damaged (decoder: {msg})")
+            self.errors.append(f"frame {t} damaged (decoder: {msg})")
+            if self.keyframes is not None:  # the frames up to the next keyframe decode from it
+                self._damaged_from = t
+            return None
+        if self._damaged_from is not None:
+            d = self._damaged_from
+            self.followers[d] = self.followers.get(d, 0) + 1
             return None
         return np.ascontiguousarray(img[..., ::-1])
+
+    def damage_note(self) -> str | None:
+        """One phrase on the frames that decode from a damaged one (no keyframe between)."""
+        if not self.followers:
+            return None
+        n = sum(self.followers.values())
+        src = ", ".join(str(d) for d in sorted(self.followers)[:3])
+        more = "s" if len(self.followers) > 1 else ""
+        return (f"{n} frame{'s' if n > 1 else ''} decoded from damaged frame{more} {src} "
+                "(no keyframe between) and damaged too")
 
     def close(self) -> None:
         self.cap.release()
         self.log.close()
+
+
+def _video_index(path: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(presentation time of each frame in seconds from the first, keyframe flag of each
+    frame), in presentation order, from the container's packets (demuxed by PyAV, nothing
+    decoded); (None, None) when the container gives no timestamps (then no frame is known
+    to be a keyframe: damage is not propagated, and ``--sync timestamps`` is refused)."""
+    try:
+        import av
+
+        with av.open(str(path)) as c:
+            if not c.streams.video:
+                return None, None
+            stream = c.streams.video[0]
+            pts, key = [], []
+            for pkt in c.demux(stream):
+                if pkt.size == 0:  # the demuxer's flush packet
+                    continue
+                if pkt.pts is None:
+                    return None, None
+                pts.append(int(pkt.pts))
+                key.append(bool(pkt.is_keyframe))
+            base = stream.time_base
+    except Exception:  # noqa: BLE001 - PyAV missing or the container unreadable to it
+        return None, None
+    if not pts or base is None:
+        return None, None
+    order = np.argsort(np.asarray(pts), kind="stable")
+    ticks = np.asarray(pts, np.int64)[order]
+    return (ticks - ticks[0]) * float(base), np.asarray(key, bool)[order]
 
 
 def open_source(spec: str | os.PathLike) -> FrameSource:
@@ -266,6 +326,81 @@ def open_source(spec: str | os.PathLike) -> FrameSource:
     raise VideoError(f"{text}: no such video file, frame folder or camera index")
 
 
+def check_frame_rates(sources: Sequence[FrameSource], remedy: str) -> None:
+    """Refuse (:class:`VideoError`, one line with the numbers) recorded sources whose frame
+    rates differ (by more than :data:`FPS_TOLERANCE`): frame t of each is then not one
+    instant. Sources that do not know their rate (folders of frames) are not compared."""
+    rates = [(s.name, s.fps) for s in sources if s.fps]
+    known = [r for _, r in rates]
+    if known and max(known) - min(known) > FPS_TOLERANCE * max(known):
+        listing = ", ".join(f"{n} {r:.4g} fps" for n, r in rates)
+        raise VideoError(f"inputs have different frame rates: {listing}; their frames are "
+                         f"not simultaneous: {remedy}")
+
+
+class _Resampled(FrameSource):
+    """Frames ``index[k]`` of ``source`` for k = 0, 1, ... (non-decreasing: a frame is
+    repeated or frames are skipped, each frame read once from the source)."""
+
+    def __init__(self, source: FrameSource, index: np.ndarray):
+        self.source, self.index = source, [int(i) for i in index]
+        self.name, self.width, self.height = source.name, source.width, source.height
+        self.fps, self.n_frames = source.fps, len(self.index)
+        self._k, self._at, self._frame = 0, -1, None
+
+    def read(self) -> np.ndarray | None:
+        if self._k >= len(self.index):
+            raise StopIteration
+        want = self.index[self._k]
+        self._k += 1
+        while self._at < want:
+            self._frame = self.source.read()
+            self._at += 1
+        return self._frame
+
+    def close(self) -> None:
+        self.source.close()
+
+
+SYNC_MODES = ("frames", "timestamps")
+
+
+def resample_to_first(times: Sequence[np.ndarray], names: Sequence[str]
+                      ) -> tuple[list[np.ndarray], str]:
+    """The nearest frame of each camera at each frame time of the first camera (its clock),
+    over the instants every camera covers (within half of its frame interval), and a line
+    saying what was done. ``times``: each camera's frame times (s from its first frame; the
+    recordings are assumed to start together). Raises :class:`VideoError` if no instant is
+    covered by all."""
+    t0 = np.asarray(times[0], float)
+    indices, covered = [], np.ones(len(t0), bool)
+    for ts in times:
+        ts = np.asarray(ts, float)
+        half = 0.5 * (float(np.median(np.diff(ts))) if len(ts) > 1 else 0.0)
+        after = np.searchsorted(ts, t0)  # the first frame at or after each instant
+        lo, hi = np.clip(after - 1, 0, len(ts) - 1), np.clip(after, 0, len(ts) - 1)
+        j = np.where(np.abs(ts[lo] - t0) <= np.abs(ts[hi] - t0) + 1e-9, lo, hi)  # ties: earlier
+        covered &= np.abs(ts[j] - t0) <= half * (1 + 1e-6) + 1e-9  # ties: rounded times
+        indices.append(j)
+    n = int(np.argmin(covered)) if not covered.all() else len(t0)  # the leading covered span
+    if n == 0:
+        raise VideoError(f"--sync timestamps: the cameras share no instant ({names[0]} starts "
+                         "where another has no frame)")
+    rate = (len(t0) - 1) / t0[-1] if len(t0) > 1 and t0[-1] > 0 else float("nan")
+    parts = []
+    for name, ts, j in zip(names[1:], times[1:], indices[1:], strict=True):
+        j = j[:n]
+        off = float(np.max(np.abs(np.asarray(ts)[j] - t0[:n]))) * 1e3
+        rep = n - len(np.unique(j))
+        skip = int(j[-1] - j[0] + 1) - len(np.unique(j))
+        parts.append(f"{name} {len(ts)} frames: nearest frame, up to {off:.0f} ms off"
+                     + (f", {rep} repeated" if rep else "") + (f", {skip} skipped" if skip else ""))
+    cut = f", cut to the {n} of {len(t0)} instants all cameras cover" if n < len(t0) else ""
+    line = (f"--sync timestamps: resampled to {names[0]}'s clock ({rate:.3g} fps, {n} instants "
+            f"over {t0[n - 1]:.2f} s{cut}): " + "; ".join(parts))
+    return [j[:n] for j in indices], line
+
+
 class SyncReader:
     """Frame ``t`` of every source at once: ``for t, frames in reader`` gives ``frames`` uint8
     (n_cams, H, W, 3) RGB, or ``None`` when some camera's frame ``t`` is unreadable.
@@ -276,7 +411,8 @@ class SyncReader:
     """
 
     def __init__(self, specs: Sequence[str | os.PathLike], names: Sequence[str] | None = None,
-                 sizes: Sequence[tuple[int, int]] | None = None, max_frames: int | None = None):
+                 sizes: Sequence[tuple[int, int]] | None = None, max_frames: int | None = None,
+                 sync: str = "frames"):
         if not specs:
             raise VideoError("no input given: pass one video, frame folder or camera index "
                              "per camera")
@@ -286,12 +422,17 @@ class SyncReader:
                              f"({', '.join(names)}); give one input per camera, in that order")
         if max_frames is not None and max_frames < 1:
             raise VideoError(f"--max-frames must be >= 1, got {max_frames}")
+        if sync not in SYNC_MODES:
+            raise VideoError(f"--sync {sync!r}: expected one of {', '.join(SYNC_MODES)}")
         self.names = names
         self.sources: list[FrameSource] = []
+        self.sync_report: str | None = None
         try:
             for s in specs:
                 self.sources.append(open_source(s))
-            self._check(sizes)
+            self._check(sizes, sync)
+            if sync == "timestamps":
+                self._resample()
         except BaseException:
             self.close()
             raise
@@ -303,7 +444,25 @@ class SyncReader:
         self.n_read = 0
         self.fps = next((s.fps for s in self.sources if s.fps), None)
 
-    def _check(self, sizes) -> None:
+    def _resample(self) -> None:
+        """``--sync timestamps``: every camera read at the first camera's frame times."""
+        if self.sources[0].live:
+            raise VideoError("--sync timestamps: live cameras are read as they come; it "
+                             "resamples recorded videos")
+        for s in self.sources:
+            if getattr(s, "times", None) is None:
+                why = "a folder of frames" if isinstance(s, _Folder) else "its container " \
+                    "gives none"
+                raise VideoError(f"{s.name}: --sync timestamps needs each frame's timestamp "
+                                 f"({why}); give videos, or cut the inputs to the same "
+                                 "synchronised frames and drop --sync")
+        times = []
+        for s in self.sources:  # frames the container lists but OpenCV does not read: dropped
+            times.append(s.times[:s.n_frames])
+        index, self.sync_report = resample_to_first(times, self.names)
+        self.sources = [_Resampled(s, j) for s, j in zip(self.sources, index, strict=True)]
+
+    def _check(self, sizes, sync: str = "frames") -> None:
         src = self.sources
         live = [s.live for s in src]
         if any(live) and not all(live):
@@ -320,11 +479,16 @@ class SyncReader:
             if len(res) > 1:
                 listing = ", ".join(f"{s.name} {s.width}x{s.height}" for s in src)
                 raise VideoError(f"inputs have different resolutions: {listing}")
+        if sync == "timestamps":
+            return
+        if not any(live):
+            check_frame_rates(src, "record at one rate, or pass --sync timestamps to resample "
+                              "them to the first camera's clock")
         counts = [s.n_frames for s in src]
         if not any(live) and len(set(counts)) > 1:
             listing = ", ".join(f"{s.name} {n} frames" for s, n in zip(src, counts, strict=True))
             raise VideoError(f"inputs have different lengths: {listing}; cut them to the same "
-                             "synchronised frames")
+                             "synchronised frames (or, for videos, pass --sync timestamps)")
 
     @property
     def live(self) -> bool:
@@ -353,13 +517,16 @@ class SyncReader:
             return None
         parts = []
         for s in self.sources:
+            s = getattr(s, "source", s)  # under --sync timestamps: the resampled source
             if isinstance(s, _Capture) and s.ended_at is not None:
                 parts.append(f"{s.name} ends after {s.ended_at} of {s.n_frames} declared frames "
                              "(truncated or corrupt)")
             errors = getattr(s, "errors", [])
-            if errors:
+            note = s.damage_note() if isinstance(s, _Capture) else None
+            if errors or note:
                 more = f" (+{len(errors) - 3} more)" if len(errors) > 3 else ""
-                parts.append(f"{s.name}: {'; '.join(errors[:3])}{more}")
+                text = "; ".join(errors[:3]) + more
+                parts.append(f"{s.name}: " + "; ".join(t for t in (text, note) if t))
         return (f"{len(self.missing)} of {self.n_read + len(self.missing)} frames unreadable "
                 f"({_ranges(self.missing)}): " + "; ".join(parts))
 
