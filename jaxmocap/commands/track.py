@@ -48,7 +48,7 @@ import numpy as np
 from jaxmocap.body import BodyModel, default_body, keypoints
 from jaxmocap.camera import Camera, load_cameras, stack_cameras
 from jaxmocap.errors import InputError
-from jaxmocap.io.atomic import AtomicFiles, check_output_folder
+from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.video import SYNC_MODES, SyncReader, VideoWriter, quiet_ffmpeg
@@ -659,6 +659,11 @@ def run(args: argparse.Namespace) -> int:
                          f"{','.join(FORMATS)}")
     names_out = result_names()
     check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
+    with output_folder_lock(out):  # one run at a time writes --out
+        return _run(args, out, formats, names_out)
+
+
+def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set[str]) -> int:
     stale = check_stale(out, names_out, args.overwrite)
     cams, names = load_cameras(args.cameras)
     real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]

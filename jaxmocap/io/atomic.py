@@ -21,7 +21,9 @@ results ever appears inside ``--out``, even after a kill.
 * :func:`atomic_folder` — a whole folder built beside the target and renamed into place;
 * :func:`check_output_file` / :func:`check_output_folder` — refuse, before any work, targets
   that cannot be written (an output folder that is a file, a file that is a folder, a folder
-  where no file can be created: tried, not guessed from permission bits).
+  where no file can be created: tried, not guessed from permission bits);
+* :func:`output_folder_lock` — an output folder held by one run at a time (a lock file with
+  the pid beside it; a second run is refused in one line, a killed run's lock swept).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ __all__ = [
     "atomic_write",
     "check_output_file",
     "check_output_folder",
+    "lock_path",
+    "output_folder_lock",
     "staging_dir",
     "sweep_temporaries",
     "write_bytes",
@@ -306,6 +310,114 @@ class AtomicFiles:
         if self._stage is not None:
             _drop_staging(self._stage)
             self._stage = None
+
+
+# ----------------------------------------------------------------------------- folder lock
+try:
+    import fcntl
+except ImportError:  # not POSIX: the lock file's pid alone (os.O_EXCL) decides
+    fcntl = None
+
+
+def lock_path(folder: str | os.PathLike) -> Path:
+    """The lock file of an output folder: ``<parent>/.<name>.jaxmocap-lock`` (beside it, so
+    that it exists before the folder does and never appears inside it)."""
+    folder = Path(folder)
+    return (folder.parent if str(folder.parent) else Path(".")) / f".{folder.name}.jaxmocap-lock"
+
+
+def _lock_pid(path: Path) -> int | None:
+    try:
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _try_lock(path: Path) -> int | None:
+    """An open, locked descriptor of ``path`` holding our pid, or None if a live run holds
+    it. With ``flock`` (POSIX) the kernel frees the lock when its process dies, so a lock file
+    a killed run left behind is simply taken over; without it, a lock file whose pid is gone
+    is swept and created anew."""
+    for _ in range(5):
+        if fcntl is None:
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                pid = _lock_pid(path)
+                if pid is not None and _alive(pid):
+                    return None
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()  # stale: its run is gone
+                continue
+        else:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                return None
+            try:  # the file we locked may have been unlinked by its releasing holder
+                same = os.fstat(fd).st_ino == os.stat(path).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        os.fsync(fd)
+        return fd
+    raise OSError(f"{path}: could not take the lock (it kept changing)")
+
+
+@contextlib.contextmanager
+def output_folder_lock(folder: str | os.PathLike, option: str = "--out") -> Iterator[Path]:
+    """Hold the output folder ``folder`` for the length of a run: a second run writing the
+    same folder meanwhile is refused (:class:`OutputPathError`, one line naming the folder and
+    the pid holding it). The lock file (:func:`lock_path`) holds the pid; one of a run that is
+    gone (killed) is swept. Folders created to hold the lock file are removed at the end if
+    still empty (a refused or failed run leaves nothing behind)."""
+    folder = Path(folder)
+    path = lock_path(folder)
+    created: list[Path] = []
+    missing = [d for d in (path.parent, *path.parent.parents) if not d.exists()]
+    for d in reversed(missing):
+        try:
+            d.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as e:
+            _remove_empty(created)
+            raise OutputPathError(f"{option} {folder}: cannot create {d} ({e.strerror})") \
+                from None
+        created.append(d)
+    try:
+        fd = _try_lock(path)
+    except OSError as e:
+        _remove_empty(created)
+        raise OutputPathError(f"{option} {folder}: cannot write its lock file {path} "
+                              f"({e.strerror or e})") from None
+    if fd is None:
+        pid = _lock_pid(path)
+        _remove_empty(created)
+        who = f"pid {pid}" if pid is not None else "another process"
+        raise OutputPathError(f"{option} {folder}: another jaxmocap run ({who}) is writing "
+                              "its results there; wait for it to end, or choose another "
+                              "output folder")
+    try:
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()  # while still locked: no other run can hold this file
+        os.close(fd)
+        _remove_empty(created)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders a run created (innermost first) that are still empty."""
+    for d in reversed(folders):
+        with contextlib.suppress(OSError):
+            d.rmdir()
 
 
 @contextlib.contextmanager
