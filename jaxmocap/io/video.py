@@ -54,6 +54,7 @@ __all__ = [
     "VideoError",
     "VideoWriter",
     "check_frame_rates",
+    "decode_image",
     "open_source",
     "resample_to_first",
     "quiet_ffmpeg",
@@ -125,6 +126,38 @@ class _DecoderLog:
             self._file.close()
 
 
+_HARMLESS = ("libpng warning",)  # e.g. "iCCP: known incorrect sRGB profile": the image is fine
+_IMAGE_LOG: _DecoderLog | None = None
+
+
+def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR
+                 ) -> tuple[np.ndarray | None, str | None]:
+    """(image as OpenCV decodes it, None) or (None, why) for an image file that is empty, not
+    an image, or damaged. The decoders' own console messages (``libpng error: Read Error`` for
+    a truncated PNG, libjpeg's ``Premature end of JPEG file``, after which it returns a
+    grey-filled picture) are captured, not printed: any message but a harmless warning makes
+    the image damaged, and is the ``why``."""
+    global _IMAGE_LOG
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            return None, "empty file"
+    except OSError as e:
+        return None, e.strerror
+    if _IMAGE_LOG is None:
+        _IMAGE_LOG = _DecoderLog()
+    with _IMAGE_LOG.capture() as said:
+        try:
+            img = cv2.imread(str(path), flags)
+        except cv2.error:
+            img = None
+    damage = [ln for ln in said if not ln.startswith(_HARMLESS)]
+    if img is None or img.size == 0 or damage:
+        why = damage[0].split(": ", 1)[-1] if damage else "not decodable"
+        return None, why
+    return img, None
+
+
 class FrameSource:
     """One camera's frames. ``n_frames`` is None for a live camera; :meth:`read` returns the
     next frame as RGB uint8 (H, W, 3), ``None`` for an unreadable frame, and raises
@@ -166,22 +199,16 @@ class _Folder(FrameSource):
 
     @staticmethod
     def _load(p: Path) -> np.ndarray | None:
-        if p.stat().st_size == 0:
-            return None
-        try:
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        except cv2.error:
-            return None
-        return None if img is None or img.size == 0 else img
+        return decode_image(p)[0]
 
     def read(self) -> np.ndarray | None:
         if self._next >= self.n_frames:
             raise StopIteration
         p = self.files[self._next]
         self._next += 1
-        img = self._load(p)
+        img, why = decode_image(p)
         if img is None:
-            self.errors.append(f"{p.name} empty or not decodable")
+            self.errors.append(f"{p.name} empty or not decodable ({why})")
             return None
         if img.shape[:2] != (self.height, self.width):
             self.errors.append(f"{p.name} is {img.shape[1]}x{img.shape[0]}")
