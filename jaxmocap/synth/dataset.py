@@ -122,12 +122,15 @@ def contact_sheet(seq: Sequence, n: int = 8, width: int = 200) -> np.ndarray:
 
 
 def _read_frames_png(folder: Path, name: str, t: int, h: int, w: int) -> np.ndarray:
+    from jaxmocap.io.video import decode_image
+
     out = np.empty((t, h, w, 3), np.uint8)
     for k in range(t):
         path = folder / name / f"{k:06d}.png"
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        img, why = decode_image(path) if path.is_file() else (None, "no such file")
         if img is None:
-            raise DatasetError(f"{path}: missing or not a readable PNG (frame {k} of {t})")
+            raise DatasetError(f"{path}: missing or not a readable PNG ({why}; frame {k} of "
+                               f"{t})")
         if img.shape != (h, w, 3):
             raise DatasetError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
                                f"expected {w}x{h}")
