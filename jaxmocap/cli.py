@@ -191,7 +191,12 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_INTERRUPTED
         if not isinstance(err, (InputError, OSError)):
             raise
-        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if isinstance(err, OSError):  # the path and the cause in words (disk full, ...)
+            from jaxmocap.io.atomic import describe_os_error
+
+            msg = describe_os_error(err)
+        else:
+            msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         prog = err.prog if isinstance(err, ArgumentError) else _STATE["command"]
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2

@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 import pytest
-from test_io_sync import capture  # noqa: F401 - the fixture of a two-camera capture
+from test_io_sync import make_capture
 
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import (
@@ -182,7 +182,12 @@ def test_output_folder_lock_sweeps_a_dead_runs_lock(tmp_path, monkeypatch, flock
         assert lock.read_text() == f"{os.getppid()}\n"
 
 
-def test_track_refused_while_another_run_holds_out(capture, capsys, monkeypatch):  # noqa: F811
+@pytest.fixture
+def capture(tmp_path):
+    return make_capture(tmp_path)
+
+
+def test_track_refused_while_another_run_holds_out(capture, capsys, monkeypatch):
     from test_cli_badinput import _Fixed
     from test_cli_common import run_cli
 
@@ -202,3 +207,84 @@ def test_track_refused_while_another_run_holds_out(capture, capsys, monkeypatch)
     assert sorted(p.name for p in (k / "res").iterdir()) == ["diagnostics.csv", "poses.npz",
                                                              "run.json"]
     assert not lock_path(k / "res").exists()
+
+
+# ----------------------------------------------------------------------------- OS errors
+
+
+def _leftovers(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_disk_full_while_writing_names_the_folder_and_leaves_nothing(tmp_path):
+    import errno
+
+    out = tmp_path / "new" / "res"
+    with pytest.raises(OutputPathError) as e:
+        with AtomicFiles(out) as files:
+            files.path(out / "a.txt").write_text("partial")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as file.write raises it
+    assert str(e.value) == (f"{out}: cannot write: no space left on the device: free some, or "
+                            "write elsewhere (ENOSPC); nothing was written")
+    assert _leftovers(tmp_path) == []  # no temporary, no staging, no empty folder
+
+
+def test_permission_denied_on_rename_names_the_target(tmp_path, monkeypatch):
+    import errno
+
+    import jaxmocap.io.atomic as atomic
+
+    (tmp_path / "res").mkdir()
+    (tmp_path / "res" / "old.txt").write_text("keep")
+
+    def denied(src, dst):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(src), None, str(dst))
+
+    monkeypatch.setattr(atomic.os, "replace", denied)
+    with pytest.raises(OutputPathError) as e:
+        with AtomicFiles(tmp_path / "res") as files:
+            files.path(tmp_path / "res" / "b.txt").write_text("new")
+    assert str(e.value).startswith(f"{tmp_path / 'res' / 'b.txt'}: cannot write: permission "
+                                   "denied: choose a folder you can write (EACCES)")
+    assert _leftovers(tmp_path) == ["res", "res/old.txt"]  # the user's folder stays as it was
+
+
+def test_over_long_names_refused_before_any_work(tmp_path):
+    long = "x" * 250  # a valid name on ext4 (255), but not with our temporaries' suffixes
+    with pytest.raises(OutputPathError) as e:
+        check_output_folder(tmp_path / long / "res")
+    msg = str(e.value)
+    assert "\n" not in msg and f"the name {long[:24]}... is 250 bytes; this file system allows" \
+        in msg
+    with pytest.raises(OutputPathError, match="is 250 bytes"):
+        check_output_file(tmp_path / (long[:246] + ".npz"))
+    assert _leftovers(tmp_path) == []
+
+
+def test_track_disk_full_and_long_out_one_line_nothing_left(capture, capsys, monkeypatch):
+    import errno
+
+    from test_cli_badinput import _Fixed
+    from test_cli_common import run_cli
+
+    from jaxmocap.commands import track as track_cmd
+
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
+    k = capture
+    before = _leftovers(k)
+    argv = ["track", "--cameras", k / "cameras.json", k / "a.mp4", k / "b.mp4", "--quiet",
+            "--formats", "npz,csv", "--sync", "timestamps"]
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with monkeypatch.context() as m:
+        m.setattr(track_cmd, "write_exports", full)
+        rc, out, err = run_cli(capsys, *argv, "--out", k / "runs" / "a")
+    assert rc == 2 and len(err) == 1, (rc, err)
+    assert err[0] == (f"jaxmocap track: error: {k / 'runs' / 'a'}: cannot write: no space left "
+                      "on the device: free some, or write elsewhere (ENOSPC); nothing was "
+                      "written")
+    rc, out, err = run_cli(capsys, *argv, "--out", k / ("y" * 240))
+    assert rc == 2 and len(err) == 1 and "is 240 bytes; this file system allows" in err[0]
+    assert _leftovers(k) == before

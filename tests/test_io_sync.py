@@ -126,13 +126,19 @@ def test_frames_decoded_from_a_damaged_one_are_damaged_until_the_keyframe(tmp_pa
 # ----------------------------------------------------------------------------- the command
 
 
+def make_capture(root):
+    """``root`` with a two-camera ``cameras.json``, ``a.mp4`` (30 fps, 12 frames) and
+    ``b.mp4`` (15 fps, 6 frames): the same 0.4 s at two rates."""
+    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-.3, .3)]
+    save_cameras(root / "cameras.json", cams)
+    video(root / "a.mp4", 30, 12)
+    video(root / "b.mp4", 15, 6)
+    return root
+
+
 @pytest.fixture
 def capture(tmp_path):
-    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-.3, .3)]
-    save_cameras(tmp_path / "cameras.json", cams)
-    video(tmp_path / "a.mp4", 30, 12)
-    video(tmp_path / "b.mp4", 15, 6)
-    return tmp_path
+    return make_capture(tmp_path)
 
 
 def test_track_refuses_or_resamples(capture, capsys, monkeypatch):
