@@ -159,3 +159,48 @@ def test_track_refuses_or_resamples(capture, capsys, monkeypatch):
     doc = json.loads((k / "res/run.json").read_text())
     assert doc["sync"] == "timestamps" and doc["frames_written"] == 12
     assert "cam1 6 frames" in doc["sync_report"]
+
+
+def _flashes(path, levels, fps=10):
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("mpeg4", rate=Fraction(fps))
+        s.width, s.height, s.pix_fmt, s.bit_rate = W, H, "yuv420p", 4_000_000
+        for k, v in enumerate(levels):
+            f = av.VideoFrame.from_ndarray(np.full((H, W, 3), v, np.uint8), format="rgb24")
+            f.pts = k
+            for p in s.encode(f):
+                c.mux(p)
+        for p in s.encode(None):
+            c.mux(p)
+    return path
+
+
+def test_motion_cross_correlation_finds_a_start_offset(tmp_path):
+    """Camera b started recording 3 frames (0.3 s) before camera a: every change of the
+    scene shows in b 3 frames later. The estimate finds +3 frames; the aligned pair, 0."""
+    scene = np.random.default_rng(1).integers(20, 230, 43).astype(np.uint8)
+    a = _flashes(tmp_path / "a.mp4", scene[3:])
+    b = _flashes(tmp_path / "b.mp4", scene[:40])
+    for other, expect in ((b, 3), (a, 0)):
+        with SyncReader([a, other], ["a", "b"]) as r:
+            assert r.motion_offsets() is None  # nothing read yet
+            for _ in r:
+                pass
+            (est,) = r.motion_offsets()
+        assert est["camera"] == "b" and est["offset_frames"] == expect, est
+        assert est["offset_s"] == pytest.approx(expect / 10) and est["peak"] > 0.9
+
+
+def test_track_notes_a_motion_offset(capture, capsys, monkeypatch):
+    k = capture
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
+    scene = np.random.default_rng(1).integers(20, 230, 43).astype(np.uint8)
+    _flashes(k / "early.mp4", scene[3:])
+    _flashes(k / "late.mp4", scene[:40])
+    rc, out, err = run_cli(capsys, "track", "--cameras", k / "cameras.json", k / "early.mp4",
+                           k / "late.mp4", "--quiet", "--formats", "npz", "--out", k / "res")
+    assert rc == 0 and err == [], (out, err)
+    assert ("jaxmocap track: note: the cameras' image motion suggests they are not "
+            "simultaneous: cam1 sees it 300 ms later than cam0 (correlation ") in out
+    doc = json.loads((k / "res/run.json").read_text())
+    assert [(o["camera"], o["offset_frames"]) for o in doc["motion_offsets"]] == [("cam1", 3)]

@@ -636,13 +636,17 @@ def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> Non
                              f"{MIN_BASELINE_M * 1e3:g} mm baseline) to triangulate")
 
 
+OFFSET_PEAK = 0.5  # a motion offset is noted when its correlation is at least this
+
+
 def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) -> str:
     doc = {"format": "jaxmocap.track_run", "version": 1,
            "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
            "method": args.method, "inputs": [str(i) for i in args.inputs],
-           "sync": args.sync, "sync_report": reader.sync_report}
+           "sync": args.sync, "sync_report": reader.sync_report,
+           "motion_offsets": reader.motion_offsets()}
     return json.dumps(doc, indent=2) + "\n"
 
 
@@ -721,6 +725,15 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
               "marked partial (run.json, poses.npz 'complete')", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary)
+    offsets = reader.motion_offsets()
+    late = [o for o in offsets or () if o["offset_frames"] and o["peak"] >= OFFSET_PEAK]
+    if late:
+        print("jaxmocap track: note: the cameras' image motion suggests they are not "
+              "simultaneous: " + "; ".join(
+                  f"{o['camera']} sees it {abs(o['offset_s']) * 1e3:.0f} ms "
+                  f"{'later' if o['offset_s'] > 0 else 'earlier'} than {reader.names[0]} "
+                  f"(correlation {o['peak']:.2f})" for o in late)
+              + "; cut the recordings to a common start (run.json: motion_offsets)")
     if problems:
         print(f"jaxmocap track: warning: {problems}; those frames are NaN in the outputs",
               file=sys.stderr)

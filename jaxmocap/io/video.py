@@ -61,6 +61,9 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+MOTION_SIZE = (32, 24)  # image motion for the offset estimate: grey images shrunk to this
+MAX_LAG_S = 2.0  # the offsets the motion cross-correlation looks for, either way
+MIN_MOTION_FRAMES = 10  # instants both cameras must share for an offset estimate
 FPS_TOLERANCE = 1e-4  # relative; 29.97 vs 30 fps (1e-3) drift apart a frame every 33 s
 
 
@@ -470,6 +473,8 @@ class SyncReader:
         self.missing: list[int] = []
         self.n_read = 0
         self.fps = next((s.fps for s in self.sources if s.fps), None)
+        self._motion: list[list[float]] = [[] for _ in self.sources]  # image motion per instant
+        self._last: list[np.ndarray | None] = [None] * len(self.sources)
 
     def _resample(self) -> None:
         """``--sync timestamps``: every camera read at the first camera's frame times."""
@@ -530,6 +535,7 @@ class SyncReader:
                     frames.append(s.read())
             except StopIteration:
                 return
+            self._record_motion(frames)
             if any(f is None for f in frames):
                 self.missing.append(t)
                 yield t, None
@@ -537,6 +543,41 @@ class SyncReader:
                 self.n_read += 1
                 yield t, np.stack(frames)
             t += 1
+
+    def _record_motion(self, frames: list[np.ndarray | None]) -> None:
+        """Each camera's image motion at this instant: the mean absolute change of its
+        grey image (shrunk to :data:`MOTION_SIZE`) since the previous instant; NaN where a
+        frame is missing."""
+        for c, f in enumerate(frames):
+            small = None if f is None else cv2.resize(
+                cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), MOTION_SIZE,
+                interpolation=cv2.INTER_AREA).astype(np.float32)
+            prev = self._last[c]
+            self._motion[c].append(np.nan if small is None or prev is None
+                                   else float(np.abs(small - prev).mean()))
+            self._last[c] = small
+
+    def motion_offsets(self, max_lag_s: float = MAX_LAG_S) -> list[dict] | None:
+        """For each camera after the first, the time shift that best aligns its image motion
+        with the first camera's over the instants read so far (normalised cross-correlation
+        of the two motion signals, whole instants within ``max_lag_s``): ``{"camera",
+        "offset_s", "offset_frames", "peak"}``, a positive offset meaning that camera sees
+        the same motion later (its recording started earlier). None with one camera, no
+        known frame rate, or too few frames (:data:`MIN_MOTION_FRAMES`)."""
+        if len(self.sources) < 2 or not self.fps:
+            return None
+        ref = np.asarray(self._motion[0], float)
+        if np.isfinite(ref).sum() < MIN_MOTION_FRAMES:
+            return None
+        k = max(1, int(round(max_lag_s * self.fps)))
+        out = []
+        for name, sig in zip(self.names[1:], self._motion[1:], strict=True):
+            lag, peak = _best_lag(ref, np.asarray(sig, float), k)
+            if lag is None:
+                return None
+            out.append({"camera": name, "offset_frames": lag,
+                        "offset_s": round(lag / self.fps, 6), "peak": round(peak, 3)})
+        return out
 
     def problems(self) -> str | None:
         """One line describing the unreadable frames so far, or None if all were read."""
@@ -566,6 +607,31 @@ class SyncReader:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[int | None, float]:
+    """The lag L in ``-max_lag..max_lag`` maximising the normalised correlation of ``a[t]``
+    with ``b[t + L]`` over the instants where both are finite (at least half the shorter
+    signal's), and that correlation; (None, nan) when no lag has enough overlap or a signal
+    is flat."""
+    best, best_r = None, -np.inf
+    need = max(MIN_MOTION_FRAMES, min(len(a), len(b)) // 2)
+    for lag in range(-max_lag, max_lag + 1):
+        t0, t1 = max(0, -lag), min(len(a), len(b) - lag)  # a[t] pairs with b[t + lag]
+        if t1 <= t0:
+            continue
+        x, y = a[t0:t1], b[t0 + lag:t1 + lag]
+        ok = np.isfinite(x) & np.isfinite(y)
+        if ok.sum() < need:
+            continue
+        x, y = x[ok] - x[ok].mean(), y[ok] - y[ok].mean()
+        den = float(np.sqrt((x * x).sum() * (y * y).sum()))
+        if den <= 0:
+            continue
+        r = float((x * y).sum()) / den
+        if r > best_r:
+            best, best_r = lag, r
+    return best, (best_r if best is not None else float("nan"))
 
 
 def _ranges(ts: Sequence[int]) -> str:
