@@ -60,6 +60,7 @@ import inspect
 import json
 import re
 import tomllib
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -456,5 +457,6 @@ def groundtruth_keys(folder: str | Path) -> set[str]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return set(z.files)
-    except (OSError, ValueError) as e:
-        raise ExperimentError(f"{path}: missing or not a readable .npz ({e})") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ExperimentError(f"{path}: missing or not a readable .npz ({why})") from None
