@@ -253,11 +253,7 @@ class _Capture(FrameSource):
         self._t = 0
         self.ended_at: int | None = None
         self.errors: list[str] = []
-        self.times: np.ndarray | None = None  # presentation time of each frame (s, from 0)
-        self.keyframes: np.ndarray | None = None  # whether each frame decodes on its own
-        if not live:
-            with self.log.capture():
-                self.times, self.keyframes = _video_index(spec)
+        self._spec, self._index = spec, None  # (times, keyframes), demuxed when first needed
         self._damaged_from: int | None = None  # the damaged frame later frames decode from
         self.followers: dict[int, int] = {}  # damaged frame -> frames decoded from it
 
@@ -281,9 +277,10 @@ class _Capture(FrameSource):
             self.errors.append(f"frame {self._t - 1} is {img.shape[1]}x{img.shape[0]}")
             return None
         t = self._t - 1
-        key = self.keyframes is not None and t < len(self.keyframes) and self.keyframes[t]
-        if key:
-            self._damaged_from = None
+        if self._damaged_from is not None:
+            keys = self.keyframes
+            if keys is not None and t < len(keys) and keys[t]:
+                self._damaged_from = None  # a keyframe decodes on its own
         if damage:
             msg = damage[0].split("] ", 1)[-1]
             self.errors.append(f"frame {t} damaged (decoder: {msg})")
@@ -295,6 +292,25 @@ class _Capture(FrameSource):
             self.followers[d] = self.followers.get(d, 0) + 1
             return None
         return np.ascontiguousarray(img[..., ::-1])
+
+    def _indexed(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if self._index is None:
+            if self.n_frames is None:  # a live camera: no container to demux
+                self._index = (None, None)
+            else:
+                with self.log.capture():
+                    self._index = _video_index(self._spec)
+        return self._index
+
+    @property
+    def times(self) -> np.ndarray | None:
+        """Each frame's presentation time (s from the first frame), from the container."""
+        return self._indexed()[0]
+
+    @property
+    def keyframes(self) -> np.ndarray | None:
+        """Whether each frame is a keyframe (decodes on its own), from the container."""
+        return self._indexed()[1]
 
     def damage_note(self) -> str | None:
         """One phrase on the frames that decode from a damaged one (no keyframe between)."""
