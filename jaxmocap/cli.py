@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import builtins
 import contextlib
 import gc
 import importlib
@@ -87,7 +88,10 @@ def _importing(frame) -> bool:
 
 
 LOST_INTERRUPT_S = 15.0  # an interrupt no handler has reported by then ends the process
+RESEND_S = 0.02  # a signal deferred outside an import statement (a finaliser) is sent again
 _RAISED: list[int] = []  # the signals the handler raised as an interrupt in this run of main
+_DEFERRED: list[int] = []  # a signal that arrived where it could not be raised, not yet raised
+_RESENT: list[int] = []  # signals the re-send timer sent (each read once by the handler)
 _TIMERS: list[threading.Timer] = []  # signals to send again, the lost-interrupt watchdog
 _STATE = {"command": "jaxmocap", "reported": False}
 
@@ -116,24 +120,62 @@ def _exit_if_lost(signum: int) -> None:
     os._exit(EXIT_INTERRUPTED)
 
 
-def _on_signal(signum, frame):
-    """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in our code or the libraries'
-    ordinary code.
-
-    Where an exception cannot travel it is not raised; the signal is sent again 20 ms later:
-    in a finaliser (Python prints it as "Exception ignored" and drops it) and while a module
-    is imported (raised there it has been wrapped by ctypes into ``ctypes.ArgumentError`` in
-    PyOpenGL's import, and leaving a string ``exec`` it makes CPython's exit re-raise SIGINT,
-    see :func:`entry`). The signal raised is recorded, so that an exception a library made of
-    it still reads as the interrupt in :func:`main`, and a watchdog ends the process if no
-    handler reports it within ``LOST_INTERRUPT_S`` (a library swallowed it)."""
-    if _in_finaliser(frame) or _importing(frame):
-        _timer(0.02, os.kill, os.getpid(), signum)
-        return
+def _raise_interrupt(signum: int):
+    """Raise ``signum`` as the interrupt, recorded (:func:`interrupt_received`) and watched
+    (the lost-interrupt watchdog)."""
+    _DEFERRED.clear()
     if not _RAISED:
         _timer(LOST_INTERRUPT_S, _exit_if_lost, signum)
     _RAISED.append(signum)
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _resend(signum: int) -> None:
+    """The re-send timer: the deferred signal again, unless it has been raised meanwhile."""
+    if _DEFERRED:
+        _RESENT.append(signum)
+        os.kill(os.getpid(), signum)
+
+
+def _on_signal(signum, frame):
+    """SIGINT/SIGTERM -> KeyboardInterrupt/Terminated, raised in our code or the libraries'
+    ordinary code.
+
+    Where an exception cannot travel it is not raised but deferred: while a module is
+    imported (raised there it has been wrapped by ctypes into ``ctypes.ArgumentError`` in
+    PyOpenGL's import, and leaving a string ``exec`` it makes CPython's exit re-raise SIGINT,
+    see :func:`entry`) it is raised where the outermost ``import`` statement ends
+    (:func:`_import`: at a fixed point, whatever the timing); in a finaliser (Python prints
+    it as "Exception ignored" and drops it), or an import not made by an ``import`` statement
+    (``importlib.import_module``), the signal is sent again ``RESEND_S`` later. The signal
+    raised is recorded, so that an exception a library made of it still reads as the
+    interrupt in :func:`main`, and a watchdog ends the process if no handler reports it within
+    ``LOST_INTERRUPT_S`` (a library swallowed it)."""
+    resent = bool(_RESENT)
+    if resent:
+        _RESENT.pop()
+    if _in_finaliser(frame) or _importing(frame):
+        if not _DEFERRED:
+            _DEFERRED.append(signum)
+        _timer(RESEND_S, _resend, signum)
+        return
+    if resent and not _DEFERRED:
+        return  # the re-sent copy of an interrupt already raised where its import ended
+    _raise_interrupt(signum)
+
+
+_BUILTIN_IMPORT = builtins.__import__
+
+
+def _import(*args, **kwargs):
+    """``__import__`` while :func:`main` runs: an interrupt deferred during the import is
+    raised as soon as the outermost ``import`` statement of the main thread is done."""
+    module = _BUILTIN_IMPORT(*args, **kwargs)
+    if _DEFERRED and threading.current_thread() is threading.main_thread():
+        caller = sys._getframe(1)
+        if not (_importing(caller) or _in_finaliser(caller)):
+            _raise_interrupt(_DEFERRED[0])
+    return module
 
 
 def acknowledge_interrupt() -> None:
@@ -163,11 +205,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     previous = {}
-    del _RAISED[:], _TIMERS[:]
+    del _RAISED[:], _TIMERS[:], _DEFERRED[:], _RESENT[:]
     _STATE.update(command="jaxmocap", reported=False)
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)
+    if previous:
+        builtins.__import__ = _import
     try:
         from jaxmocap._config import choose_offscreen_gl, enable_side_device
 
@@ -187,13 +231,20 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_INTERRUPTED
         if not isinstance(err, (InputError, OSError)):
             raise
-        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if isinstance(err, OSError):  # the path and the cause in words (disk full, ...)
+            from jaxmocap.io.atomic import describe_os_error
+
+            msg = describe_os_error(err)
+        else:
+            msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         prog = err.prog if isinstance(err, ArgumentError) else _STATE["command"]
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
     finally:
         for timer in _TIMERS:  # a signal still to be sent again would meet the old handler
             timer.cancel()
+        if builtins.__import__ is _import:
+            builtins.__import__ = _BUILTIN_IMPORT
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 

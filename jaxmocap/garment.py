@@ -444,12 +444,9 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
     def fail(msg: str) -> InputError:
         return InputError(f"{path}: {msg}")
 
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise fail("garment file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise fail(f"not valid JSON ({e})") from None
+    from jaxmocap.io.preflight import read_json
+
+    data = read_json(path, "a garment.json, format in docs/USER_GUIDE.md 'Your shirt'")
     if not isinstance(data, dict):
         raise fail("expected a JSON object with 'colours' and 'patches'")
     unknown = [k for k in data if k not in _GARMENT_KEYS]

@@ -5,6 +5,7 @@ import os
 
 import numpy as np
 import pytest
+from test_io_sync import make_capture
 
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import (
@@ -15,6 +16,8 @@ from jaxmocap.io.atomic import (
     atomic_write,
     check_output_file,
     check_output_folder,
+    lock_path,
+    output_folder_lock,
     write_bytes,
     write_text,
 )
@@ -126,3 +129,162 @@ def test_sweep_removes_only_dead_processes_temporaries(tmp_path):
     assert sorted(os.listdir(tmp_path)) == sorted([mine.name, "poses.bvh"])
     out = tmp_path / "out"
     assert staging_dir(out) == tmp_path / ".jaxmocap-staging" and out.is_dir()
+
+
+# ----------------------------------------------------------------------------- folder lock
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_output_folder_lock_one_run_at_a_time(tmp_path):
+    out = tmp_path / "new" / "deeper" / "res"
+    lock = lock_path(out)
+    with output_folder_lock(out) as held:
+        assert held == lock and lock.read_text() == f"{os.getpid()}\n"
+        with pytest.raises(OutputPathError) as e:  # a second holder (another descriptor)
+            with output_folder_lock(out):
+                pass
+        msg = str(e.value)
+        assert "\n" not in msg and msg.startswith(f"--out {out}: another jaxmocap run (pid "
+                                                  f"{os.getpid()}) is writing")
+        assert lock.exists()  # the refused attempt left the holder's lock alone
+    assert not lock.exists() and not (tmp_path / "new").exists()  # created folders removed
+    out.mkdir(parents=True)
+    with output_folder_lock(out):
+        pass
+    assert out.is_dir() and not lock.exists()  # folders holding results stay
+
+
+@pytest.mark.parametrize("flock", [True, False])
+def test_output_folder_lock_sweeps_a_dead_runs_lock(tmp_path, monkeypatch, flock):
+    import jaxmocap.io.atomic as atomic
+
+    if not flock:  # the pid-only lock of systems without fcntl
+        monkeypatch.setattr(atomic, "fcntl", None)
+    out = tmp_path / "res"
+    lock = lock_path(out)
+    lock.write_text(f"{_dead_pid()}\n")  # left by a run killed with kill -9
+    with output_folder_lock(out):
+        assert lock.read_text() == f"{os.getpid()}\n"
+    assert not lock.exists()
+    if not flock:
+        lock.write_text(f"{os.getppid()}\n")  # a live process's lock is respected
+        with pytest.raises(OutputPathError, match=f"pid {os.getppid()}"):
+            with output_folder_lock(out):
+                pass
+        assert lock.read_text() == f"{os.getppid()}\n"
+
+
+@pytest.fixture
+def capture(tmp_path):
+    return make_capture(tmp_path)
+
+
+def test_track_refused_while_another_run_holds_out(capture, capsys, monkeypatch):
+    from test_cli_badinput import _Fixed
+    from test_cli_common import run_cli
+
+    from jaxmocap.commands import track as track_cmd
+
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
+    k = capture
+    argv = ["track", "--cameras", k / "cameras.json", k / "a.mp4", k / "b.mp4", "--quiet",
+            "--formats", "npz", "--sync", "timestamps", "--out", k / "res"]
+    with output_folder_lock(k / "res"):  # the first run, still writing
+        rc, out, err = run_cli(capsys, *argv)
+        assert rc == 2 and len(err) == 1, (rc, out, err)
+        assert f"--out {k / 'res'}: another jaxmocap run (pid {os.getpid()})" in err[0]
+        assert not (k / "res").exists()
+    rc, out, err = run_cli(capsys, *argv)  # once it ended, the folder is free
+    assert rc == 0, (out, err)
+    assert sorted(p.name for p in (k / "res").iterdir()) == ["diagnostics.csv", "poses.npz",
+                                                             "run.json"]
+    assert not lock_path(k / "res").exists()
+
+
+# ----------------------------------------------------------------------------- OS errors
+
+
+def _leftovers(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_disk_full_while_writing_names_the_folder_and_leaves_nothing(tmp_path):
+    import errno
+
+    out = tmp_path / "new" / "res"
+    with pytest.raises(OutputPathError) as e:
+        with AtomicFiles(out) as files:
+            files.path(out / "a.txt").write_text("partial")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as file.write raises it
+    assert str(e.value) == (f"{out}: cannot write: no space left on the device: free some, or "
+                            "write elsewhere (ENOSPC); nothing was written")
+    assert _leftovers(tmp_path) == []  # no temporary, no staging, no empty folder
+
+
+def test_permission_denied_on_rename_names_the_target(tmp_path, monkeypatch):
+    import errno
+
+    import jaxmocap.io.atomic as atomic
+
+    (tmp_path / "res").mkdir()
+    (tmp_path / "res" / "old.txt").write_text("keep")
+
+    def denied(src, dst):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(src), None, str(dst))
+
+    monkeypatch.setattr(atomic.os, "replace", denied)
+    with pytest.raises(OutputPathError) as e:
+        with AtomicFiles(tmp_path / "res") as files:
+            files.path(tmp_path / "res" / "b.txt").write_text("new")
+    assert str(e.value).startswith(f"{tmp_path / 'res' / 'b.txt'}: cannot write: permission "
+                                   "denied: choose a folder you can write (EACCES)")
+    assert _leftovers(tmp_path) == ["res", "res/old.txt"]  # the user's folder stays as it was
+
+
+def test_over_long_names_refused_before_any_work(tmp_path):
+    long = "x" * 250  # a valid name on ext4 (255), but not with our temporaries' suffixes
+    with pytest.raises(OutputPathError) as e:
+        check_output_folder(tmp_path / long / "res")
+    msg = str(e.value)
+    assert "\n" not in msg and f"the name {long[:24]}... is 250 bytes; this file system allows" \
+        in msg
+    with pytest.raises(OutputPathError, match="is 250 bytes"):
+        check_output_file(tmp_path / (long[:246] + ".npz"))
+    assert _leftovers(tmp_path) == []
+
+
+def test_track_disk_full_and_long_out_one_line_nothing_left(capture, capsys, monkeypatch):
+    import errno
+
+    from test_cli_badinput import _Fixed
+    from test_cli_common import run_cli
+
+    from jaxmocap.commands import track as track_cmd
+
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: _Fixed())
+    k = capture
+    before = _leftovers(k)
+    argv = ["track", "--cameras", k / "cameras.json", k / "a.mp4", k / "b.mp4", "--quiet",
+            "--formats", "npz,csv", "--sync", "timestamps"]
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with monkeypatch.context() as m:
+        m.setattr(track_cmd, "write_exports", full)
+        rc, out, err = run_cli(capsys, *argv, "--out", k / "runs" / "a")
+    assert rc == 2 and len(err) == 1, (rc, err)
+    assert err[0] == (f"jaxmocap track: error: {k / 'runs' / 'a'}: cannot write: no space left "
+                      "on the device: free some, or write elsewhere (ENOSPC); nothing was "
+                      "written")
+    rc, out, err = run_cli(capsys, *argv, "--out", k / ("y" * 240))
+    assert rc == 2 and len(err) == 1 and "is 240 bytes; this file system allows" in err[0]
+    assert _leftovers(k) == before

@@ -160,3 +160,35 @@ def test_writer_falls_back_to_mp4v_with_a_note(tmp_path, monkeypatch):
         assert s.frames == 4
     with pytest.raises(ValueError, match="expected \\(24, 32, 3\\) uint8"):
         VideoWriter(tmp_path / "w.mp4", 15.0, W, H, note=note).write(np.zeros((2, 2, 3)))
+
+
+def test_decoder_chatter_is_captured_and_the_image_counted_damaged(tmp_path, capfd):
+    """A truncated PNG makes libpng print ``libpng error: Read Error`` on the process's
+    stderr, a truncated JPEG libjpeg ``Premature end of JPEG file`` (and a grey-filled
+    picture): neither reaches the console, both are unreadable frames with the reason."""
+    from jaxmocap.commands.colors import read_rgb
+    from jaxmocap.errors import InputError
+    from jaxmocap.io.video import decode_image
+
+    fr = np.random.default_rng(0).integers(0, 255, (3, 48, 64, 3), np.uint8)  # 9 kB PNGs
+    folder = png_folder(tmp_path / "cam", fr)
+    png = (folder / "0001.png").read_bytes()
+    (folder / "0001.png").write_bytes(png[:-300])  # the last IDAT cut short, no IEND
+    cv2.imwrite(str(tmp_path / "a.jpg"), fr[0])
+    jpg = (tmp_path / "a.jpg").read_bytes()
+    (tmp_path / "a.jpg").write_bytes(jpg[: len(jpg) * 2 // 3])
+    capfd.readouterr()
+    with SyncReader([folder]) as r:
+        got = [f is None for _, f in r]
+        problems = r.problems()
+    img, why = decode_image(tmp_path / "a.jpg")
+    with pytest.raises(InputError) as e:
+        read_rgb(folder / "0001.png")
+    out, err = capfd.readouterr()
+    assert (out, err) == ("", "")
+    assert got == [False, True, False]
+    assert "0001.png empty or not decodable (Read Error)" in problems
+    assert img is None and why == "Premature end of JPEG file"
+    assert str(e.value).endswith("not a readable image (empty or corrupt: Read Error)")
+    ok, why = decode_image(folder / "0000.png")
+    assert why is None and np.array_equal(ok[..., ::-1], fr[0])

@@ -80,10 +80,15 @@ def compile_mjcf(path: str | os.PathLike):
     """The compiled ``mujoco.MjModel`` of an MJCF file (undefined materials dropped)."""
     import mujoco
 
+    from jaxmocap.io.preflight import read_text
+
+    from .urdf import MAX_MODEL_BYTES
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"MJCF file not found: {path}")
-    text = _strip_undefined_materials(path.read_text(), str(path))
+    text = read_text(path, "an MJCF (MuJoCo XML) body model", max_bytes=MAX_MODEL_BYTES)
+    text = _strip_undefined_materials(text, str(path))
     try:
         return mujoco.MjModel.from_xml_string(text)
     except ValueError as e:

@@ -78,9 +78,13 @@ def _floats(text: str | None, n: int, default: ArrayLike, where: str) -> np.ndar
     if text is None:
         return np.asarray(default, float)
     vals = text.split()
-    if len(vals) != n:
-        raise ValueError(f"{where}: expected {n} numbers, got {text!r}")
-    return np.array([float(v) for v in vals])
+    try:
+        out = np.array([float(v) for v in vals])
+    except ValueError:
+        out = None
+    if len(vals) != n or out is None or not np.all(np.isfinite(out)):
+        raise ValueError(f"{where}: expected {n} finite numbers, got {text!r}")
+    return out
 
 
 def _origin(elem: ET.Element | None, where: str) -> np.ndarray:
@@ -93,12 +97,94 @@ def _origin(elem: ET.Element | None, where: str) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- XML prep
+MAX_MODEL_BYTES = 64 << 20  # a body description; pybullet's humanoid.urdf is 16 kB
+URDF_JOINT_TYPES = ("fixed", "revolute", "continuous", "prismatic", "spherical", "ball")
+
+
 def read_urdf_text(path: str | os.PathLike) -> str:
-    """The URDF text with NUL bytes and surrounding whitespace removed."""
-    path = Path(path)
-    if not path.is_file():
+    """The URDF text with NUL bytes and surrounding whitespace removed (``FileNotFoundError``
+    if there is no file); a binary or oversized file is one :class:`~jaxmocap.errors.InputError`
+    line."""
+    from jaxmocap.io.preflight import read_text
+
+    if not Path(path).is_file():
         raise FileNotFoundError(f"URDF file not found: {path}")
-    return path.read_bytes().replace(b"\x00", b"").decode("utf-8").strip()
+    return read_text(path, "a URDF body model (XML)", max_bytes=MAX_MODEL_BYTES) \
+        .replace("\x00", "").strip()
+
+
+def check_urdf_structure(robot: ET.Element, where: str = "<urdf>") -> None:
+    """The URDF's links and joints form one tree, checked before pytorch-kinematics sees them
+    (its parser fails on these with tracebacks that name the wrong link): every link named
+    once; every joint named, of a known type, with one ``<parent link>`` and one
+    ``<child link>`` naming links of the file (the *missing* one is named); no link the child
+    of two joints; no loop; one root link. Raises :class:`~jaxmocap.errors.InputError`
+    naming the file, the element and what is expected."""
+    from jaxmocap.errors import InputError
+
+    def fail(msg: str) -> InputError:
+        return InputError(f"{where}: {msg}")
+
+    links: list[str] = []
+    for k, link in enumerate(robot.findall("link")):
+        name = link.get("name")
+        if not name:
+            raise fail(f"<link> #{k} has no name attribute; expected <link name=\"...\">")
+        if name in links:
+            raise fail(f"<link name={name!r}> is defined twice; expected unique link names")
+        links.append(name)
+    if not links:
+        raise fail("no <link> elements; expected a <robot> with links and joints")
+    known = set(links)
+    listing = ", ".join(links[:8]) + (" ..." if len(links) > 8 else "")
+    parent_of: dict[str, tuple[str, str]] = {}  # child link -> (parent link, joint)
+    joints: set[str] = set()
+    for k, joint in enumerate(robot.findall("joint")):
+        jname = joint.get("name")
+        if not jname:
+            raise fail(f"<joint> #{k} has no name attribute; expected <joint name=\"...\">")
+        w = f"<joint name={jname!r}>"
+        if jname in joints:
+            raise fail(f"{w} is defined twice; expected unique joint names")
+        joints.add(jname)
+        jtype = joint.get("type")
+        if jtype not in URDF_JOINT_TYPES and jtype not in ("floating", "planar"):
+            raise fail(f"{w} has type {jtype!r}; expected one of {', '.join(URDF_JOINT_TYPES)}")
+        ends = {}
+        for tag in ("parent", "child"):
+            found = joint.findall(tag)
+            if len(found) != 1:
+                what = "no" if not found else f"{len(found)}"
+                raise fail(f"{w} has {what} <{tag}> elements; expected exactly one "
+                           f"<{tag} link=\"...\">")
+            link = found[0].get("link")
+            if not link:
+                raise fail(f"{w} <{tag}> has no link attribute; expected <{tag} link=\"...\">")
+            if link not in known:
+                raise fail(f"{w} <{tag} link={link!r}>: no link named {link!r} in the file "
+                           f"(links: {listing})")
+            ends[tag] = link
+        parent, child = ends["parent"], ends["child"]
+        if parent == child:
+            raise fail(f"{w} joins link {child!r} to itself; expected two different links")
+        if child in parent_of:
+            other = parent_of[child][1]
+            raise fail(f"{w}: link {child!r} is already the child of joint {other!r}; a link "
+                       "has one parent joint (the links must form a tree)")
+        parent_of[child] = (parent, jname)
+    for start in links:  # walk up from every link: a loop revisits a link
+        seen, link = [start], start
+        while link in parent_of:
+            link = parent_of[link][0]
+            if link in seen:
+                cycle = seen[seen.index(link):] + [link]
+                raise fail(f"the joints form a loop ({' <- '.join(cycle)}, through joint "
+                           f"{parent_of[cycle[0]][1]!r}); expected a tree of links")
+            seen.append(link)
+    roots = [n for n in links if n not in parent_of]
+    if len(roots) > 1:
+        raise fail(f"links {', '.join(map(repr, roots[:4]))} all have no parent joint; expected "
+                   "one root link (every other link the <child> of a joint)")
 
 
 def _expand_spherical(robot: ET.Element, where: str) -> None:
@@ -142,6 +228,7 @@ def prepare_urdf(text: str, where: str = "<urdf>") -> tuple[ET.Element, str]:
         raise ValueError(f"{where}: not valid XML ({e})") from None
     if robot.tag != "robot":
         raise ValueError(f"{where}: root element is <{robot.tag}>, expected <robot>")
+    check_urdf_structure(robot, where)
     _expand_spherical(robot, where)
     for joint in robot.findall("joint"):  # URDF's default axis is x; pytorch-kinematics uses z
         if joint.find("axis") is None and joint.get("type") != "fixed":
@@ -202,7 +289,7 @@ def _attr(g: ET.Element, name: str, where: str) -> float:
     v = g.get(name)
     if v is None:
         raise ValueError(f"{where}: <{g.tag}> needs attribute {name!r}")
-    return float(v)
+    return float(_floats(v, 1, (0,), f"{where} <{g.tag} {name}>")[0])
 
 
 def _geom_kind_size(g: ET.Element, where: str) -> tuple[int, np.ndarray]:

@@ -37,7 +37,7 @@ from jaxmocap.camera import Camera, project, save_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
 from jaxmocap.io.preflight import check_outputs, int_range, positive_float
-from jaxmocap.io.video import VideoError, open_source, quiet_ffmpeg
+from jaxmocap.io.video import VideoError, check_frame_rates, open_source, quiet_ffmpeg
 
 __all__ = ["BundleResult", "add_parser", "bundle_adjust", "parse_board", "run"]
 
@@ -207,24 +207,32 @@ def _bundle_adjust(cameras, detections, board_R, board_t, object_points, fix_k3,
 # ----------------------------------------------------------------------------- reading inputs
 
 
-def _read_views(spec: str, every: int) -> list[np.ndarray | None]:
-    src = open_source(spec)
-    if src.live:
-        src.close()
-        raise VideoError(f"{spec}: calibration needs recorded images or a video, not a live "
-                         "camera index")
-    frames = []
+def _read_views(specs: list[str], every: int) -> list[list[np.ndarray | None]]:
+    """Every ``every``-th frame of each camera's recording (videos at one frame rate)."""
+    sources = []
     try:
-        for t in range(src.n_frames):
-            try:
-                f = src.read()
-            except StopIteration:
-                break
-            if t % every == 0:
-                frames.append(f)
+        for spec in specs:
+            sources.append(open_source(spec))
+            if sources[-1].live:
+                raise VideoError(f"{spec}: calibration needs recorded images or a video, not a "
+                                 "live camera index")
+        check_frame_rates(sources, "view v of every camera must show the same instant: "
+                          "record at one rate")
+        views = []
+        for src in sources:
+            frames = []
+            for t in range(src.n_frames):
+                try:
+                    f = src.read()
+                except StopIteration:
+                    break
+                if t % every == 0:
+                    frames.append(f)
+            views.append(frames)
     finally:
-        src.close()
-    return frames
+        for src in sources:
+            src.close()
+    return views
 
 
 def _board_hint(frames: list[np.ndarray], pattern: tuple[int, int], name: str, n_found: int,
@@ -252,7 +260,7 @@ def _calibrate(args) -> tuple[list[Camera], list[str], dict]:
     names = args.names or [f"cam{i}" for i in range(len(args.inputs))]
     if len(names) != len(args.inputs) or len(set(names)) != len(names):
         raise InputError(f"--names: need {len(args.inputs)} distinct names, got {names}")
-    views = [_read_views(s, args.every) for s in args.inputs]
+    views = _read_views(args.inputs, args.every)
     counts = {len(v) for v in views}
     if len(counts) > 1:
         listing = ", ".join(f"{n} {len(v)}" for n, v in zip(names, views, strict=True))

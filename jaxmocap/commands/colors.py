@@ -40,6 +40,7 @@ from jaxmocap.color import (
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
 from jaxmocap.io.preflight import check_outputs, int_range
+from jaxmocap.io.video import decode_image
 from jaxmocap.io.white_balance import (
     WhiteBalanceFileError,
     load_room_colors,
@@ -84,12 +85,9 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such image file")
-    try:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    except cv2.error:
-        img = None
-    if img is None or img.size == 0:
-        raise InputError(f"{path}: not a readable image (empty or corrupt)")
+    img, why = decode_image(path, cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(f"{path}: not a readable image (empty or corrupt: {why})")
     return np.ascontiguousarray(img[..., ::-1])
 
 
@@ -98,12 +96,9 @@ def read_label_mask(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such label mask file")
-    try:
-        lab = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        lab = None
-    if lab is None or lab.size == 0:
-        raise InputError(f"{path}: not a readable label image (empty or corrupt)")
+    lab, why = decode_image(path, cv2.IMREAD_UNCHANGED)
+    if lab is None:
+        raise InputError(f"{path}: not a readable label image (empty or corrupt: {why})")
     if lab.dtype not in (np.uint8, np.uint16):
         raise InputError(f"{path}: label mask must be 8- or 16-bit integers, got {lab.dtype}")
     if lab.ndim == 3:

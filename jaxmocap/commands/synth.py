@@ -5,7 +5,6 @@ mujoco``, the independent test world (:mod:`jaxmocap.synth.world`)."""
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -65,12 +64,9 @@ def add_world_options(p: argparse.ArgumentParser) -> None:
 
 def _read_world(path: str) -> dict:
     p = Path(path)
-    try:
-        doc = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise WorldError(f"{p}: no such world file") from None
-    except json.JSONDecodeError as e:
-        raise WorldError(f"{p}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    from jaxmocap.io.preflight import read_json
+
+    doc = read_json(p, "a world JSON (a 'world' object, or a scene.json)", WorldError)
     if isinstance(doc, dict) and isinstance(doc.get("world"), dict):
         return dict(doc["world"])
     if isinstance(doc, dict) and "scene" not in doc:

@@ -35,11 +35,11 @@ import numpy as np
 
 from jaxmocap.camera import Camera, load_cameras
 from jaxmocap.errors import InputError
-from jaxmocap.io.atomic import AtomicFiles, check_output_folder
+from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.overlay import BONES, draw_skeleton
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
-from jaxmocap.io.video import SyncReader, VideoWriter, quiet_ffmpeg
+from jaxmocap.io.video import SYNC_MODES, SyncReader, VideoWriter, quiet_ffmpeg
 from jaxmocap.trackers.driver import (
     MAX_PARTICLES,
     VALIDITY,
@@ -262,6 +262,12 @@ def add_parser(sub) -> None:
                    help="stop after N frames (needed to end a live capture without Ctrl-C)")
     p.add_argument("--fps", type=positive_float,
                    help=f"frame rate of the outputs (default: the video's, else {DEFAULT_FPS:g})")
+    p.add_argument("--sync", choices=SYNC_MODES, default="frames",
+                   help="how the cameras' frames are paired: 'frames' (frame t of every input "
+                   "is one instant; inputs of different frame rates or lengths are refused) "
+                   "or 'timestamps' (videos resampled to the first camera's clock: the "
+                   "nearest frame of each camera at each of its frame times; the recordings "
+                   "must start together) (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (as a whole set)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -338,12 +344,17 @@ def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> Non
                              f"{MIN_BASELINE_M * 1e3:g} mm baseline) to triangulate")
 
 
+OFFSET_PEAK = 0.5  # a motion offset is noted when its correlation is at least this
+
+
 def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) -> str:
     doc = {"format": "jaxmocap.track_run", "version": 1,
            "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
-           "method": args.method, "inputs": [str(i) for i in args.inputs]}
+           "method": args.method, "inputs": [str(i) for i in args.inputs],
+           "sync": args.sync, "sync_report": reader.sync_report,
+           "motion_offsets": reader.motion_offsets()}
     return json.dumps(doc, indent=2) + "\n"
 
 
@@ -360,6 +371,11 @@ def run(args: argparse.Namespace) -> int:
                          f"{','.join(FORMATS)}")
     names_out = result_names()
     check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
+    with output_folder_lock(out):  # one run at a time writes --out
+        return _run(args, out, formats, names_out)
+
+
+def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set[str]) -> int:
     stale = check_stale(out, names_out, args.overwrite)
     cams, names = load_cameras(args.cameras)
     real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]
@@ -378,7 +394,9 @@ def run(args: argparse.Namespace) -> int:
                          "opencv-python-headless); run without --show (use --overlay to get "
                          "a video of the tracking)")
     with SyncReader(args.inputs, names, [(c.width, c.height) for c in cams],
-                    args.max_frames) as reader:
+                    args.max_frames, sync=args.sync) as reader:
+        if reader.sync_report:
+            print(f"jaxmocap track: {reader.sync_report}")
         fps = args.fps or reader.fps or DEFAULT_FPS
         tracker = _make_tracker(args, cams, names)
         with AtomicFiles(out) as files:
@@ -415,6 +433,15 @@ def run(args: argparse.Namespace) -> int:
               "marked partial (run.json, poses.npz 'complete')", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary)
+    offsets = reader.motion_offsets()
+    late = [o for o in offsets or () if o["offset_frames"] and o["peak"] >= OFFSET_PEAK]
+    if late:
+        print("jaxmocap track: note: the cameras' image motion suggests they are not "
+              "simultaneous: " + "; ".join(
+                  f"{o['camera']} sees it {abs(o['offset_s']) * 1e3:.0f} ms "
+                  f"{'later' if o['offset_s'] > 0 else 'earlier'} than {reader.names[0]} "
+                  f"(correlation {o['peak']:.2f})" for o in late)
+              + "; cut the recordings to a common start (run.json: motion_offsets)")
     if problems:
         print(f"jaxmocap track: warning: {problems}; those frames are NaN in the outputs",
               file=sys.stderr)

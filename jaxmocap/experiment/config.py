@@ -60,6 +60,7 @@ import inspect
 import json
 import re
 import tomllib
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -262,22 +263,20 @@ def _check_body_garment(where: str, method: str, body, garment, base: Path):
 
 
 def _parse(path: Path) -> dict:
-    try:
-        text = path.read_bytes()
-    except FileNotFoundError:
-        raise ExperimentError(f"{path}: no such configuration file") from None
-    except IsADirectoryError:
-        raise ExperimentError(f"{path}: a folder, expected a .toml or .json file") from None
+    from jaxmocap.io.preflight import MAX_JSON_DEPTH, parse_json, read_text
+
+    what = "an experiment configuration (.toml or .json), format in docs/USER_GUIDE.md"
+    text = read_text(path, what, ExperimentError)
     if path.suffix.lower() == ".json":
-        try:
-            doc = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise ExperimentError(f"{path}: not valid JSON: {str(e).splitlines()[0]}") from None
+        doc = parse_json(text, path, what, ExperimentError)
     else:
         try:
-            doc = tomllib.loads(text.decode())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
             raise ExperimentError(f"{path}: not valid TOML: {str(e).splitlines()[0]}") from None
+        except RecursionError:
+            raise ExperimentError(f"{path}: TOML nested too deeply (more than {MAX_JSON_DEPTH} "
+                                  f"levels; expected {what})") from None
     if not isinstance(doc, dict):
         raise ExperimentError(f"{path}: expected a table with a 'config' list")
     return doc
@@ -380,12 +379,10 @@ def _is_sequence(folder: Path) -> bool:
 
 
 def _split_names(split: Path, subset: str | None) -> list[str]:
-    try:
-        doc = json.loads(split.read_text())
-    except FileNotFoundError:
-        raise ExperimentError(f"{split}: no such split file") from None
-    except json.JSONDecodeError as e:
-        raise ExperimentError(f"{split}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    from jaxmocap.io.preflight import read_json
+
+    doc = read_json(split, "a split file: a JSON list of sequence names, or an object of "
+                    "such lists", ExperimentError)
     if isinstance(doc, dict):
         lists = {k: v for k, v in doc.items() if isinstance(v, list)}
         if subset is None:
@@ -460,5 +457,6 @@ def groundtruth_keys(folder: str | Path) -> set[str]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return set(z.files)
-    except (OSError, ValueError) as e:
-        raise ExperimentError(f"{path}: missing or not a readable .npz ({e})") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ExperimentError(f"{path}: missing or not a readable .npz ({why})") from None

@@ -9,7 +9,8 @@ naming the file and what was expected.
 * :func:`check_stale` — an output folder holding results of an earlier run: refused unless
   the command was given ``--overwrite`` (then the earlier set is replaced as a whole when the
   new one is complete, :meth:`jaxmocap.io.atomic.AtomicFiles.replace_set`);
-* :func:`read_json` / :func:`read_npz` — the decoders of user files, one line per failure;
+* :func:`read_text` / :func:`read_json` / :func:`read_npz` — the decoders of user files (size,
+  nesting depth and encoding limits), one line per failure;
 * :func:`int_range` / :func:`positive_float` — argparse types that state the bound.
 """
 
@@ -34,8 +35,10 @@ __all__ = [
     "check_stale",
     "int_range",
     "positive_float",
+    "parse_json",
     "read_json",
     "read_npz",
+    "read_text",
 ]
 
 
@@ -99,15 +102,38 @@ def check_stale(folder: str | os.PathLike, names: Iterable[str], overwrite: bool
 # ----------------------------------------------------------------------------- readers
 
 
-def read_json(path: str | os.PathLike, what: str,
-              error: type[InputError] = InputError) -> Any:
-    """The JSON document of ``path``; any failure (missing, a folder, unreadable, not UTF-8,
-    not JSON, too deeply nested) is one ``error`` line naming the file and ``what`` it should
-    be (e.g. "cameras.json of `jaxmocap calibrate`")."""
+MAX_JSON_BYTES = 64 << 20  # a configuration file; the largest we write (cameras, colours) is ~10 kB
+MAX_JSON_DEPTH = 64  # our formats nest 4 levels at most; deeper is not one of them
+
+
+def _depth_exceeds(doc: Any, limit: int) -> bool:
+    """Whether ``doc`` nests containers more than ``limit`` deep (an explicit stack: no
+    recursion, so the check itself cannot overflow)."""
+    stack = [(doc, 1)]
+    while stack:
+        node, d = stack.pop()
+        if isinstance(node, (dict, list)):
+            if d > limit:
+                return True
+            children = node.values() if isinstance(node, dict) else node
+            stack.extend((c, d + 1) for c in children if isinstance(c, (dict, list)))
+    return False
+
+
+def read_text(path: str | os.PathLike, what: str, error: type[InputError] = InputError,
+              max_bytes: int = MAX_JSON_BYTES) -> str:
+    """The UTF-8 text of ``path`` (a configuration or model file of at most ``max_bytes``);
+    any failure (missing, a folder, unreadable, too large, binary, not UTF-8) is one ``error``
+    line naming the file and ``what`` it should be."""
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
-        return json.loads(text)
+        size = path.stat().st_size
+        if path.is_dir():
+            raise IsADirectoryError
+        if size > max_bytes:
+            raise error(f"{path}: {size:,} bytes is too large (at most {max_bytes:,}; expected "
+                        f"{what})")
+        return path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise error(f"{path}: cannot read: no such file (expected {what})") from None
     except IsADirectoryError:
@@ -116,11 +142,33 @@ def read_json(path: str | os.PathLike, what: str,
         raise error(f"{path}: cannot read: {e.strerror} (expected {what})") from None
     except UnicodeDecodeError:
         raise error(f"{path}: not a text file (binary data; expected {what})") from None
+
+
+def parse_json(text: str, path: str | os.PathLike, what: str,
+               error: type[InputError] = InputError) -> Any:
+    """The JSON document of ``text`` (read from ``path``): not JSON or nested more than
+    :data:`MAX_JSON_DEPTH` deep is one ``error`` line naming the file and ``what``."""
+    too_deep = False
+    try:
+        doc = json.loads(text)
     except json.JSONDecodeError as e:
         raise error(f"{path}: not valid JSON: {e.msg} (line {e.lineno}; expected {what})") \
             from None
     except RecursionError:
-        raise error(f"{path}: JSON nested too deeply (expected {what})") from None
+        doc, too_deep = None, True
+    if too_deep or _depth_exceeds(doc, MAX_JSON_DEPTH):
+        raise error(f"{path}: JSON nested too deeply (more than {MAX_JSON_DEPTH} levels; "
+                    f"expected {what})")
+    return doc
+
+
+def read_json(path: str | os.PathLike, what: str,
+              error: type[InputError] = InputError) -> Any:
+    """The JSON document of ``path``; any failure (missing, a folder, unreadable, too large,
+    not UTF-8, not JSON, nested too deeply) is one ``error`` line naming the file and ``what``
+    it should be (e.g. "cameras.json of `jaxmocap calibrate`"). Every JSON file a user gives
+    jaxmocap is read here."""
+    return parse_json(read_text(path, what, error), path, what, error)
 
 
 _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error,

@@ -53,11 +53,18 @@ __all__ = [
     "SyncReader",
     "VideoError",
     "VideoWriter",
+    "check_frame_rates",
+    "decode_image",
     "open_source",
+    "resample_to_first",
     "quiet_ffmpeg",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+MOTION_SIZE = (32, 24)  # image motion for the offset estimate: grey images shrunk to this
+MAX_LAG_S = 2.0  # the offsets the motion cross-correlation looks for, either way
+MIN_MOTION_FRAMES = 10  # instants both cameras must share for an offset estimate
+FPS_TOLERANCE = 1e-4  # relative; 29.97 vs 30 fps (1e-3) drift apart a frame every 33 s
 
 
 class VideoError(InputError):
@@ -122,6 +129,38 @@ class _DecoderLog:
             self._file.close()
 
 
+_HARMLESS = ("libpng warning",)  # e.g. "iCCP: known incorrect sRGB profile": the image is fine
+_IMAGE_LOG: _DecoderLog | None = None
+
+
+def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR
+                 ) -> tuple[np.ndarray | None, str | None]:
+    """(image as OpenCV decodes it, None) or (None, why) for an image file that is empty, not
+    an image, or damaged. The decoders' own console messages (``libpng error: Read Error`` for
+    a truncated PNG, libjpeg's ``Premature end of JPEG file``, after which it returns a
+    grey-filled picture) are captured, not printed: any message but a harmless warning makes
+    the image damaged, and is the ``why``."""
+    global _IMAGE_LOG
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            return None, "empty file"
+    except OSError as e:
+        return None, e.strerror
+    if _IMAGE_LOG is None:
+        _IMAGE_LOG = _DecoderLog()
+    with _IMAGE_LOG.capture() as said:
+        try:
+            img = cv2.imread(str(path), flags)
+        except cv2.error:
+            img = None
+    damage = [ln for ln in said if not ln.startswith(_HARMLESS)]
+    if img is None or img.size == 0 or damage:
+        why = damage[0].split(": ", 1)[-1] if damage else "not decodable"
+        return None, why
+    return img, None
+
+
 class FrameSource:
     """One camera's frames. ``n_frames`` is None for a live camera; :meth:`read` returns the
     next frame as RGB uint8 (H, W, 3), ``None`` for an unreadable frame, and raises
@@ -163,22 +202,16 @@ class _Folder(FrameSource):
 
     @staticmethod
     def _load(p: Path) -> np.ndarray | None:
-        if p.stat().st_size == 0:
-            return None
-        try:
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        except cv2.error:
-            return None
-        return None if img is None or img.size == 0 else img
+        return decode_image(p)[0]
 
     def read(self) -> np.ndarray | None:
         if self._next >= self.n_frames:
             raise StopIteration
         p = self.files[self._next]
         self._next += 1
-        img = self._load(p)
+        img, why = decode_image(p)
         if img is None:
-            self.errors.append(f"{p.name} empty or not decodable")
+            self.errors.append(f"{p.name} empty or not decodable ({why})")
             return None
         if img.shape[:2] != (self.height, self.width):
             self.errors.append(f"{p.name} is {img.shape[1]}x{img.shape[0]}")
@@ -220,6 +253,9 @@ class _Capture(FrameSource):
         self._t = 0
         self.ended_at: int | None = None
         self.errors: list[str] = []
+        self._spec, self._index = spec, None  # (times, keyframes), demuxed when first needed
+        self._damaged_from: int | None = None  # the damaged frame later frames decode from
+        self.followers: dict[int, int] = {}  # damaged frame -> frames decoded from it
 
     def read(self) -> np.ndarray | None:
         if self.n_frames is not None and self._t >= self.n_frames:
@@ -240,15 +276,85 @@ class _Capture(FrameSource):
         if img.shape[:2] != (self.height, self.width):
             self.errors.append(f"frame {self._t - 1} is {img.shape[1]}x{img.shape[0]}")
             return None
+        t = self._t - 1
+        if self._damaged_from is not None:
+            keys = self.keyframes
+            if keys is not None and t < len(keys) and keys[t]:
+                self._damaged_from = None  # a keyframe decodes on its own
         if damage:
             msg = damage[0].split("] ", 1)[-1]
-            self.errors.append(f"frame {self._t - 1} damaged (decoder: {msg})")
+            self.errors.append(f"frame {t} damaged (decoder: {msg})")
+            if self.keyframes is not None:  # the frames up to the next keyframe decode from it
+                self._damaged_from = t
+            return None
+        if self._damaged_from is not None:
+            d = self._damaged_from
+            self.followers[d] = self.followers.get(d, 0) + 1
             return None
         return np.ascontiguousarray(img[..., ::-1])
+
+    def _indexed(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if self._index is None:
+            if self.n_frames is None:  # a live camera: no container to demux
+                self._index = (None, None)
+            else:
+                with self.log.capture():
+                    self._index = _video_index(self._spec)
+        return self._index
+
+    @property
+    def times(self) -> np.ndarray | None:
+        """Each frame's presentation time (s from the first frame), from the container."""
+        return self._indexed()[0]
+
+    @property
+    def keyframes(self) -> np.ndarray | None:
+        """Whether each frame is a keyframe (decodes on its own), from the container."""
+        return self._indexed()[1]
+
+    def damage_note(self) -> str | None:
+        """One phrase on the frames that decode from a damaged one (no keyframe between)."""
+        if not self.followers:
+            return None
+        n = sum(self.followers.values())
+        src = ", ".join(str(d) for d in sorted(self.followers)[:3])
+        more = "s" if len(self.followers) > 1 else ""
+        return (f"{n} frame{'s' if n > 1 else ''} decoded from damaged frame{more} {src} "
+                "(no keyframe between) and damaged too")
 
     def close(self) -> None:
         self.cap.release()
         self.log.close()
+
+
+def _video_index(path: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(presentation time of each frame in seconds from the first, keyframe flag of each
+    frame), in presentation order, from the container's packets (demuxed by PyAV, nothing
+    decoded); (None, None) when the container gives no timestamps (then no frame is known
+    to be a keyframe: damage is not propagated, and ``--sync timestamps`` is refused)."""
+    try:
+        import av
+
+        with av.open(str(path)) as c:
+            if not c.streams.video:
+                return None, None
+            stream = c.streams.video[0]
+            pts, key = [], []
+            for pkt in c.demux(stream):
+                if pkt.size == 0:  # the demuxer's flush packet
+                    continue
+                if pkt.pts is None:
+                    return None, None
+                pts.append(int(pkt.pts))
+                key.append(bool(pkt.is_keyframe))
+            base = stream.time_base
+    except Exception:  # noqa: BLE001 - PyAV missing or the container unreadable to it
+        return None, None
+    if not pts or base is None:
+        return None, None
+    order = np.argsort(np.asarray(pts), kind="stable")
+    ticks = np.asarray(pts, np.int64)[order]
+    return (ticks - ticks[0]) * float(base), np.asarray(key, bool)[order]
 
 
 def open_source(spec: str | os.PathLike) -> FrameSource:
@@ -266,6 +372,81 @@ def open_source(spec: str | os.PathLike) -> FrameSource:
     raise VideoError(f"{text}: no such video file, frame folder or camera index")
 
 
+def check_frame_rates(sources: Sequence[FrameSource], remedy: str) -> None:
+    """Refuse (:class:`VideoError`, one line with the numbers) recorded sources whose frame
+    rates differ (by more than :data:`FPS_TOLERANCE`): frame t of each is then not one
+    instant. Sources that do not know their rate (folders of frames) are not compared."""
+    rates = [(s.name, s.fps) for s in sources if s.fps]
+    known = [r for _, r in rates]
+    if known and max(known) - min(known) > FPS_TOLERANCE * max(known):
+        listing = ", ".join(f"{n} {r:.4g} fps" for n, r in rates)
+        raise VideoError(f"inputs have different frame rates: {listing}; their frames are "
+                         f"not simultaneous: {remedy}")
+
+
+class _Resampled(FrameSource):
+    """Frames ``index[k]`` of ``source`` for k = 0, 1, ... (non-decreasing: a frame is
+    repeated or frames are skipped, each frame read once from the source)."""
+
+    def __init__(self, source: FrameSource, index: np.ndarray):
+        self.source, self.index = source, [int(i) for i in index]
+        self.name, self.width, self.height = source.name, source.width, source.height
+        self.fps, self.n_frames = source.fps, len(self.index)
+        self._k, self._at, self._frame = 0, -1, None
+
+    def read(self) -> np.ndarray | None:
+        if self._k >= len(self.index):
+            raise StopIteration
+        want = self.index[self._k]
+        self._k += 1
+        while self._at < want:
+            self._frame = self.source.read()
+            self._at += 1
+        return self._frame
+
+    def close(self) -> None:
+        self.source.close()
+
+
+SYNC_MODES = ("frames", "timestamps")
+
+
+def resample_to_first(times: Sequence[np.ndarray], names: Sequence[str]
+                      ) -> tuple[list[np.ndarray], str]:
+    """The nearest frame of each camera at each frame time of the first camera (its clock),
+    over the instants every camera covers (within half of its frame interval), and a line
+    saying what was done. ``times``: each camera's frame times (s from its first frame; the
+    recordings are assumed to start together). Raises :class:`VideoError` if no instant is
+    covered by all."""
+    t0 = np.asarray(times[0], float)
+    indices, covered = [], np.ones(len(t0), bool)
+    for ts in times:
+        ts = np.asarray(ts, float)
+        half = 0.5 * (float(np.median(np.diff(ts))) if len(ts) > 1 else 0.0)
+        after = np.searchsorted(ts, t0)  # the first frame at or after each instant
+        lo, hi = np.clip(after - 1, 0, len(ts) - 1), np.clip(after, 0, len(ts) - 1)
+        j = np.where(np.abs(ts[lo] - t0) <= np.abs(ts[hi] - t0) + 1e-9, lo, hi)  # ties: earlier
+        covered &= np.abs(ts[j] - t0) <= half * (1 + 1e-6) + 1e-9  # ties: rounded times
+        indices.append(j)
+    n = int(np.argmin(covered)) if not covered.all() else len(t0)  # the leading covered span
+    if n == 0:
+        raise VideoError(f"--sync timestamps: the cameras share no instant ({names[0]} starts "
+                         "where another has no frame)")
+    rate = (len(t0) - 1) / t0[-1] if len(t0) > 1 and t0[-1] > 0 else float("nan")
+    parts = []
+    for name, ts, j in zip(names[1:], times[1:], indices[1:], strict=True):
+        j = j[:n]
+        off = float(np.max(np.abs(np.asarray(ts)[j] - t0[:n]))) * 1e3
+        rep = n - len(np.unique(j))
+        skip = int(j[-1] - j[0] + 1) - len(np.unique(j))
+        parts.append(f"{name} {len(ts)} frames: nearest frame, up to {off:.0f} ms off"
+                     + (f", {rep} repeated" if rep else "") + (f", {skip} skipped" if skip else ""))
+    cut = f", cut to the {n} of {len(t0)} instants all cameras cover" if n < len(t0) else ""
+    line = (f"--sync timestamps: resampled to {names[0]}'s clock ({rate:.3g} fps, {n} instants "
+            f"over {t0[n - 1]:.2f} s{cut}): " + "; ".join(parts))
+    return [j[:n] for j in indices], line
+
+
 class SyncReader:
     """Frame ``t`` of every source at once: ``for t, frames in reader`` gives ``frames`` uint8
     (n_cams, H, W, 3) RGB, or ``None`` when some camera's frame ``t`` is unreadable.
@@ -276,7 +457,8 @@ class SyncReader:
     """
 
     def __init__(self, specs: Sequence[str | os.PathLike], names: Sequence[str] | None = None,
-                 sizes: Sequence[tuple[int, int]] | None = None, max_frames: int | None = None):
+                 sizes: Sequence[tuple[int, int]] | None = None, max_frames: int | None = None,
+                 sync: str = "frames"):
         if not specs:
             raise VideoError("no input given: pass one video, frame folder or camera index "
                              "per camera")
@@ -286,12 +468,17 @@ class SyncReader:
                              f"({', '.join(names)}); give one input per camera, in that order")
         if max_frames is not None and max_frames < 1:
             raise VideoError(f"--max-frames must be >= 1, got {max_frames}")
+        if sync not in SYNC_MODES:
+            raise VideoError(f"--sync {sync!r}: expected one of {', '.join(SYNC_MODES)}")
         self.names = names
         self.sources: list[FrameSource] = []
+        self.sync_report: str | None = None
         try:
             for s in specs:
                 self.sources.append(open_source(s))
-            self._check(sizes)
+            self._check(sizes, sync)
+            if sync == "timestamps":
+                self._resample()
         except BaseException:
             self.close()
             raise
@@ -302,8 +489,28 @@ class SyncReader:
         self.missing: list[int] = []
         self.n_read = 0
         self.fps = next((s.fps for s in self.sources if s.fps), None)
+        self._motion: list[list[float]] = [[] for _ in self.sources]  # image motion per instant
+        self._last: list[np.ndarray | None] = [None] * len(self.sources)
 
-    def _check(self, sizes) -> None:
+    def _resample(self) -> None:
+        """``--sync timestamps``: every camera read at the first camera's frame times."""
+        if self.sources[0].live:
+            raise VideoError("--sync timestamps: live cameras are read as they come; it "
+                             "resamples recorded videos")
+        for s in self.sources:
+            if getattr(s, "times", None) is None:
+                why = "a folder of frames" if isinstance(s, _Folder) else "its container " \
+                    "gives none"
+                raise VideoError(f"{s.name}: --sync timestamps needs each frame's timestamp "
+                                 f"({why}); give videos, or cut the inputs to the same "
+                                 "synchronised frames and drop --sync")
+        times = []
+        for s in self.sources:  # frames the container lists but OpenCV does not read: dropped
+            times.append(s.times[:s.n_frames])
+        index, self.sync_report = resample_to_first(times, self.names)
+        self.sources = [_Resampled(s, j) for s, j in zip(self.sources, index, strict=True)]
+
+    def _check(self, sizes, sync: str = "frames") -> None:
         src = self.sources
         live = [s.live for s in src]
         if any(live) and not all(live):
@@ -320,11 +527,16 @@ class SyncReader:
             if len(res) > 1:
                 listing = ", ".join(f"{s.name} {s.width}x{s.height}" for s in src)
                 raise VideoError(f"inputs have different resolutions: {listing}")
+        if sync == "timestamps":
+            return
+        if not any(live):
+            check_frame_rates(src, "record at one rate, or pass --sync timestamps to resample "
+                              "them to the first camera's clock")
         counts = [s.n_frames for s in src]
         if not any(live) and len(set(counts)) > 1:
             listing = ", ".join(f"{s.name} {n} frames" for s, n in zip(src, counts, strict=True))
             raise VideoError(f"inputs have different lengths: {listing}; cut them to the same "
-                             "synchronised frames")
+                             "synchronised frames (or, for videos, pass --sync timestamps)")
 
     @property
     def live(self) -> bool:
@@ -339,6 +551,7 @@ class SyncReader:
                     frames.append(s.read())
             except StopIteration:
                 return
+            self._record_motion(frames)
             if any(f is None for f in frames):
                 self.missing.append(t)
                 yield t, None
@@ -347,19 +560,57 @@ class SyncReader:
                 yield t, np.stack(frames)
             t += 1
 
+    def _record_motion(self, frames: list[np.ndarray | None]) -> None:
+        """Each camera's image motion at this instant: the mean absolute change of its
+        grey image (shrunk to :data:`MOTION_SIZE`) since the previous instant; NaN where a
+        frame is missing."""
+        for c, f in enumerate(frames):
+            small = None if f is None else cv2.resize(
+                cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), MOTION_SIZE,
+                interpolation=cv2.INTER_AREA).astype(np.float32)
+            prev = self._last[c]
+            self._motion[c].append(np.nan if small is None or prev is None
+                                   else float(np.abs(small - prev).mean()))
+            self._last[c] = small
+
+    def motion_offsets(self, max_lag_s: float = MAX_LAG_S) -> list[dict] | None:
+        """For each camera after the first, the time shift that best aligns its image motion
+        with the first camera's over the instants read so far (normalised cross-correlation
+        of the two motion signals, whole instants within ``max_lag_s``): ``{"camera",
+        "offset_s", "offset_frames", "peak"}``, a positive offset meaning that camera sees
+        the same motion later (its recording started earlier). None with one camera, no
+        known frame rate, or too few frames (:data:`MIN_MOTION_FRAMES`)."""
+        if len(self.sources) < 2 or not self.fps:
+            return None
+        ref = np.asarray(self._motion[0], float)
+        if np.isfinite(ref).sum() < MIN_MOTION_FRAMES:
+            return None
+        k = max(1, int(round(max_lag_s * self.fps)))
+        out = []
+        for name, sig in zip(self.names[1:], self._motion[1:], strict=True):
+            lag, peak = _best_lag(ref, np.asarray(sig, float), k)
+            if lag is None:
+                return None
+            out.append({"camera": name, "offset_frames": lag,
+                        "offset_s": round(lag / self.fps, 6), "peak": round(peak, 3)})
+        return out
+
     def problems(self) -> str | None:
         """One line describing the unreadable frames so far, or None if all were read."""
         if not self.missing:
             return None
         parts = []
         for s in self.sources:
+            s = getattr(s, "source", s)  # under --sync timestamps: the resampled source
             if isinstance(s, _Capture) and s.ended_at is not None:
                 parts.append(f"{s.name} ends after {s.ended_at} of {s.n_frames} declared frames "
                              "(truncated or corrupt)")
             errors = getattr(s, "errors", [])
-            if errors:
+            note = s.damage_note() if isinstance(s, _Capture) else None
+            if errors or note:
                 more = f" (+{len(errors) - 3} more)" if len(errors) > 3 else ""
-                parts.append(f"{s.name}: {'; '.join(errors[:3])}{more}")
+                text = "; ".join(errors[:3]) + more
+                parts.append(f"{s.name}: " + "; ".join(t for t in (text, note) if t))
         return (f"{len(self.missing)} of {self.n_read + len(self.missing)} frames unreadable "
                 f"({_ranges(self.missing)}): " + "; ".join(parts))
 
@@ -372,6 +623,31 @@ class SyncReader:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[int | None, float]:
+    """The lag L in ``-max_lag..max_lag`` maximising the normalised correlation of ``a[t]``
+    with ``b[t + L]`` over the instants where both are finite (at least half the shorter
+    signal's), and that correlation; (None, nan) when no lag has enough overlap or a signal
+    is flat."""
+    best, best_r = None, -np.inf
+    need = max(MIN_MOTION_FRAMES, min(len(a), len(b)) // 2)
+    for lag in range(-max_lag, max_lag + 1):
+        t0, t1 = max(0, -lag), min(len(a), len(b) - lag)  # a[t] pairs with b[t + lag]
+        if t1 <= t0:
+            continue
+        x, y = a[t0:t1], b[t0 + lag:t1 + lag]
+        ok = np.isfinite(x) & np.isfinite(y)
+        if ok.sum() < need:
+            continue
+        x, y = x[ok] - x[ok].mean(), y[ok] - y[ok].mean()
+        den = float(np.sqrt((x * x).sum() * (y * y).sum()))
+        if den <= 0:
+            continue
+        r = float((x * y).sum()) / den
+        if r > best_r:
+            best, best_r = lag, r
+    return best, (best_r if best is not None else float("nan"))
 
 
 def _ranges(ts: Sequence[int]) -> str:

@@ -120,12 +120,15 @@ def contact_sheet(seq: Sequence, n: int = 8, width: int = 200) -> np.ndarray:
 
 
 def _read_frames_png(folder: Path, name: str, t: int, h: int, w: int) -> np.ndarray:
+    from jaxmocap.io.video import decode_image
+
     out = np.empty((t, h, w, 3), np.uint8)
     for k in range(t):
         path = folder / name / f"{k:06d}.png"
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        img, why = decode_image(path) if path.is_file() else (None, "no such file")
         if img is None:
-            raise DatasetError(f"{path}: missing or not a readable PNG (frame {k} of {t})")
+            raise DatasetError(f"{path}: missing or not a readable PNG ({why}; frame {k} of "
+                               f"{t})")
         if img.shape != (h, w, 3):
             raise DatasetError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
                                f"expected {w}x{h}")
@@ -187,12 +190,9 @@ def load_dataset(folder: str | os.PathLike) -> Sequence:
     if not folder.is_dir():
         raise DatasetError(f"{folder}: not a dataset folder (does not exist or is a file)")
     scene_path = folder / "scene.json"
-    try:
-        doc = json.loads(scene_path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{scene_path}: missing scene file") from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{scene_path}: not valid JSON: {e.msg} (line {e.lineno})") from None
+    from jaxmocap.io.preflight import read_json
+
+    doc = read_json(scene_path, "the scene.json of a `jaxmocap synth` dataset", DatasetError)
     if not isinstance(doc, dict) or doc.get("version") != SCENE_JSON_VERSION:
         got = doc.get("version") if isinstance(doc, dict) else doc
         raise DatasetError(f"{scene_path}: field 'version': expected {SCENE_JSON_VERSION}, "

@@ -17,7 +17,6 @@ pybullet's posing (``resetBasePositionAndOrientation`` + ``resetJointStatesMulti
 
 from __future__ import annotations
 
-import json
 import os
 import xml.etree.ElementTree as ET
 from functools import cache
@@ -115,10 +114,9 @@ def load_deepmimic(name_or_path: str | os.PathLike, dtype=np.float32) -> Clip:
     ``"Frames"`` list of 44-number rows with positive durations between frames.
     """
     path = clip_path(name_or_path)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    from jaxmocap.io.preflight import read_json
+
+    data = read_json(path, "a DeepMimic motion clip (a JSON object with 'Frames')")
     frames = data.get("Frames") if isinstance(data, dict) else None
     if not isinstance(frames, list) or len(frames) < 2:
         raise ValueError(f"{path}: expected a 'Frames' list of at least 2 frames")
