@@ -2,7 +2,7 @@
 
 Other proportions than the bundled body (-15 %..+15 % per segment), links named ``left_*`` /
 ``right_*`` / ``hips`` / ``torso``, limbs made of boxes and cylinders, the torso one box, a
-separate neck link (head fixed on it), legs in trousers and shoes. Shared by test_roles.py and
+separate neck link (head fixed on it), legs in trousers and shoes. Shared by test_body_roles.py and
 the retargeting / tracker tests.
 """
 

@@ -16,7 +16,7 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_cli_common import run_cli
+from test_cli import run_cli
 
 from jaxmocap.body import default_body
 from jaxmocap.camera import look_at, save_cameras

@@ -188,8 +188,8 @@ def capture(tmp_path):
 
 
 def test_track_refused_while_another_run_holds_out(capture, capsys, monkeypatch):
+    from test_cli import run_cli
     from test_cli_badinput import _Fixed
-    from test_cli_common import run_cli
 
     from jaxmocap.commands import track as track_cmd
 
@@ -264,8 +264,8 @@ def test_over_long_names_refused_before_any_work(tmp_path):
 def test_track_disk_full_and_long_out_one_line_nothing_left(capture, capsys, monkeypatch):
     import errno
 
+    from test_cli import run_cli
     from test_cli_badinput import _Fixed
-    from test_cli_common import run_cli
 
     from jaxmocap.commands import track as track_cmd
 

@@ -1,7 +1,7 @@
 """Exports: NPZ/CSV round trip (columns named with units), TRC read by a strict reader that
 follows OpenSim's column rule (NaN for untracked markers, Y-up mapping checked on known
 vectors), C3D read by the independent `c3d` package (written with ezc3d), BVH loaded by the
-independent PyPI `bvh` parser and bvhio, keypoints vs FK. Blender / OpenSim: test_interop.py."""
+independent PyPI `bvh` parser and bvhio, keypoints vs FK. Blender / OpenSim: test_io_interop.py."""
 
 import csv
 import warnings

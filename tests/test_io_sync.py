@@ -9,8 +9,8 @@ from fractions import Fraction
 import av
 import numpy as np
 import pytest
+from test_cli import run_cli
 from test_cli_badinput import _Fixed
-from test_cli_common import run_cli
 
 from jaxmocap.camera import look_at, save_cameras
 from jaxmocap.commands import track as track_cmd

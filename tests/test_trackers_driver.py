@@ -1,8 +1,8 @@
 """The one tracker driver (jaxmocap.trackers.driver): the frame loop's bookkeeping (unreadable
 instants, stopping, outputs, timing), interrupts as the caller reads them, and the shirt
 tracker's diagnostics (one builder, one column list). The trackers through it:
-tests/test_stereo_pf.py (stereo_offline == stereo_pf.track), tests/test_cli_track.py
-(track_frames), tests/test_experiment.py (cells), the demo (CI)."""
+tests/test_trackers_stereo_pf.py (stereo_offline == stereo_pf.track), tests/test_commands_track.py
+(track_frames), tests/test_experiment_runner.py (cells), the demo (CI)."""
 
 from types import SimpleNamespace
 

@@ -172,7 +172,7 @@ def rest_pose(model: BodyModel, dtype=None) -> Float[Array, " n_dof"]:
 def default_body() -> BodyModel:
     """The bundled generic adult upper body (``data/upper_body.urdf``), loaded once, with its
     roles inferred from its names and the keypoints :data:`DEFAULT_KEYPOINTS` (which are what
-    the roles' keypoint rules give; tests/test_roles.py checks it)."""
+    the roles' keypoint rules give; tests/test_body_roles.py checks it)."""
     from .roles import infer_roles
     from .urdf import load_urdf
 

@@ -6,7 +6,7 @@ import json
 import cv2
 import numpy as np
 import pytest
-from test_cli_common import assert_refused, run_cli
+from test_cli import assert_refused, run_cli
 
 from jaxmocap.color.model import MIN_VARIANCE
 from jaxmocap.commands.colors import load_white_balance

@@ -1,6 +1,6 @@
 """BVH I/O: our poses written for any body and read back by independent readers (the PyPI `bvh`
 parser, bvhio's forward kinematics: joint positions equal ours), clear errors, and driving our
-body from a foreign (T-pose, centimetre, ZXY) skeleton. Blender's importer: test_interop.py."""
+body from a foreign (T-pose, centimetre, ZXY) skeleton. Blender's importer: test_io_interop.py."""
 
 from pathlib import Path
 

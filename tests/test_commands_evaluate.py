@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from test_cli_common import assert_refused, run_cli
+from test_cli import assert_refused, run_cli
 
 from jaxmocap.body import default_body
 from jaxmocap.io.export import pose_track, write_csv, write_npz

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from bvh import Bvh
-from test_cli_common import assert_refused, run_cli
+from test_cli import assert_refused, run_cli
 
 from jaxmocap.body import default_body, keypoints
 from jaxmocap.camera import look_at, save_cameras
@@ -187,8 +187,8 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
     """The real particle filter through the command on two rendered frames of the body
     (tiny images, 20 particles: this checks the wiring, not the accuracy). The 64x48 views hold
     no triangulable head, so the online filter waits (as the offline one does): the frames are
-    written invalid (NaN) and say why; tests/test_stereo_pf.py steps the frame tracker through
-    its initialisation on a drawn scene."""
+    written invalid (NaN) and say why; tests/test_trackers_stereo_pf.py steps the frame tracker
+    through its initialisation on a drawn scene."""
     from jaxmocap.garment import default_garment
     from jaxmocap.render import render_rgb
 

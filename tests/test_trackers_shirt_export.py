@@ -16,7 +16,7 @@ import textwrap
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_shirt import setup  # noqa: F401  (the shirt tests' two-camera scene, a fixture)
+from test_trackers_shirt import setup  # noqa: F401  (the shirt tests' two-camera scene, a fixture)
 
 from jaxmocap.trackers.shirt import export as shirt_export
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_cli_common import assert_refused, run_cli
+from test_cli import assert_refused, run_cli
 
 from jaxmocap.calibration import board_points, render_checkerboard
 from jaxmocap.camera import Camera, load_cameras, project
