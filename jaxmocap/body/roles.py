@@ -169,6 +169,11 @@ def classify_link(name: str) -> tuple[str | None, str | None, int]:
         for part, syn in PART_WORDS.items():
             if candidate in syn:
                 return side, part, syn.index(candidate)
+    if side is None and len(words) == 1 and words[0][:1] in ("l", "r"):
+        # a side letter glued to a part word (the CMU skeleton's lhumerus, rradius, lhand)
+        for part in LIMB_PARTS:
+            if words[0][1:] in PART_WORDS[part]:
+                return words[0][0], part, PART_WORDS[part].index(words[0][1:])
     return side, None, 0
 
 
@@ -205,7 +210,36 @@ def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
             out["pelvis"] = chain.link_names[0]
     if "head" not in out and "head" not in ties and "neck" in out:
         out["head"] = out.pop("neck")  # a "neck" link that carries the head (DeepMimic)
+    if geometry is not None:
+        _roles_from_geom_names(chain, geometry, out, ties)
+    if "pelvis" in out and "chest" in out:  # the pelvis role is the trunk above the chest
+        chest = chain.link_names.index(out["chest"])
+        if chain.link_names.index(out["pelvis"]) not in path_to_root(chain.topology, chest):
+            out["pelvis"] = chain.link_names[0]  # gym/dm_control: the root is the torso
     return out, ties
+
+
+def _roles_from_geom_names(chain: KinematicChain, geometry: Geometry, out: dict,
+                           ties: dict) -> None:
+    """Roles no link is named for, from the names of the geoms (gymnasium's humanoid: a
+    ``head`` sphere on the torso link, ``left_hand`` spheres on the lower arms): the link
+    carrying the geom(s) that name the role plays it. Updates ``out``/``ties`` in place."""
+    glink = np.asarray(geometry.link).tolist()
+    found: dict[str, set[int]] = {}
+    for g, name in enumerate(geometry.names):
+        side, part, _ = classify_link(name)
+        if part is None or (part in LIMB_PARTS) != (side is not None):
+            continue
+        role = f"{side}_{part}" if side else part
+        if role in out or role in ties or role in OPTIONAL_LINK_ROLES:
+            continue
+        found.setdefault(role, set()).add(glink[g])
+    for role, links in found.items():
+        names = sorted(chain.link_names[li] for li in links)
+        if len(names) == 1:
+            out[role] = names[0]
+        else:
+            ties[role] = names
 
 
 def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
@@ -290,6 +324,57 @@ def _subtree(chain: KinematicChain, link: int) -> set[int]:
         if p in out:
             out.add(i)
     return out
+
+
+# Which role keeps the unnamed geoms of a link that plays several roles (gymnasium's torso link
+# is the chest and carries the head geom; its lower arm is the forearm and carries the hand).
+_CONTAINER_ORDER = ("chest", "pelvis", "neck", "head") + tuple(
+    f"{s}_{p}" for p in LIMB_PARTS for s in SIDES)
+
+
+def owner_link(chain: KinematicChain, link: int, role_links: set[int]) -> int | None:
+    """The role link that ``link``'s geometry belongs to: ``link`` itself if it plays a role,
+    else its parent as long as they are joined by a fixed joint (URDF visuals on fixed child
+    links belong to the parent for every role lookup); None when a moving joint comes first."""
+    topo = chain.topology
+    while link not in role_links:
+        if topo[link][1] != FIXED or topo[link][0] < 0:
+            return None
+        link = topo[link][0]
+    return link
+
+
+def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str]
+               ) -> dict[str, list[int]]:
+    """``{link role: [geom indices]}``: each geom belongs to the role of its owner link
+    (:func:`owner_link`); on a link that plays several roles, a geom named for one of them
+    (``head``, ``right_hand``) belongs to it and the others to the most proximal role
+    (:data:`_CONTAINER_ORDER`)."""
+    names = chain.link_names
+    by_link: dict[int, list[str]] = {}
+    for role in _CONTAINER_ORDER:
+        if role in links:
+            by_link.setdefault(names.index(links[role]), []).append(role)
+    out: dict[str, list[int]] = {r: [] for r in links}
+    for g, li in enumerate(np.asarray(geometry.link).tolist()):
+        owner = owner_link(chain, li, set(by_link))
+        if owner is None:
+            continue
+        roles_here = by_link[owner]
+        side, part, _ = classify_link(geometry.names[g])
+        named = f"{side}_{part}" if side else part
+        out[named if named in roles_here else roles_here[0]].append(g)
+    return out
+
+
+def geom_pose_in(chain: KinematicChain, geometry: Geometry, g: int, link: int,
+                 rest: np.ndarray | None = None) -> np.ndarray:
+    """Geom ``g``'s pose (4x4, float64) in the frame of ``link`` (its own link or an ancestor
+    joined to it by fixed joints: the offset is constant)."""
+    rest = rest_transforms(chain) if rest is None else rest
+    own = int(np.asarray(geometry.link)[g])
+    pose = np.asarray(geometry.pose, np.float64)[g]
+    return pose if own == link else np.linalg.solve(rest[link], rest[own]) @ pose
 
 
 def is_crosswise(geometry: Geometry, g: int) -> bool:
@@ -392,54 +477,94 @@ def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
 
 
 def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str],
-               where: str) -> dict[str, tuple[str, tuple[float, float, float]]]:
+               where: str, skip: Sequence[str] = ()
+               ) -> dict[str, tuple[str, tuple[float, float, float]]]:
+    """The keypoint rules of the module docstring for every keypoint not in ``skip`` (those
+    the roles file gives: a keypoint given there is never derived, so a head link without
+    geometry is no error when the file places the head)."""
+    from .model import KEYPOINT_NAMES
+
     rest = rest_transforms(chain)
     idx = {r: chain.link_names.index(n) for r, n in links.items()}
     neck = links.get("neck", links["head"])
+    owned = geom_roles(chain, geometry, links)
+    kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
 
     def centre(role):
-        return tuple(float(v) for v in joint_centre(chain, idx[role], rest))
+        return joint_centre(chain, idx[role], rest)
 
-    def largest_geom(role):
-        gs = _geoms_of(geometry, idx[role])
+    def largest(role):
+        gs = owned.get(role, [])
         if not gs:
             raise InputError(
                 f"{where}: the {role} link {links[role]!r} has no geometry to place the "
                 f"{role!r} keypoint; give it in the roles file (\"keypoints\")"
             )
-        kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
         g = max(gs, key=lambda g: geom_volume(int(kind[g]), size[g]))
-        return tuple(float(v) for v in np.asarray(geometry.pose, np.float64)[g, :3, 3])
+        return g, geom_pose_in(chain, geometry, g, idx[role], rest)
 
-    c = idx["chest"]
-    start = joint_centre(chain, c, rest)
-    shoulders = []
-    for s in SIDES:
-        u = idx[f"{s}_upper_arm"]
-        p = rest[u] @ np.append(joint_centre(chain, u, rest), 1.0)
-        shoulders.append(np.linalg.solve(rest[c], p)[:3])
-    mid = 0.5 * (shoulders[0] + shoulders[1])
-    chest = start + CHEST_KEYPOINT_FRACTION * (mid - start)
-    kp = {
-        "pelvis": (links["pelvis"], (0.0, 0.0, 0.0)),
-        "chest": (links["chest"], tuple(float(v) for v in chest)),
-        "neck": (neck, tuple(float(v) for v in joint_centre(
-            chain, chain.link_names.index(neck), rest))),
-        "head": (links["head"], largest_geom("head")),
+    def in_frame(role_from, p, role_to):
+        q = rest[idx[role_from]] @ np.append(p, 1.0)
+        return np.linalg.solve(rest[idx[role_to]], q)[:3]
+
+    def chest():
+        c = idx["chest"]
+        start = joint_centre(chain, c, rest)
+        mid = 0.5 * sum(in_frame(f"{s}_upper_arm", centre(f"{s}_upper_arm"), "chest")
+                        for s in SIDES)
+        return start + CHEST_KEYPOINT_FRACTION * (mid - start)
+
+    def wrist(s):
+        # the hand link's joint centre; where that is the elbow (a hand geom on the forearm
+        # link, or a wrist link fixed at the elbow's anchor) the hand geom's end nearest the
+        # elbow instead
+        hand, fore = f"{s}_hand", f"{s}_forearm"
+        p = centre(hand)
+        if np.linalg.norm(in_frame(hand, p, fore) - centre(fore)) > 1e-3:
+            return p
+        g, pose = largest(hand)
+        c = pose[:3, 3]
+        u = c - in_frame(fore, centre(fore), hand)
+        if np.linalg.norm(u) < 1e-6:
+            return p
+        u = u / np.linalg.norm(u)
+        return c - geom_support(int(kind[g]), size[g], pose[:3, :3], u) * u
+
+    def neck_point():
+        # the neck (else head) link's joint centre; where the head has no joint of its own
+        # (a head geom on the torso link, a head body fixed on it and centred on its origin)
+        # the head geom's end nearest the chest's joint
+        p = joint_centre(chain, chain.link_names.index(neck), rest)
+        if neck != links["head"] or not owned.get("head"):
+            return p
+        g, pose = largest("head")
+        c = pose[:3, 3]
+        own = links["head"] == links["chest"] or np.linalg.norm(p - c) < 1e-3
+        u = c - in_frame("chest", joint_centre(chain, idx["chest"], rest), "head")
+        if not own or np.linalg.norm(u) < 1e-6:
+            return p
+        u = u / np.linalg.norm(u)
+        return c - geom_support(int(kind[g]), size[g], pose[:3, :3], u) * u
+
+    rules = {
+        "pelvis": lambda: (links["pelvis"], np.zeros(3)),
+        "chest": lambda: (links["chest"], chest()),
+        "neck": lambda: (neck, neck_point()),
+        "head": lambda: (links["head"], largest("head")[1][:3, 3]),
     }
     for s in SIDES:
-        kp[f"{s}_shoulder"] = (links[f"{s}_upper_arm"], centre(f"{s}_upper_arm"))
-    for s in SIDES:
-        kp[f"{s}_elbow"] = (links[f"{s}_forearm"], centre(f"{s}_forearm"))
-    for s in SIDES:
-        kp[f"{s}_wrist"] = (links[f"{s}_hand"], centre(f"{s}_hand"))
-    for s in SIDES:
-        kp[f"{s}_hand"] = (links[f"{s}_hand"], largest_geom(f"{s}_hand"))
-    from .model import KEYPOINT_NAMES
-
-    # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
-    return {k: (kp[k][0], tuple(round(float(v), 6) + 0.0 for v in kp[k][1]))
-            for k in KEYPOINT_NAMES}
+        rules[f"{s}_shoulder"] = lambda s=s: (links[f"{s}_upper_arm"], centre(f"{s}_upper_arm"))
+        rules[f"{s}_elbow"] = lambda s=s: (links[f"{s}_forearm"], centre(f"{s}_forearm"))
+        rules[f"{s}_wrist"] = lambda s=s: (links[f"{s}_hand"], wrist(s))
+        rules[f"{s}_hand"] = lambda s=s: (links[f"{s}_hand"], largest(f"{s}_hand")[1][:3, 3])
+    out = {}
+    for k in KEYPOINT_NAMES:
+        if k in skip:
+            continue
+        link, off = rules[k]()
+        # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
+        out[k] = (link, tuple(round(float(v), 6) + 0.0 for v in off))
+    return out
 
 
 def derive_roles(
@@ -476,16 +601,27 @@ def derive_roles(
             raise InputError(f"{where}: {what} names unknown geoms {unknown}; geoms: {gnames}")
         return tuple(geoms)
 
-    if skin_geoms is None:
-        skin_links = _subtree(chain, idx.get("neck", idx["head"])) | _subtree(
-            chain, idx["l_hand"]) | _subtree(chain, idx["r_hand"])
-        skin = tuple(gnames[g] for g, li in enumerate(np.asarray(geometry.link).tolist())
-                     if li in skin_links)
+    owned = geom_roles(chain, geometry, links)
+    if skin_geoms is None:  # the head, neck and hands with everything below them
+        skin_roles = ("neck", "head", "l_hand", "r_hand")
+        skin_set = {g for r in skin_roles for g in owned.get(r, [])}
+        shared = {idx[r] for r in links if r not in skin_roles}
+        below = set()
+        for r in skin_roles:
+            if r in idx and idx[r] not in shared:  # a head on the torso link: not its legs
+                below |= _subtree(chain, idx[r]) - {idx[r]}
+        glink = np.asarray(geometry.link).tolist()
+        skin_set |= {g for g, li in enumerate(glink) if li in below and li not in shared
+                     and owner_link(chain, li, shared) is None}
+        skin = tuple(gnames[g] for g in sorted(skin_set))
     else:
         skin = check(skin_geoms, "skin_geoms")
     if torso_geoms is None:
-        torso = tuple(gnames[g] for g in _geoms_of(geometry, idx["chest"])
-                      if not is_crosswise(geometry, g) and gnames[g] not in skin)
+        cover = [g for g in owned["chest"] if gnames[g] not in skin]
+        # without the bars across the shoulders, unless the torso is made of such capsules
+        # (gymnasium's humanoid: its torso and waist are capsules along y)
+        upright = [g for g in cover if not is_crosswise(geometry, g)]
+        torso = tuple(gnames[g] for g in (upright or cover))
     else:
         torso = check(torso_geoms, "torso_geoms")
     limb_geoms = dict(limb_geoms or {})
@@ -494,22 +630,26 @@ def derive_roles(
         if role in limb_geoms:
             limbs.append((role, check(limb_geoms[role], f"limb_geoms[{role!r}]")))
         else:
-            limbs.append((role, tuple(gnames[g] for g in _geoms_of(geometry, idx[role])
-                                      if gnames[g] not in skin)))
+            limbs.append((role, tuple(gnames[g] for g in owned[role] if gnames[g] not in skin)))
     for a_name, b_name in mirror:
         for n in (a_name, b_name):
             if n not in chain.dof_names:
                 raise InputError(f"{where}: mirror names unknown joint {n!r}; joints: "
                                  f"{chain.dof_names[ROOT_DOFS:]}")
-    kp = _keypoints(chain, geometry, links, where) if keypoints is None or len(keypoints) < 12 \
-        else {}
-    for k, (link, off) in (keypoints or {}).items():
+    from .model import KEYPOINT_NAMES
+
+    given = dict(keypoints or {})
+    kp = {} if set(KEYPOINT_NAMES) <= set(given) else _keypoints(
+        chain, geometry, links, where, skip=tuple(given))
+    for k, (link, off) in given.items():
         if link not in names:
-            raise InputError(f"{where}: keypoint {k!r} names unknown link {link!r}")
+            raise InputError(f"{where}: keypoints: {k!r} names unknown link {link!r}; links "
+                             f"are {names}")
         off = tuple(float(v) for v in off)
         if len(off) != 3:
-            raise InputError(f"{where}: keypoint {k!r}: expected [link, [x, y, z]]")
+            raise InputError(f"{where}: keypoints: {k!r}: expected [link, [x, y, z]]")
         kp[k] = (link, off)
+    kp = {k: kp[k] for k in (*KEYPOINT_NAMES, *kp) if k in kp}  # the 12 first, in their order
     return BodyRoles(
         links=tuple((r, links[r]) for r in LINK_ROLES if r in links),
         joints=tuple(joints.items()),
