@@ -252,8 +252,14 @@ def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
     common = set(path_to_root(chain.topology, names.index(found["l_upper_arm"])))
     common &= set(path_to_root(chain.topology, names.index(found["r_upper_arm"])))
     common -= {names.index(found["l_upper_arm"]), names.index(found["r_upper_arm"])}
-    if geometry is not None:
-        common &= set(np.asarray(geometry.link).tolist())
+    if geometry is not None:  # links carrying geometry, theirs or their fixed children's
+        carry = set()
+        for li in set(np.asarray(geometry.link).tolist()):
+            carry.add(li)
+            while chain.topology[li][1] == FIXED and chain.topology[li][0] >= 0:
+                li = chain.topology[li][0]
+                carry.add(li)
+        common &= carry
     ok = [names.index(c) for c in candidates if names.index(c) in common]
     return names[max(ok)] if ok else None  # topological order: the largest index is deepest
 
