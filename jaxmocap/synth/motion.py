@@ -105,8 +105,7 @@ def _shared_link_order(model: BodyModel, mapping: dict[str, str]) -> dict[str, s
 
 
 @partial(jax.jit, static_argnums=(0, 5))
-def _deepmimic_q(groups, root_origin, lower, upper, arrays,
-                 mapping=tuple(DEEPMIMIC_TO_BODY.items())):
+def _deepmimic_q(groups, root_origin, lower, upper, arrays, mapping):
     clip = Clip(*arrays, name="", loop="none")
     src = deepmimic_source(clip, dict(mapping))
     return _retarget_frames(groups, root_origin, lower, upper, src.root_pos, src.delta,
