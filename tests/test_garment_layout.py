@@ -131,3 +131,38 @@ def test_the_papers_layout_and_the_bodys_own_colours_stay(models):
     assert len(default_garment(models["bundled"]).patch_names) == 20
     for name in ("deepmimic", "cmu", "gym_humanoid"):
         assert len(garment_from_model(models[name]).patch_names) >= 5
+
+
+def test_garment_json_from_another_tool(models, tmp_path, capsys):
+    """Patches by link (taking the link's fixed child visuals) and by geom, American
+    spellings, and extra fields ignored with one note on stderr naming them."""
+    from jaxmocap.garment import load_garment
+
+    model = models["deepmimic"]
+    spec = {
+        "generator": "some-tool 2.1", "units": "m",
+        "colors": [{"name": "red", "rgb": [0.9, 0.1, 0.1]}, "blue"],
+        "patches": [
+            {"name": "chest", "link": "chest", "color": "red", "uv_seam": 3},
+            {"name": "l_sleeve", "geom": "left_shoulder_0", "halfspaces": [[0, 0, 1, 0]],
+             "color": "blue"},
+        ],
+    }  # fmt: skip
+    path = tmp_path / "garment.json"
+    path.write_text(__import__("json").dumps(spec))
+    g = load_garment(path, model)
+    assert g.colour_names == ("red", "blue") and g.patch_names == ("chest", "l_sleeve")
+    err = capsys.readouterr().err
+    assert str(path) in err and "generator" in err and "patches[0].uv_seam" in err
+    assert err.count("\n") == 1
+    # a link's fixed child links carry its patch, but not a fixed child playing a role (the
+    # DeepMimic wrists hang fixed on the elbows)
+    spec2 = {"colours": ["red"], "patches": [{"name": "fore", "link": "left_elbow",
+                                              "colour": "red"}]}
+    path.write_text(__import__("json").dumps(spec2))
+    g2 = load_garment(path, model)
+    assert g2.patch_names == ("fore",)
+    spec3 = {**spec2, "colors": ["red"]}
+    path.write_text(__import__("json").dumps(spec3))
+    with pytest.raises(InputError, match="both 'colors' and 'colours' given"):
+        load_garment(path, model)
