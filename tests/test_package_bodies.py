@@ -388,3 +388,20 @@ def test_deepmimic_clip_retargeted_by_role_follows_the_source_bones(bodies, name
             assert fore[ok].max() < 0.5, (s, fore[ok].max())
         if name == "deepmimic":
             assert angle(at[f"{s}_wrist"] - at[f"{s}_elbow"], want).max() < 0.5
+
+
+def test_cli_body_arguments_load_every_package_body(bodies):
+    """``--body FILE`` (with ``--body-scale``/``--body-up`` for the DeepMimic URDF) gives
+    the same body as ``load_body``, for every package body, through the CLI's parser."""
+    import argparse
+
+    from jaxmocap.commands._body import add_body_args, body_from_args
+
+    parser = argparse.ArgumentParser()
+    add_body_args(parser)
+    for name, (path, model) in bodies.items():
+        extra = ["--body-scale", "0.25", "--body-up", "y"] if name == "deepmimic" else []
+        args = parser.parse_args(["--body", str(path), *extra])
+        assert body.body_digest(body_from_args(args)) == body.body_digest(model), name
+    with pytest.raises(InputError, match="give --body"):
+        body_from_args(parser.parse_args(["--body-up", "y"]))
