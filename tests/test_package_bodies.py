@@ -405,3 +405,42 @@ def test_cli_body_arguments_load_every_package_body(bodies):
         assert body.body_digest(body_from_args(args)) == body.body_digest(model), name
     with pytest.raises(InputError, match="give --body"):
         body_from_args(parser.parse_args(["--body-up", "y"]))
+
+
+SKIN_HANDS_MJCF = """<mujoco><asset>
+  <material name="cloth" rgba=".2 .3 .8 1"/><material name="Skin_Light" rgba=".9 .7 .6 1"/>
+</asset><worldbody><body name="pelvis" pos="0 0 1"><freejoint/>
+  <geom type="box" size=".1 .15 .08" material="cloth"/>
+  <body name="torso" pos="0 0 .1"><joint name="waist" axis="0 1 0"/>
+    <geom type="box" size=".1 .17 .25" pos="0 0 .25" material="cloth"/>
+    <geom type="sphere" size=".1" pos="0 0 .65" material="Skin_Light"/>
+    ARMS
+  </body></body></worldbody></mujoco>"""
+SKIN_ARM = """<body name="S_upper_arm" pos="0 Y .45"><joint name="S_sh1" axis="1 0 0"/>
+      <joint name="S_sh2" axis="0 1 0"/><joint name="S_sh3" axis="0 0 1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -.26" size=".045" material="cloth"/>
+      <body name="S_lower_arm" pos="0 0 -.28"><joint name="S_elbow" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -.2" size=".04" material="cloth"/>
+        <geom type="capsule" fromto="0 0 -.24 0 0 -.32" size=".035" material="Skin_Light"/>
+      </body></body>"""
+
+
+def test_skin_material_finds_the_hands_and_the_skin(tmp_path):
+    """An MJCF without hand bodies and with unnamed geoms (issue 39: "no hand bodies, skin
+    forearms"): the hands are the skin-material geoms on the lower arms and the skin is every
+    skin-material geom; only the head link is given (its sphere is unnamed: truly ambiguous)."""
+    arms = "".join(SKIN_ARM.replace("S_", f"{s}_").replace("Y", y)
+                   for s, y in (("left", ".2"), ("right", "-.2")))
+    path = tmp_path / "skin_hands.xml"
+    path.write_text(SKIN_HANDS_MJCF.replace("ARMS", arms))
+    roles = rl.infer_roles(*(lambda m: (m.chain, m.geometry))(body.load_mjcf(path)), path,
+                           {"links": {"head": "torso"}})
+    assert dict(roles.links)["l_hand"] == "left_lower_arm"
+    g = body.load_mjcf(path).geometry
+    skin = {g.names[i] for i in range(g.n_geoms) if g.materials[i] == "Skin_Light"}
+    assert set(roles.skin_geoms) == skin and len(skin) == 3
+    (fore,) = roles.limb("l_forearm")  # the sleeve, not the hand
+    assert g.materials[g.names.index(fore)] == "cloth"
+    table = roles.keypoint_table()
+    np.testing.assert_allclose(table["l_hand"][1], [0, 0, -0.28], atol=1e-6)
+    np.testing.assert_allclose(table["l_wrist"][1], [0, 0, -0.205], atol=1e-6)

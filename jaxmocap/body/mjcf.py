@@ -204,8 +204,9 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
         rgba = np.array(m.geom_rgba[g], float)
         if m.geom_matid[g] >= 0 and np.allclose(rgba, _MJ_DEFAULT_RGBA):
             rgba = np.array(m.mat_rgba[m.geom_matid[g]], float)
+        material = m.material(int(m.geom_matid[g])).name if m.geom_matid[g] >= 0 else ""
         rows.append(dict(name=name, link=list(link_names).index(link), kind=kind,
-                         pose=pose, size=size, rgba=rgba))  # fmt: skip
+                         pose=pose, size=size, rgba=rgba, material=material))  # fmt: skip
     return rows
 
 

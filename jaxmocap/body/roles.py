@@ -240,6 +240,17 @@ def _roles_from_geom_names(chain: KinematicChain, geometry: Geometry, out: dict,
             out[role] = names[0]
         else:
             ties[role] = names
+    # hands nothing names: the skin-material geoms below a forearm (a skin-coloured hand
+    # capsule on the forearm link of an MJCF without hand bodies)
+    for s in SIDES:
+        role, fore = f"{s}_hand", out.get(f"{s}_forearm")
+        if role in out or role in ties or fore is None:
+            continue
+        below = _subtree(chain, chain.link_names.index(fore))
+        links = {glink[g] for g in range(len(geometry.names))
+                 if glink[g] in below and is_skin_material(geometry, g)}
+        if len(links) == 1:
+            out[role] = chain.link_names[links.pop()]
 
 
 def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
@@ -350,6 +361,12 @@ def owner_link(chain: KinematicChain, link: int, role_links: set[int]) -> int | 
     return link
 
 
+def is_skin_material(geometry: Geometry, g: int) -> bool:
+    """Whether geom ``g``'s material is named for skin (``skin``, ``Skin_Light``, ...)."""
+    mats = getattr(geometry, "materials", ())
+    return bool(mats) and "skin" in name_words(mats[g] or "")
+
+
 def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str]
                ) -> dict[str, list[int]]:
     """``{link role: [geom indices]}``: each geom belongs to the role of its owner link
@@ -369,6 +386,9 @@ def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, st
         roles_here = by_link[owner]
         side, part, _ = classify_link(geometry.names[g])
         named = f"{side}_{part}" if side else part
+        if named not in roles_here and is_skin_material(geometry, g):
+            skin = [r for r in roles_here if r in ("head", "neck", "l_hand", "r_hand")]
+            named = skin[0] if len(skin) == 1 else named
         out[named if named in roles_here else roles_here[0]].append(g)
     return out
 
@@ -611,6 +631,7 @@ def derive_roles(
     if skin_geoms is None:  # the head, neck and hands with everything below them
         skin_roles = ("neck", "head", "l_hand", "r_hand")
         skin_set = {g for r in skin_roles for g in owned.get(r, [])}
+        skin_set |= {g for g in range(geometry.n_geoms) if is_skin_material(geometry, g)}
         shared = {idx[r] for r in links if r not in skin_roles}
         below = set()
         for r in skin_roles:
