@@ -12,16 +12,26 @@ roles and the roles file to write.
 Name inference splits link names into words (``_ - . :`` and camelCase: ``mixamorig:LeftArm``
 -> ``left arm``), takes the side from a leading/trailing ``l``/``left``/``r``/``right`` word and
 matches the rest against :data:`PART_WORDS` (first synonym wins: ``LeftArm`` is the upper arm
-even when ``LeftShoulder`` exists). ``chest`` not named -> the deepest common ancestor of the two
-upper arms; ``pelvis`` not named -> the root link.
+even when ``LeftShoulder`` exists; a side letter glued to a part word counts too: the CMU
+skeleton's ``lhumerus``). ``chest`` not named -> the deepest common ancestor of the two upper
+arms that carries geometry; ``pelvis`` not named, or named but not above the chest -> the root
+link. A role no link is named for is played by the link carrying the geoms named for it
+(gymnasium's ``head`` sphere on the torso link, its ``left_hand`` sphere on the lower arm), and
+a hand nothing names by the link carrying the skin-material geoms below the forearm.
+
+**Geometry belongs to role links**: a geom on a link joined to a role link by fixed joints
+belongs to that role link (URDF visuals on fixed child links, :func:`owner_link`); on a link
+that plays several roles, a geom named for one of them (or of skin material, for the skin
+role there) belongs to it and the others to the most proximal role (:func:`geom_roles`).
 
 **Joint roles** (:data:`JOINT_ROLES`) are the DOFs on the chain path between two role links:
 ``spine`` (pelvis -> chest), ``neck`` (chest -> head), ``l_shoulder`` (chest -> upper arm),
 ``l_elbow`` (upper arm -> forearm), ``l_wrist`` (forearm -> hand), and the same on the right.
 
-**Geometry roles**: the contour shapes of the limbs (the geoms of each arm link) and of the
-torso (the chest link's geoms, without capsules/cylinders lying across the body -- a shoulder
-bar); the skin geoms (every geom on the neck/head link and the hands and below them).
+**Geometry roles**: the contour shapes of the limbs (the geoms of each arm role) and of the
+torso (the chest role's geoms, without capsules/cylinders lying across the body -- a shoulder
+bar -- unless the torso is made of such capsules); the skin geoms (the geoms of the neck, head
+and hand roles, the links below them, and every geom of a material named ``skin``).
 
 **Mirror pairs**: every joint DOF with its left/right partner and the sign of the reflection
 ``y -> -y`` (``M Rot(a, t) M = Rot(M a, -t)``: sign -1 when the partner's rest axis is ``+M a``,
@@ -35,8 +45,11 @@ Pairs in the roles file override both.
 centres of the neck (else head), upper-arm, forearm and hand links (the origin of the last
 moving joint frame of the link); ``chest`` 3/4 of the way from the chest link's joint centre
 to the midpoint of the two shoulder centres; ``head`` and the hands the centre of the largest
-geom of the head / hand link (offsets rounded to 1 um). The roles file may override any
-keypoint.
+geom of the head / hand role (offsets rounded to 1 um); where the wrist's joint centre is
+the elbow's (a hand geom on the forearm link, a wrist link fixed at the elbow) the wrist is the
+hand geom's end nearest the elbow, and where the head has no joint of its own the neck is the
+head geom's end nearest the chest. The roles file may override any keypoint; the keypoints it
+does not give are placed by these rules.
 """
 
 from __future__ import annotations
