@@ -444,3 +444,30 @@ def test_skin_material_finds_the_hands_and_the_skin(tmp_path):
     table = roles.keypoint_table()
     np.testing.assert_allclose(table["l_hand"][1], [0, 0, -0.28], atol=1e-6)
     np.testing.assert_allclose(table["l_wrist"][1], [0, 0, -0.205], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", list(BODIES))
+def test_every_body_faces_forward_and_mirrors(bodies, name, rng):
+    """At q = 0 every body faces +x with its left along +y (dm_control's CMU humanoid, which
+    faces -y as it ships, is turned by its root offset), and its joints pair left with right
+    (the CMU skeleton is measured, not exactly symmetric): the mirror of a pose puts the
+    keypoints at the mirror images of the pose's (up to the skeleton's asymmetry)."""
+    from jaxmocap.posedb import mirror_pose, mirror_table
+
+    _, model = bodies[name]
+    kp = dict(zip(model.keypoint_names, np.asarray(body.keypoints(model, body.rest_pose(model))),
+                  strict=False))
+    left = kp["l_shoulder"] - kp["r_shoulder"]
+    assert left[1] > 0.2 and abs(left[0]) < 0.02, left
+    assert kp["head"][2] > kp["chest"][2] + 0.1  # upright
+    table = mirror_table(model)
+    lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+    q = np.zeros(model.n_dof)
+    arm = body.dof_index(model, [d for j in ("l_shoulder", "l_elbow") for d in
+                                 model.roles.dofs(j)])
+    q[arm] = rng.uniform(np.maximum(lo[arm], -0.5), np.minimum(hi[arm], 0.5))
+    m = np.asarray(mirror_pose(table, jnp.asarray(q)))
+    a = np.asarray(body.keypoints(model, jnp.asarray(q)))
+    b = np.asarray(body.keypoints(model, jnp.asarray(m)))
+    i, j = model.keypoint_names.index("l_hand"), model.keypoint_names.index("r_hand")
+    np.testing.assert_allclose(b[j], a[i] * [1, -1, 1], atol=0.03)

@@ -62,6 +62,8 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
@@ -98,6 +100,8 @@ PART_WORDS = {
 }  # fmt: skip
 CHEST_KEYPOINT_FRACTION = 0.75  # chest keypoint: 3/4 of the way up to the shoulder line
 CROSSWISE_COS = math.cos(math.radians(45.0))  # a capsule this close to the body's y axis
+MIRROR_LOOSE = 0.01  # second pass of the mirror pairs: centres within 1% of the body's size
+MIRROR_COS = math.cos(math.radians(5.0))  # ... and axes within 5 degrees of mirror images
 
 
 @dataclasses.dataclass(frozen=True)
@@ -492,25 +496,27 @@ def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
                 if i not in partner and j not in partner:
                     partner[i], partner[j] = j, i
     scale = max(1e-3, float(np.abs(rest[:, :3, 3]).max()))
-    tol = 1e-6 * scale
-    for i in range(ROOT_DOFS, len(names)):
-        if i in partner:
-            continue
-        if abs(centre[i][1]) < tol and abs(abs((m * axis[i]) @ axis[i]) - 1.0) < 1e-6:
-            partner[i] = i
-            continue
-        cands = [j for j in range(ROOT_DOFS, len(names)) if j not in partner and j != i
-                 and np.allclose(m * centre[i], centre[j], atol=tol)
-                 and abs(abs((m * axis[i]) @ axis[j]) - 1.0) < 1e-6]
-        if len(cands) == 1:
-            partner[i], partner[cands[0]] = cands[0], i
+    # exact mirror images first; then, for what is left, a measured skeleton's (dm_control's
+    # CMU humanoid: centres within 1% of the body's size, axes within 5 degrees)
+    for tol, axis_tol in ((1e-6 * scale, 1e-6), (MIRROR_LOOSE * scale, 1 - MIRROR_COS)):
+        for i in range(ROOT_DOFS, len(names)):
+            if i in partner:
+                continue
+            if abs(centre[i][1]) < tol and abs(abs((m * axis[i]) @ axis[i]) - 1.0) < axis_tol:
+                partner[i] = i
+                continue
+            cands = [j for j in range(ROOT_DOFS, len(names)) if j not in partner and j != i
+                     and np.allclose(m * centre[i], centre[j], atol=tol)
+                     and abs(abs((m * axis[i]) @ axis[j]) - 1.0) < axis_tol]
+            if len(cands) == 1:
+                partner[i], partner[cands[0]] = cands[0], i
     out = []
     for i in range(ROOT_DOFS, len(names)):
         if i not in partner:
             continue
         j = partner[i]
         c = (m * axis[i]) @ axis[j]
-        sign = -1.0 if c > 1 - 1e-6 else 1.0 if c < -1 + 1e-6 else 0.0
+        sign = -1.0 if c > MIRROR_COS else 1.0 if c < -MIRROR_COS else 0.0
         out.append((names[i], names[j], sign))
     return tuple(out)
 
@@ -846,9 +852,37 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
         if named:
             overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
         roles = infer_roles(model.chain, model.geometry, path, overrides)
+        turned = face_forward(model.chain, roles)
+        if turned is not model.chain:  # roles again: the mirror pairs are found at rest
+            model = eqx.tree_at(lambda m: m.chain, model, turned)
+            roles = infer_roles(model.chain, model.geometry, path, overrides)
     table = roles.keypoint_table()
     table.update({k: v for k, v in sites.items() if k not in table})
     return make_body_model(model.chain, model.geometry, table, roles=roles)
+
+
+def face_forward(chain: KinematicChain, roles: BodyRoles) -> KinematicChain:
+    """``chain`` turned about the vertical so that at q = 0 the body faces +x with its left
+    (right -> left shoulder) along +y, as every stage assumes (dm_control's CMU humanoid faces
+    -y): the turn goes into the root link's fixed offset. The same chain when it already
+    does (within 1e-6 rad)."""
+    rest = rest_transforms(chain)
+    table = roles.keypoint_table()
+
+    def world(k):
+        link, off = table[k]
+        return rest[chain.link_names.index(link)] @ np.append(np.asarray(off, float), 1.0)
+
+    left = (world("l_shoulder") - world("r_shoulder"))[:3]
+    angle = math.atan2(left[1], left[0]) - math.pi / 2  # the turn that took +y to `left`
+    if math.hypot(left[0], left[1]) < 1e-9 or abs(angle) < 1e-6:
+        return chain
+    c, s_ = math.cos(-angle), math.sin(-angle)
+    turn = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    origin = np.asarray(chain.joint_origin, np.float64).copy()
+    origin[0] = turn @ origin[0]
+    return eqx.tree_at(lambda ch: ch.joint_origin, chain,
+                       jnp.asarray(origin, chain.joint_origin.dtype))
 
 
 def body_digest(model) -> str:
