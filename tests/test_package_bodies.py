@@ -94,19 +94,6 @@ def bodies():
     return out
 
 
-def roles_table(bodies) -> str:
-    """Markdown table of the inferred roles per body (docs/results/test_world.md)."""
-    cols = ("pelvis", "chest", "neck", "head", "l_upper_arm", "l_forearm", "l_hand")
-    rows = ["| body | " + " | ".join(cols) + " | stereo DOFs | torso geoms | skin geoms |",
-            "|" + "---|" * (len(cols) + 4)]
-    for name, (_, m) in bodies.items():
-        links = dict(m.roles.links)
-        rows.append(f"| {name} | " + " | ".join(links.get(c, "-") for c in cols)
-                    + f" | {len(body.stereo_dofs(m))} | {', '.join(m.roles.torso_geoms)} | "
-                    f"{len(m.roles.skin_geoms)} |")
-    return "\n".join(rows)
-
-
 @pytest.mark.parametrize("name", list(BODIES))
 def test_roles_inferred_as_read_off_the_file(bodies, name):
     path, model = bodies[name]
