@@ -35,9 +35,14 @@ calibration tools do (:data:`FIELD_ALIASES`: ``camera_matrix``/``matrix``/``mtx`
 ``dist_coeffs``/``distortions``/``D`` for ``dist``, ``rvec``/``rotation`` (a 3-vector
 Rodrigues or a 3x3 matrix), ``tvec``/``translation``/``T`` for ``t``, ``size``/``image_size``
 ``[width, height]``), with 4, 5, 8, 12 or 14 OpenCV distortion values (the terms past ``k3``
-must be zero: the model here is OpenCV's 5-term one). A ``.toml`` file is read as the
-calibration file of Pose2Sim / anipose (``[cam_1] name, size, matrix, distortions, rotation,
-translation``).
+must be zero: the model here is OpenCV's 5-term one). A TOML file is read as the
+calibration file of Pose2Sim / anipose / FreeMoCap (``[cam_1] name, size, matrix,
+distortions, rotation, translation``; ``[metadata]`` skipped), and an OpenCV FileStorage
+YAML/XML (``cv2.FileStorage``: ``camera_matrix``, ``dist_coeffs`` / ``distortion_coefficients``,
+``R`` (3x3 or a Rodrigues 3x1), ``T``, ``image_width`` / ``image_height``; one camera at the
+top level, named after the file, or one map per camera). The kind is told by the content
+(a FileStorage header, a JSON object, a TOML table header), by the suffix where the content
+allows two; a file that is none of them is one line.
 
 Malformed files raise :class:`CameraFileError` naming the file, the camera, the field and
 what was expected. ``save_cameras`` writes atomically (temporary file + ``os.replace``).
@@ -45,6 +50,7 @@ what was expected. ``save_cameras`` writes atomically (temporary file + ``os.rep
 
 import json
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -594,7 +600,8 @@ def _parse_camera(path, i, entry, dtype) -> tuple[str, Camera]:
 # anipose calibration.toml, common JSON dumps) -> ours. "rotation" may be a 3x3 or a rvec.
 FIELD_ALIASES = {
     "K": ("camera_matrix", "cameraMatrix", "matrix", "mtx", "intrinsics", "intrinsic"),
-    "dist": ("dist_coeffs", "distCoeffs", "distortion", "distortions", "D", "dist_coef"),
+    "dist": ("dist_coeffs", "distCoeffs", "distortion", "distortions", "D", "dist_coef",
+             "distortion_coefficients"),
     "R": ("rotation_matrix", "R_mat"),
     "rvec": ("rotation_vector", "rvecs"),
     "t": ("tvec", "translation", "T", "tvecs"),
@@ -615,6 +622,11 @@ def _canonical_entry(path, i: int, entry, key_name: str | None):
         for alias in theirs:
             if alias in e and ours not in e:
                 e[ours] = e.pop(alias)
+    for ours, theirs in (("width", "image_width"), ("height", "image_height")):
+        if theirs in e and ours not in e:
+            e[ours] = e.pop(theirs)
+    if "R" in e and "rvec" not in e and np.shape(e["R"]) in ((3,), (3, 1), (1, 3)):
+        e["rvec"] = e.pop("R")  # OpenCV's extrinsics as a Rodrigues vector
     if "rotation" in e and "R" not in e and "rvec" not in e:
         rot = e.pop("rotation")
         e["R" if np.shape(rot) == (3, 3) else "rvec"] = rot
@@ -678,8 +690,85 @@ def _camera_entries(path: Path, data) -> list[dict]:
                                                                          strict=True))]
 
 
+def _filestorage_value(node):
+    """A cv2.FileNode as plain Python (matrices as nested lists, maps as dicts)."""
+    if node.isMap():
+        if "dt" in node.keys() and "data" in node.keys():
+            return np.asarray(node.mat(), float).tolist()
+        return {k: _filestorage_value(node.getNode(k)) for k in node.keys()}
+    if node.isSeq():
+        return [_filestorage_value(node.at(i)) for i in range(node.size())]
+    if node.isInt():
+        return int(node.real())
+    if node.isReal():
+        return float(node.real())
+    if node.isString():
+        return node.string()
+    return None
+
+
+def _read_filestorage(path: Path) -> dict:
+    """An OpenCV FileStorage file (YAML or XML, as ``cv2.FileStorage`` writes): one camera
+    (``camera_matrix``, ``dist_coeffs``/``distortion_coefficients``, ``R``, ``T``,
+    ``image_width``/``image_height`` at the top level, named after the file) or one map per
+    camera."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file ({e.err})") \
+            from None
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
+    root = fs.root()
+    data = {k: _filestorage_value(root.getNode(k)) for k in root.keys()}
+    fs.release()
+    k_names = ("K",) + FIELD_ALIASES["K"]
+    if any(k in data for k in k_names):
+        return {"cameras": [{"name": path.stem, **data}]}
+    return data
+
+
+def _file_kind(path: Path, head: str) -> str:
+    """``json``, ``toml`` or ``filestorage``: by the file's content where it tells (an OpenCV
+    FileStorage header, a JSON object, a TOML table header ``[cam_0]`` or ``key = value``),
+    else by the suffix; one line if neither fits."""
+    text = head.lstrip("\ufeff \t\r\n")
+    first = text.split("\n", 1)[0].strip()
+    suffix = path.suffix.lower()
+    if text.startswith("%YAML") or (text.startswith("<?xml") and "<opencv_storage>" in head):
+        return "filestorage"
+    if suffix in (".json", ".toml"):
+        return suffix[1:]
+    if text.startswith("{"):
+        return "json"
+    if re.fullmatch(r"\[[A-Za-z_][\w.-]*\]", first) or re.match(r"[A-Za-z_][\w.-]*\s*=", first):
+        return "toml"
+    if text.startswith("[") or text[:1] in ('"', "-") or text[:1].isdigit():
+        return "json"
+    if suffix in (".yml", ".yaml", ".xml"):
+        return "filestorage"
+    raise CameraFileError(
+        f"{path}: not a camera file jaxmocap reads: expected cameras.json (JSON), a "
+        "calibration TOML (anipose / Pose2Sim / FreeMoCap) or an OpenCV FileStorage YAML/XML")
+
+
+def _read_toml(path: Path) -> dict:
+    import tomllib
+
+    from jaxmocap.io.preflight import read_text
+
+    text = read_text(path, "a calibration TOML (anipose / Pose2Sim / FreeMoCap)", CameraFileError)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise CameraFileError(f"{path}: not valid TOML: {e}") from None
+
+
 def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], list[str]]:
-    """Read ``cameras.json`` (schema and accepted variants in the module docstring).
+    """Read ``cameras.json`` (schema and accepted variants in the module docstring), a
+    calibration TOML or an OpenCV FileStorage YAML/XML, told apart by content.
 
     Returns (cameras, names). Arrays get ``dtype`` (default: JAX's default float, float32
     unless x64 is on). Raises :class:`CameraFileError` naming the file, camera and field on
@@ -687,18 +776,16 @@ def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], lis
     """
     path = Path(path)
     dtype = jnp.result_type(float) if dtype is None else dtype
-    if path.suffix.lower() == ".toml":
-        import tomllib
-
-        try:
-            data = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except OSError as e:
-            raise CameraFileError(f"{path}: cannot read: {e.strerror}") from None
-        except UnicodeDecodeError:
-            raise CameraFileError(f"{path}: not a text file; expected a calibration TOML") \
-                from None
-        except tomllib.TOMLDecodeError as e:
-            raise CameraFileError(f"{path}: not valid TOML: {e}") from None
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).decode("utf-8", errors="replace")
+        kind = _file_kind(path, head)
+    except OSError:
+        kind = "json"  # read_json says why it cannot be read
+    if kind == "toml":
+        data = _read_toml(path)
+    elif kind == "filestorage":
+        data = _read_filestorage(path)
     else:
         from jaxmocap.io.preflight import read_json
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -394,16 +395,21 @@ def garment_from_model(
 
 
 def _geoms_named(model: BodyModel, names: Sequence[str], where: str) -> list[str]:
-    """Geom names for geom-or-link names (a link stands for all its geoms)."""
+    """Geom names for geom-or-link names (a link stands for all its geoms and those of the
+    links fixed to it: URDF visuals on fixed child links belong to their parent)."""
+    from .body.roles import owner_link
+
     geo, links = model.geometry, model.chain.link_names
     glink = np.asarray(geo.link).tolist()
+    roles = {links.index(n) for _, n in model.roles.links} if model.roles is not None else set()
     out = []
     for n in names:
         if n in geo.names:
             out.append(n)
         elif n in links:
-            li = links.index(n)
-            out.extend(g for g, gl in zip(geo.names, glink, strict=True) if gl == li)
+            li = links.index(n)  # (a fixed child playing a role of its own stays its own)
+            out.extend(g for g, gl in zip(geo.names, glink, strict=True)
+                       if owner_link(model.chain, gl, roles | {li}) == li)
         else:
             raise InputError(f"{where}: {n!r} is neither a geom nor a link of the body; geoms: "
                              f"{geo.names}")
@@ -449,9 +455,8 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
     data = read_json(path, "a garment.json, format in docs/USER_GUIDE.md 'Your shirt'")
     if not isinstance(data, dict):
         raise fail("expected a JSON object with 'colours' and 'patches'")
-    unknown = [k for k in data if k not in _GARMENT_KEYS]
-    if unknown:
-        raise fail(f"unknown fields {unknown}; expected {list(_GARMENT_KEYS)}")
+    data = _spelling(data, {"colors": "colours"}, fail, "")
+    ignored = [k for k in data if k not in _GARMENT_KEYS]
     if data.get("format", GARMENT_FORMAT) != GARMENT_FORMAT:
         raise fail(f"'format' is {data['format']!r}, expected {GARMENT_FORMAT!r}")
     if data.get("version", GARMENT_VERSION) != GARMENT_VERSION:
@@ -501,8 +506,10 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
     patches, seen = [], set()
     for k, p in enumerate(patches_in):
         where = f"patches[{k}]"
-        if not isinstance(p, dict) or set(p) - set(_PATCH_KEYS):
+        if not isinstance(p, dict):
             raise fail(f"{where}: expected an object with fields {list(_PATCH_KEYS)}")
+        p = _spelling(p, {"color": "colour", "halfspaces": "half_spaces"}, fail, where)
+        ignored += [f"{where}.{f}" for f in p if f not in _PATCH_KEYS]
         name = p.get("name")
         if not isinstance(name, str) or not name:
             raise fail(f"{where}: 'name' must be a non-empty string")
@@ -541,7 +548,22 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
             raise fail(str(e)) from None
     else:
         raise fail("'skin' must be a list of geom or link names")
+    if ignored:  # other tools' extra fields: not an error, but said
+        print(f"{path}: note: ignoring fields jaxmocap does not use: {ignored}", file=sys.stderr)
     return make_garment(model, patches, colours, skin_geoms)
+
+
+def _spelling(obj: dict, aliases: dict[str, str], fail, where: str) -> dict:
+    """``obj`` with other tools' spellings of our fields (``colors``, ``color``) renamed; both
+    spellings at once is ambiguous (one error naming the field)."""
+    out = dict(obj)
+    for other, ours in aliases.items():
+        if other in out:
+            if ours in out:
+                raise fail(f"{where + ': ' if where else ''}both {other!r} and {ours!r} given; "
+                           "keep one")
+            out[ours] = out.pop(other)
+    return out
 
 
 def _numbers(v, n: int) -> bool:

@@ -553,3 +553,69 @@ def test_cameras_from_other_tools_refused(tmp_path):
     path.write_text(json.dumps({"c": e}))
     with pytest.raises(CameraFileError, match=r"field 'size': expected \[width, height\]"):
         load_cameras(path)
+
+
+def test_cameras_from_opencv_filestorage_and_by_content(tmp_path, rng):
+    """Issue 36: OpenCV FileStorage files written by cv2.FileStorage itself (YAML and XML; one
+    camera at the top level as OpenCV's calibration samples write it, and one map per
+    camera), and an anipose / FreeMoCap calibration TOML or a cameras.json under a suffix
+    that says nothing -- told apart by content. Oracle: cv2.projectPoints."""
+    cams = [random_camera(rng) for _ in range(2)]
+    X = rng.normal(size=(6, 3)) * 0.3
+    want = []
+    for c in cams:
+        rvec = cv2.Rodrigues(np.asarray(c.R, float))[0]
+        want.append(cv2.projectPoints(X, rvec, np.asarray(c.t, float), np.asarray(c.K, float),
+                                      np.asarray(c.dist, float))[0][:, 0])
+
+    def write_fs(path, per_camera):
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        if per_camera:
+            for i, c in enumerate(cams):
+                fs.startWriteStruct(f"cam{i}", cv2.FileNode_MAP)
+                fs.write("image_width", int(c.width))
+                fs.write("image_height", int(c.height))
+                fs.write("camera_matrix", np.asarray(c.K, float))
+                fs.write("distortion_coefficients", np.asarray(c.dist, float).reshape(1, 5))
+                fs.write("R", cv2.Rodrigues(np.asarray(c.R, float))[0])  # a 3x1 rvec
+                fs.write("T", np.asarray(c.t, float).reshape(3, 1))
+                fs.endWriteStruct()
+        else:
+            c = cams[0]
+            fs.write("calibration_time", "today")
+            fs.write("image_width", int(c.width))
+            fs.write("image_height", int(c.height))
+            fs.write("camera_matrix", np.asarray(c.K, float))
+            fs.write("dist_coeffs", np.asarray(c.dist, float).reshape(5, 1))
+            fs.write("R", np.asarray(c.R, float))
+            fs.write("T", np.asarray(c.t, float).reshape(3, 1))
+        fs.release()
+        return path
+
+    for suffix in (".yml", ".xml"):
+        one = write_fs(tmp_path / f"left{suffix}", per_camera=False)
+        got, names = load_cameras(one, dtype=jnp.float64)
+        assert names == ["left"]
+        np.testing.assert_allclose(project(got[0], jnp.asarray(X)), want[0], atol=1e-6)
+        both = write_fs(tmp_path / f"rig{suffix}", per_camera=True)
+        got, names = load_cameras(both, dtype=jnp.float64)
+        assert names == ["cam0", "cam1"]
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(project(g, jnp.asarray(X)), w, atol=1e-6)
+    # a FreeMoCap / anipose TOML and a cameras.json, both under a suffix that says nothing
+    c = cams[1]
+    rvec = cv2.Rodrigues(np.asarray(c.R, float))[0].ravel()
+    toml = (f"[cam_0]\nname = \"0\"\nsize = [ {c.width}, {c.height} ]\n"
+            f"matrix = {np.asarray(c.K).tolist()}\ndistortions = {np.asarray(c.dist).tolist()}\n"
+            f"rotation = {rvec.tolist()}\ntranslation = {np.asarray(c.t).tolist()}\n\n"
+            "[metadata]\nadjusted = false\nerror = 0.3\n")
+    (tmp_path / "calib.cal").write_text(toml)
+    got, names = load_cameras(tmp_path / "calib.cal", dtype=jnp.float64)
+    assert names == ["0"]
+    np.testing.assert_allclose(project(got[0], jnp.asarray(X)), want[1], atol=1e-6)
+    save_cameras(tmp_path / "rig.json", cams)
+    (tmp_path / "rig.cal").write_text((tmp_path / "rig.json").read_text())
+    assert load_cameras(tmp_path / "rig.cal")[1] == ["cam0", "cam1"]
+    (tmp_path / "notes.cal").write_text("a rig I calibrated on Tuesday\n")
+    with pytest.raises(CameraFileError, match="not a camera file jaxmocap reads"):
+        load_cameras(tmp_path / "notes.cal")

@@ -308,3 +308,43 @@ def test_room_colours_in_white_balance(tmp_path, capsys):
     assert_refused(capsys, "give it with --white-balance", "colors", "--images", i0, "--masks",
                    m0, "--room-label", "255", "--out", tmp_path / "x.json",
                    leaves=[tmp_path / "x.json"])
+
+
+def test_masks_of_another_tool_through_a_label_map(tmp_path, capsys):
+    """Issue 36: masks labelled 0..3 with 255 = unlabelled and 254 = room (another tool's
+    convention) and a --labels map give exactly the model and white balance our own masks
+    give; values the map does not know are refused naming the mask and the map."""
+    rng = np.random.default_rng(4)
+    img, lab = shirt(rng)
+    theirs = np.full_like(lab, 255)
+    order = [2, 0, 3, 1]  # their value of our colour k (red green blue yellow)
+    for k, v in enumerate(order):
+        theirs[lab == k + 1] = v
+    theirs[:2, :] = 254  # a strip of room along the top
+    i1, m1 = save(tmp_path / "ours", img, lab)
+    cv2.imwrite(str(tmp_path / "theirs_labels.png"), theirs)
+    m2 = str(tmp_path / "theirs_labels.png")
+    names = ["red", "green", "blue", "yellow"]
+    labels = tmp_path / "labels.json"
+    labels.write_text(json.dumps({**{str(v): names[k] for k, v in enumerate(order)},
+                                  "255": "unlabelled", "254": "room"}))
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    assert run_cli(capsys, "colors", "--images", i1, "--masks", m1, "--names", *names,
+                   "--out", a)[0] == 0
+    assert run_cli(capsys, "colors", "--images", i1, "--masks", m2, "--labels", labels,
+                   "--names", *names, "--out", b)[0] == 0
+    assert json.loads(a.read_text())["colors"] == json.loads(b.read_text())["colors"]
+    # without --names the map's order (by value) names the model
+    c = tmp_path / "c.json"
+    assert run_cli(capsys, "colors", "--images", i1, "--masks", m2, "--labels", labels,
+                   "--out", c)[0] == 0
+    assert [x["name"] for x in json.loads(c.read_text())["colors"]] == \
+        ["green", "yellow", "red", "blue"]
+    # white balance: the room strip becomes room colours
+    wb = tmp_path / "wb.json"
+    rc, out, _ = run_cli(capsys, "colors", "--white-balance", "--colors", a, "--images", i1,
+                         "--masks", m2, "--labels", labels, "--room-colors", "2", "--out", wb)
+    assert rc == 0 and "from 80 px (label 5)" in out  # the 2-row strip, after the 4 colours
+    labels.write_text(json.dumps({"0": "red", "255": "unlabelled"}))
+    assert_refused(capsys, "mask values [1, 2, 3, 254] are not in the label map", "colors",
+                   "--images", i1, "--masks", m2, "--labels", labels, "--out", c)

@@ -35,6 +35,8 @@ class Geometry(eqx.Module):
     size: Float[Array, "n_geoms 3"]
     rgba: Float[Array, "n_geoms 4"]
     names: tuple[str, ...] = eqx.field(static=True)
+    # material name per geom as the file gives it ("" none; read by role inference: "skin")
+    materials: tuple[str, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         n = len(self.names)
@@ -65,4 +67,5 @@ def make_geometry(rows: list[dict]) -> Geometry:
         size=jnp.asarray(np.stack([np.asarray(r["size"], float) for r in rows])),
         rgba=jnp.asarray(np.stack([np.asarray(r["rgba"], float) for r in rows])),
         names=tuple(r["name"] for r in rows),
+        materials=tuple(str(r.get("material") or "") for r in rows),
     )

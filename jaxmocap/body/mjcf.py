@@ -34,7 +34,7 @@ from .urdf import chain_from_pk, homogeneous
 
 # MuJoCo mjtGeom -> our kinds; mjGEOM_PLANE (0) is skipped, the rest are rejected.
 _MJ_GEOM = {2: SPHERE, 3: CAPSULE, 4: ELLIPSOID, 5: CYLINDER, 6: BOX}
-_MJ_PLANE = 0
+_MJ_PLANE, _MJ_MESH = 0, 7
 _MJ_FREE, _MJ_BALL, _MJ_SLIDE, _MJ_HINGE = 0, 1, 2, 3
 _MJ_DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)
 
@@ -60,24 +60,13 @@ def matrix_rpy(r: np.ndarray) -> tuple[float, float, float]:
     return math.atan2(-r[1, 2], r[1, 1]), pitch, 0.0
 
 
-def _strip_undefined_materials(text: str, where: str) -> str:
-    """Drop ``material=`` references to materials the file does not define (render-only)."""
-    try:
-        root = ET.fromstring(text)
-    except ET.ParseError as e:
-        raise ValueError(f"{where}: not valid XML ({e})") from None
-    if root.tag != "mujoco":
-        raise ValueError(f"{where}: root element is <{root.tag}>, expected <mujoco>")
-    defined = {m.get("name") for m in root.iter("material")}
-    for e in root.iter():
-        if e.tag != "material" and e.get("material") is not None:
-            if e.get("material") not in defined:
-                del e.attrib["material"]
-    return ET.tostring(root, encoding="unicode")
-
-
 def compile_mjcf(path: str | os.PathLike):
-    """The compiled ``mujoco.MjModel`` of an MJCF file (undefined materials dropped)."""
+    """The compiled ``mujoco.MjModel`` of an MJCF file.
+
+    Read with ``MjSpec.from_file``, so that ``<include>`` files, ``meshdir`` and the other
+    paths resolve against the model's own folder (dm_control's suite includes ``common/*.xml``);
+    ``material=`` references to materials the file does not define (render-only) are dropped.
+    """
     import mujoco
 
     from jaxmocap.io.preflight import read_text
@@ -88,9 +77,19 @@ def compile_mjcf(path: str | os.PathLike):
     if not path.is_file():
         raise FileNotFoundError(f"MJCF file not found: {path}")
     text = read_text(path, "an MJCF (MuJoCo XML) body model", max_bytes=MAX_MODEL_BYTES)
-    text = _strip_undefined_materials(text, str(path))
     try:
-        return mujoco.MjModel.from_xml_string(text)
+        root = ET.fromstring(text)
+    except ET.ParseError as e:
+        raise ValueError(f"{path}: not valid XML ({e})") from None
+    if root.tag != "mujoco":
+        raise ValueError(f"{path}: root element is <{root.tag}>, expected <mujoco>")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        defined = {m.name for m in spec.materials}
+        for e in list(spec.geoms) + list(spec.sites):
+            if e.material and e.material not in defined:
+                e.material = ""
+        return spec.compile()
     except ValueError as e:
         raise ValueError(f"{path}: MuJoCo could not compile it: {e}") from None
 
@@ -106,14 +105,20 @@ def _xyz_rpy(t: np.ndarray) -> dict[str, str]:
     }
 
 
-def flatten_to_urdf(m) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]], str]:
-    """(URDF text, {child link: (origin, axis)} in float64, root link name) of an MjModel."""
+def flatten_to_urdf(m) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]], str, np.ndarray]:
+    """(URDF text, {child link: (origin, axis)} in float64, root link name, the root link's
+    fixed 4x4 offset) of an MjModel."""
     top = [b for b in range(1, m.nbody) if m.body_parentid[b] == 0]
     free_root = None
     if len(top) == 1 and m.body_jntnum[top[0]] >= 1:
         if m.jnt_type[m.body_jntadr[top[0]]] == _MJ_FREE:
             free_root = top[0]
     robot = ET.Element("robot", name="mjcf")
+    # the free root body's own orientation (the CMU humanoid's euler="90 0 0" stands its
+    # y-up skeleton up): the root link's fixed offset, so that q = 0 is MuJoCo's qpos0 pose
+    base = np.eye(4)
+    if free_root is not None:
+        base[:3, :3] = quat_matrix(m.body_quat[free_root])
     origins: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     root_name = _body_name(m, free_root if free_root is not None else 0)
     ET.SubElement(robot, "link", name=root_name)
@@ -173,7 +178,7 @@ def flatten_to_urdf(m) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]], s
             add_joint(f"{name}__anchor", "fixed", prev_link, name,
                       homogeneous(np.eye(3), -prev_anchor))  # fmt: skip
             ET.SubElement(robot, "link", name=name)
-    return ET.tostring(robot, encoding="unicode"), origins, root_name
+    return ET.tostring(robot, encoding="unicode"), origins, root_name, base
 
 
 def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
@@ -184,14 +189,19 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
         name = m.geom(g).name or f"geom{g}"
         if gt == _MJ_PLANE:
             continue
-        if gt not in _MJ_GEOM:
+        if gt not in _MJ_GEOM and gt != _MJ_MESH:
             raise ValueError(f"{where}: geom {name!r} has MuJoCo type {gt}; supported: sphere, "
                              "capsule, ellipsoid, cylinder, box (planes are skipped)")  # fmt: skip
         link = _body_name(m, int(m.geom_bodyid[g]))
         if link not in link_names:  # world geoms when the free body is the root
             continue
-        kind = _MJ_GEOM[gt]
-        size = np.array(m.geom_size[g], float)
+        pose = homogeneous(quat_matrix(m.geom_quat[g]), m.geom_pos[g])
+        if gt == _MJ_MESH:  # its bounding box in the geom frame (MuJoCo's geom_aabb)
+            kind, size = BOX, np.array(m.geom_aabb[g, 3:], float)
+            pose = pose @ homogeneous(np.eye(3), m.geom_aabb[g, :3])
+        else:
+            kind = _MJ_GEOM[gt]
+            size = np.array(m.geom_size[g], float)
         if kind == SPHERE:
             size[1:] = 0.0
         elif kind in (CAPSULE, CYLINDER):
@@ -199,9 +209,9 @@ def mjcf_geometry(m, link_names: Sequence[str], where: str) -> list[dict]:
         rgba = np.array(m.geom_rgba[g], float)
         if m.geom_matid[g] >= 0 and np.allclose(rgba, _MJ_DEFAULT_RGBA):
             rgba = np.array(m.mat_rgba[m.geom_matid[g]], float)
+        material = m.material(int(m.geom_matid[g])).name if m.geom_matid[g] >= 0 else ""
         rows.append(dict(name=name, link=list(link_names).index(link), kind=kind,
-                         pose=homogeneous(quat_matrix(m.geom_quat[g]), m.geom_pos[g]),
-                         size=size, rgba=rgba))  # fmt: skip
+                         pose=pose, size=size, rgba=rgba, material=material))  # fmt: skip
     return rows
 
 
@@ -226,8 +236,8 @@ def load_mjcf(
     import pytorch_kinematics as pk
 
     m = compile_mjcf(path)
-    text, origins, _ = flatten_to_urdf(m)
-    chain = chain_from_pk(pk.build_chain_from_urdf(text), origins=origins)
+    text, origins, _, base = flatten_to_urdf(m)
+    chain = chain_from_pk(pk.build_chain_from_urdf(text), origins=origins, base=base)
     rows = mjcf_geometry(m, chain.link_names, str(path))
     return make_body_model(chain, make_geometry(rows),
                            {**mjcf_sites(m, chain.link_names), **(keypoints or {})})

@@ -12,16 +12,26 @@ roles and the roles file to write.
 Name inference splits link names into words (``_ - . :`` and camelCase: ``mixamorig:LeftArm``
 -> ``left arm``), takes the side from a leading/trailing ``l``/``left``/``r``/``right`` word and
 matches the rest against :data:`PART_WORDS` (first synonym wins: ``LeftArm`` is the upper arm
-even when ``LeftShoulder`` exists). ``chest`` not named -> the deepest common ancestor of the two
-upper arms; ``pelvis`` not named -> the root link.
+even when ``LeftShoulder`` exists; a side letter glued to a part word counts too: the CMU
+skeleton's ``lhumerus``). ``chest`` not named -> the deepest common ancestor of the two upper
+arms that carries geometry; ``pelvis`` not named, or named but not above the chest -> the root
+link. A role no link is named for is played by the link carrying the geoms named for it
+(gymnasium's ``head`` sphere on the torso link, its ``left_hand`` sphere on the lower arm), and
+a hand nothing names by the link carrying the skin-material geoms below the forearm.
+
+**Geometry belongs to role links**: a geom on a link joined to a role link by fixed joints
+belongs to that role link (URDF visuals on fixed child links, :func:`owner_link`); on a link
+that plays several roles, a geom named for one of them (or of skin material, for the skin
+role there) belongs to it and the others to the most proximal role (:func:`geom_roles`).
 
 **Joint roles** (:data:`JOINT_ROLES`) are the DOFs on the chain path between two role links:
 ``spine`` (pelvis -> chest), ``neck`` (chest -> head), ``l_shoulder`` (chest -> upper arm),
 ``l_elbow`` (upper arm -> forearm), ``l_wrist`` (forearm -> hand), and the same on the right.
 
-**Geometry roles**: the contour shapes of the limbs (the geoms of each arm link) and of the
-torso (the chest link's geoms, without capsules/cylinders lying across the body -- a shoulder
-bar); the skin geoms (every geom on the neck/head link and the hands and below them).
+**Geometry roles**: the contour shapes of the limbs (the geoms of each arm role) and of the
+torso (the chest role's geoms, without capsules/cylinders lying across the body -- a shoulder
+bar -- unless the torso is made of such capsules); the skin geoms (the geoms of the neck, head
+and hand roles, the links below them, and every geom of a material named ``skin``).
 
 **Mirror pairs**: every joint DOF with its left/right partner and the sign of the reflection
 ``y -> -y`` (``M Rot(a, t) M = Rot(M a, -t)``: sign -1 when the partner's rest axis is ``+M a``,
@@ -35,8 +45,11 @@ Pairs in the roles file override both.
 centres of the neck (else head), upper-arm, forearm and hand links (the origin of the last
 moving joint frame of the link); ``chest`` 3/4 of the way from the chest link's joint centre
 to the midpoint of the two shoulder centres; ``head`` and the hands the centre of the largest
-geom of the head / hand link (offsets rounded to 1 um). The roles file may override any
-keypoint.
+geom of the head / hand role (offsets rounded to 1 um); where the wrist's joint centre is
+the elbow's (a hand geom on the forearm link, a wrist link fixed at the elbow) the wrist is the
+hand geom's end nearest the elbow, and where the head has no joint of its own the neck is the
+head geom's end nearest the chest. The roles file may override any keypoint; the keypoints it
+does not give are placed by these rules.
 """
 
 from __future__ import annotations
@@ -49,6 +62,8 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
@@ -85,6 +100,8 @@ PART_WORDS = {
 }  # fmt: skip
 CHEST_KEYPOINT_FRACTION = 0.75  # chest keypoint: 3/4 of the way up to the shoulder line
 CROSSWISE_COS = math.cos(math.radians(45.0))  # a capsule this close to the body's y axis
+MIRROR_LOOSE = 0.01  # second pass of the mirror pairs: centres within 1% of the body's size
+MIRROR_COS = math.cos(math.radians(5.0))  # ... and axes within 5 degrees of mirror images
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,6 +186,11 @@ def classify_link(name: str) -> tuple[str | None, str | None, int]:
         for part, syn in PART_WORDS.items():
             if candidate in syn:
                 return side, part, syn.index(candidate)
+    if side is None and len(words) == 1 and words[0][:1] in ("l", "r"):
+        # a side letter glued to a part word (the CMU skeleton's lhumerus, rradius, lhand)
+        for part in LIMB_PARTS:
+            if words[0][1:] in PART_WORDS[part]:
+                return words[0][0], part, PART_WORDS[part].index(words[0][1:])
     return side, None, 0
 
 
@@ -205,7 +227,47 @@ def infer_link_roles(chain: KinematicChain, geometry: Geometry | None = None
             out["pelvis"] = chain.link_names[0]
     if "head" not in out and "head" not in ties and "neck" in out:
         out["head"] = out.pop("neck")  # a "neck" link that carries the head (DeepMimic)
+    if geometry is not None:
+        _roles_from_geom_names(chain, geometry, out, ties)
+    if "pelvis" in out and "chest" in out:  # the pelvis role is the trunk above the chest
+        chest = chain.link_names.index(out["chest"])
+        if chain.link_names.index(out["pelvis"]) not in path_to_root(chain.topology, chest):
+            out["pelvis"] = chain.link_names[0]  # gym/dm_control: the root is the torso
     return out, ties
+
+
+def _roles_from_geom_names(chain: KinematicChain, geometry: Geometry, out: dict,
+                           ties: dict) -> None:
+    """Roles no link is named for, from the names of the geoms (gymnasium's humanoid: a
+    ``head`` sphere on the torso link, ``left_hand`` spheres on the lower arms): the link
+    carrying the geom(s) that name the role plays it. Updates ``out``/``ties`` in place."""
+    glink = np.asarray(geometry.link).tolist()
+    found: dict[str, set[int]] = {}
+    for g, name in enumerate(geometry.names):
+        side, part, _ = classify_link(name)
+        if part is None or (part in LIMB_PARTS) != (side is not None):
+            continue
+        role = f"{side}_{part}" if side else part
+        if role in out or role in ties or role in OPTIONAL_LINK_ROLES:
+            continue
+        found.setdefault(role, set()).add(glink[g])
+    for role, links in found.items():
+        names = sorted(chain.link_names[li] for li in links)
+        if len(names) == 1:
+            out[role] = names[0]
+        else:
+            ties[role] = names
+    # hands nothing names: the skin-material geoms below a forearm (a skin-coloured hand
+    # capsule on the forearm link of an MJCF without hand bodies)
+    for s in SIDES:
+        role, fore = f"{s}_hand", out.get(f"{s}_forearm")
+        if role in out or role in ties or fore is None:
+            continue
+        below = _subtree(chain, chain.link_names.index(fore))
+        links = {glink[g] for g in range(len(geometry.names))
+                 if glink[g] in below and is_skin_material(geometry, g)}
+        if len(links) == 1:
+            out[role] = chain.link_names[links.pop()]
 
 
 def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
@@ -218,8 +280,14 @@ def _deepest_ancestor_of_arms(chain, found: Mapping[str, str], candidates,
     common = set(path_to_root(chain.topology, names.index(found["l_upper_arm"])))
     common &= set(path_to_root(chain.topology, names.index(found["r_upper_arm"])))
     common -= {names.index(found["l_upper_arm"]), names.index(found["r_upper_arm"])}
-    if geometry is not None:
-        common &= set(np.asarray(geometry.link).tolist())
+    if geometry is not None:  # links carrying geometry, theirs or their fixed children's
+        carry = set()
+        for li in set(np.asarray(geometry.link).tolist()):
+            carry.add(li)
+            while chain.topology[li][1] == FIXED and chain.topology[li][0] >= 0:
+                li = chain.topology[li][0]
+                carry.add(li)
+        common &= carry
     ok = [names.index(c) for c in candidates if names.index(c) in common]
     return names[max(ok)] if ok else None  # topological order: the largest index is deepest
 
@@ -290,6 +358,66 @@ def _subtree(chain: KinematicChain, link: int) -> set[int]:
         if p in out:
             out.add(i)
     return out
+
+
+# Which role keeps the unnamed geoms of a link that plays several roles (gymnasium's torso link
+# is the chest and carries the head geom; its lower arm is the forearm and carries the hand).
+_CONTAINER_ORDER = ("chest", "pelvis", "neck", "head") + tuple(
+    f"{s}_{p}" for p in LIMB_PARTS for s in SIDES)
+
+
+def owner_link(chain: KinematicChain, link: int, role_links: set[int]) -> int | None:
+    """The role link that ``link``'s geometry belongs to: ``link`` itself if it plays a role,
+    else its parent as long as they are joined by a fixed joint (URDF visuals on fixed child
+    links belong to the parent for every role lookup); None when a moving joint comes first."""
+    topo = chain.topology
+    while link not in role_links:
+        if topo[link][1] != FIXED or topo[link][0] < 0:
+            return None
+        link = topo[link][0]
+    return link
+
+
+def is_skin_material(geometry: Geometry, g: int) -> bool:
+    """Whether geom ``g``'s material is named for skin (``skin``, ``Skin_Light``, ...)."""
+    mats = getattr(geometry, "materials", ())
+    return bool(mats) and "skin" in name_words(mats[g] or "")
+
+
+def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str]
+               ) -> dict[str, list[int]]:
+    """``{link role: [geom indices]}``: each geom belongs to the role of its owner link
+    (:func:`owner_link`); on a link that plays several roles, a geom named for one of them
+    (``head``, ``right_hand``) belongs to it and the others to the most proximal role
+    (:data:`_CONTAINER_ORDER`)."""
+    names = chain.link_names
+    by_link: dict[int, list[str]] = {}
+    for role in _CONTAINER_ORDER:
+        if role in links:
+            by_link.setdefault(names.index(links[role]), []).append(role)
+    out: dict[str, list[int]] = {r: [] for r in links}
+    for g, li in enumerate(np.asarray(geometry.link).tolist()):
+        owner = owner_link(chain, li, set(by_link))
+        if owner is None:
+            continue
+        roles_here = by_link[owner]
+        side, part, _ = classify_link(geometry.names[g])
+        named = f"{side}_{part}" if side else part
+        if named not in roles_here and is_skin_material(geometry, g):
+            skin = [r for r in roles_here if r in ("head", "neck", "l_hand", "r_hand")]
+            named = skin[0] if len(skin) == 1 else named
+        out[named if named in roles_here else roles_here[0]].append(g)
+    return out
+
+
+def geom_pose_in(chain: KinematicChain, geometry: Geometry, g: int, link: int,
+                 rest: np.ndarray | None = None) -> np.ndarray:
+    """Geom ``g``'s pose (4x4, float64) in the frame of ``link`` (its own link or an ancestor
+    joined to it by fixed joints: the offset is constant)."""
+    rest = rest_transforms(chain) if rest is None else rest
+    own = int(np.asarray(geometry.link)[g])
+    pose = np.asarray(geometry.pose, np.float64)[g]
+    return pose if own == link else np.linalg.solve(rest[link], rest[own]) @ pose
 
 
 def is_crosswise(geometry: Geometry, g: int) -> bool:
@@ -368,78 +496,120 @@ def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
                 if i not in partner and j not in partner:
                     partner[i], partner[j] = j, i
     scale = max(1e-3, float(np.abs(rest[:, :3, 3]).max()))
-    tol = 1e-6 * scale
-    for i in range(ROOT_DOFS, len(names)):
-        if i in partner:
-            continue
-        if abs(centre[i][1]) < tol and abs(abs((m * axis[i]) @ axis[i]) - 1.0) < 1e-6:
-            partner[i] = i
-            continue
-        cands = [j for j in range(ROOT_DOFS, len(names)) if j not in partner and j != i
-                 and np.allclose(m * centre[i], centre[j], atol=tol)
-                 and abs(abs((m * axis[i]) @ axis[j]) - 1.0) < 1e-6]
-        if len(cands) == 1:
-            partner[i], partner[cands[0]] = cands[0], i
+    # exact mirror images first; then, for what is left, a measured skeleton's (dm_control's
+    # CMU humanoid: centres within 1% of the body's size, axes within 5 degrees)
+    for tol, axis_tol in ((1e-6 * scale, 1e-6), (MIRROR_LOOSE * scale, 1 - MIRROR_COS)):
+        for i in range(ROOT_DOFS, len(names)):
+            if i in partner:
+                continue
+            if abs(centre[i][1]) < tol and abs(abs((m * axis[i]) @ axis[i]) - 1.0) < axis_tol:
+                partner[i] = i
+                continue
+            cands = [j for j in range(ROOT_DOFS, len(names)) if j not in partner and j != i
+                     and np.allclose(m * centre[i], centre[j], atol=tol)
+                     and abs(abs((m * axis[i]) @ axis[j]) - 1.0) < axis_tol]
+            if len(cands) == 1:
+                partner[i], partner[cands[0]] = cands[0], i
     out = []
     for i in range(ROOT_DOFS, len(names)):
         if i not in partner:
             continue
         j = partner[i]
         c = (m * axis[i]) @ axis[j]
-        sign = -1.0 if c > 1 - 1e-6 else 1.0 if c < -1 + 1e-6 else 0.0
+        sign = -1.0 if c > MIRROR_COS else 1.0 if c < -MIRROR_COS else 0.0
         out.append((names[i], names[j], sign))
     return tuple(out)
 
 
 def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str],
-               where: str) -> dict[str, tuple[str, tuple[float, float, float]]]:
+               where: str, skip: Sequence[str] = ()
+               ) -> dict[str, tuple[str, tuple[float, float, float]]]:
+    """The keypoint rules of the module docstring for every keypoint not in ``skip`` (those
+    the roles file gives: a keypoint given there is never derived, so a head link without
+    geometry is no error when the file places the head)."""
+    from .model import KEYPOINT_NAMES
+
     rest = rest_transforms(chain)
     idx = {r: chain.link_names.index(n) for r, n in links.items()}
     neck = links.get("neck", links["head"])
+    owned = geom_roles(chain, geometry, links)
+    kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
 
     def centre(role):
-        return tuple(float(v) for v in joint_centre(chain, idx[role], rest))
+        return joint_centre(chain, idx[role], rest)
 
-    def largest_geom(role):
-        gs = _geoms_of(geometry, idx[role])
+    def largest(role):
+        gs = owned.get(role, [])
         if not gs:
             raise InputError(
                 f"{where}: the {role} link {links[role]!r} has no geometry to place the "
                 f"{role!r} keypoint; give it in the roles file (\"keypoints\")"
             )
-        kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
         g = max(gs, key=lambda g: geom_volume(int(kind[g]), size[g]))
-        return tuple(float(v) for v in np.asarray(geometry.pose, np.float64)[g, :3, 3])
+        return g, geom_pose_in(chain, geometry, g, idx[role], rest)
 
-    c = idx["chest"]
-    start = joint_centre(chain, c, rest)
-    shoulders = []
-    for s in SIDES:
-        u = idx[f"{s}_upper_arm"]
-        p = rest[u] @ np.append(joint_centre(chain, u, rest), 1.0)
-        shoulders.append(np.linalg.solve(rest[c], p)[:3])
-    mid = 0.5 * (shoulders[0] + shoulders[1])
-    chest = start + CHEST_KEYPOINT_FRACTION * (mid - start)
-    kp = {
-        "pelvis": (links["pelvis"], (0.0, 0.0, 0.0)),
-        "chest": (links["chest"], tuple(float(v) for v in chest)),
-        "neck": (neck, tuple(float(v) for v in joint_centre(
-            chain, chain.link_names.index(neck), rest))),
-        "head": (links["head"], largest_geom("head")),
+    def in_frame(role_from, p, role_to):
+        q = rest[idx[role_from]] @ np.append(p, 1.0)
+        return np.linalg.solve(rest[idx[role_to]], q)[:3]
+
+    def chest():
+        c = idx["chest"]
+        start = joint_centre(chain, c, rest)
+        mid = 0.5 * sum(in_frame(f"{s}_upper_arm", centre(f"{s}_upper_arm"), "chest")
+                        for s in SIDES)
+        return start + CHEST_KEYPOINT_FRACTION * (mid - start)
+
+    def wrist(s):
+        # the hand link's joint centre; where that is the elbow (a hand geom on the forearm
+        # link, or a wrist link fixed at the elbow's anchor) the hand geom's end nearest the
+        # elbow instead
+        hand, fore = f"{s}_hand", f"{s}_forearm"
+        p = centre(hand)
+        if np.linalg.norm(in_frame(hand, p, fore) - centre(fore)) > 1e-3:
+            return p
+        g, pose = largest(hand)
+        c = pose[:3, 3]
+        u = c - in_frame(fore, centre(fore), hand)
+        if np.linalg.norm(u) < 1e-6:
+            return p
+        u = u / np.linalg.norm(u)
+        return c - geom_support(int(kind[g]), size[g], pose[:3, :3], u) * u
+
+    def neck_point():
+        # the neck (else head) link's joint centre; where the head has no joint of its own
+        # (a head geom on the torso link, a head body fixed on it and centred on its origin)
+        # the head geom's end nearest the chest's joint
+        p = joint_centre(chain, chain.link_names.index(neck), rest)
+        if neck != links["head"] or not owned.get("head"):
+            return p
+        g, pose = largest("head")
+        c = pose[:3, 3]
+        own = links["head"] == links["chest"] or np.linalg.norm(p - c) < 1e-3
+        u = c - in_frame("chest", joint_centre(chain, idx["chest"], rest), "head")
+        if not own or np.linalg.norm(u) < 1e-6:
+            return p
+        u = u / np.linalg.norm(u)
+        return c - geom_support(int(kind[g]), size[g], pose[:3, :3], u) * u
+
+    rules = {
+        "pelvis": lambda: (links["pelvis"], np.zeros(3)),
+        "chest": lambda: (links["chest"], chest()),
+        "neck": lambda: (neck, neck_point()),
+        "head": lambda: (links["head"], largest("head")[1][:3, 3]),
     }
     for s in SIDES:
-        kp[f"{s}_shoulder"] = (links[f"{s}_upper_arm"], centre(f"{s}_upper_arm"))
-    for s in SIDES:
-        kp[f"{s}_elbow"] = (links[f"{s}_forearm"], centre(f"{s}_forearm"))
-    for s in SIDES:
-        kp[f"{s}_wrist"] = (links[f"{s}_hand"], centre(f"{s}_hand"))
-    for s in SIDES:
-        kp[f"{s}_hand"] = (links[f"{s}_hand"], largest_geom(f"{s}_hand"))
-    from .model import KEYPOINT_NAMES
-
-    # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
-    return {k: (kp[k][0], tuple(round(float(v), 6) + 0.0 for v in kp[k][1]))
-            for k in KEYPOINT_NAMES}
+        rules[f"{s}_shoulder"] = lambda s=s: (links[f"{s}_upper_arm"], centre(f"{s}_upper_arm"))
+        rules[f"{s}_elbow"] = lambda s=s: (links[f"{s}_forearm"], centre(f"{s}_forearm"))
+        rules[f"{s}_wrist"] = lambda s=s: (links[f"{s}_hand"], wrist(s))
+        rules[f"{s}_hand"] = lambda s=s: (links[f"{s}_hand"], largest(f"{s}_hand")[1][:3, 3])
+    out = {}
+    for k in KEYPOINT_NAMES:
+        if k in skip:
+            continue
+        link, off = rules[k]()
+        # offsets to 1 um: the same numbers whether the chain was loaded in float32 or float64
+        out[k] = (link, tuple(round(float(v), 6) + 0.0 for v in off))
+    return out
 
 
 def derive_roles(
@@ -476,16 +646,28 @@ def derive_roles(
             raise InputError(f"{where}: {what} names unknown geoms {unknown}; geoms: {gnames}")
         return tuple(geoms)
 
-    if skin_geoms is None:
-        skin_links = _subtree(chain, idx.get("neck", idx["head"])) | _subtree(
-            chain, idx["l_hand"]) | _subtree(chain, idx["r_hand"])
-        skin = tuple(gnames[g] for g, li in enumerate(np.asarray(geometry.link).tolist())
-                     if li in skin_links)
+    owned = geom_roles(chain, geometry, links)
+    if skin_geoms is None:  # the head, neck and hands with everything below them
+        skin_roles = ("neck", "head", "l_hand", "r_hand")
+        skin_set = {g for r in skin_roles for g in owned.get(r, [])}
+        skin_set |= {g for g in range(geometry.n_geoms) if is_skin_material(geometry, g)}
+        shared = {idx[r] for r in links if r not in skin_roles}
+        below = set()
+        for r in skin_roles:
+            if r in idx and idx[r] not in shared:  # a head on the torso link: not its legs
+                below |= _subtree(chain, idx[r]) - {idx[r]}
+        glink = np.asarray(geometry.link).tolist()
+        skin_set |= {g for g, li in enumerate(glink) if li in below and li not in shared
+                     and owner_link(chain, li, shared) is None}
+        skin = tuple(gnames[g] for g in sorted(skin_set))
     else:
         skin = check(skin_geoms, "skin_geoms")
     if torso_geoms is None:
-        torso = tuple(gnames[g] for g in _geoms_of(geometry, idx["chest"])
-                      if not is_crosswise(geometry, g) and gnames[g] not in skin)
+        cover = [g for g in owned["chest"] if gnames[g] not in skin]
+        # without the bars across the shoulders, unless the torso is made of such capsules
+        # (gymnasium's humanoid: its torso and waist are capsules along y)
+        upright = [g for g in cover if not is_crosswise(geometry, g)]
+        torso = tuple(gnames[g] for g in (upright or cover))
     else:
         torso = check(torso_geoms, "torso_geoms")
     limb_geoms = dict(limb_geoms or {})
@@ -494,22 +676,26 @@ def derive_roles(
         if role in limb_geoms:
             limbs.append((role, check(limb_geoms[role], f"limb_geoms[{role!r}]")))
         else:
-            limbs.append((role, tuple(gnames[g] for g in _geoms_of(geometry, idx[role])
-                                      if gnames[g] not in skin)))
+            limbs.append((role, tuple(gnames[g] for g in owned[role] if gnames[g] not in skin)))
     for a_name, b_name in mirror:
         for n in (a_name, b_name):
             if n not in chain.dof_names:
                 raise InputError(f"{where}: mirror names unknown joint {n!r}; joints: "
                                  f"{chain.dof_names[ROOT_DOFS:]}")
-    kp = _keypoints(chain, geometry, links, where) if keypoints is None or len(keypoints) < 12 \
-        else {}
-    for k, (link, off) in (keypoints or {}).items():
+    from .model import KEYPOINT_NAMES
+
+    given = dict(keypoints or {})
+    kp = {} if set(KEYPOINT_NAMES) <= set(given) else _keypoints(
+        chain, geometry, links, where, skip=tuple(given))
+    for k, (link, off) in given.items():
         if link not in names:
-            raise InputError(f"{where}: keypoint {k!r} names unknown link {link!r}")
+            raise InputError(f"{where}: keypoints: {k!r} names unknown link {link!r}; links "
+                             f"are {names}")
         off = tuple(float(v) for v in off)
         if len(off) != 3:
-            raise InputError(f"{where}: keypoint {k!r}: expected [link, [x, y, z]]")
+            raise InputError(f"{where}: keypoints: {k!r}: expected [link, [x, y, z]]")
         kp[k] = (link, off)
+    kp = {k: kp[k] for k in (*KEYPOINT_NAMES, *kp) if k in kp}  # the 12 first, in their order
     return BodyRoles(
         links=tuple((r, links[r]) for r in LINK_ROLES if r in links),
         joints=tuple(joints.items()),
@@ -666,9 +852,37 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
         if named:
             overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
         roles = infer_roles(model.chain, model.geometry, path, overrides)
+        turned = face_forward(model.chain, roles)
+        if turned is not model.chain:  # roles again: the mirror pairs are found at rest
+            model = eqx.tree_at(lambda m: m.chain, model, turned)
+            roles = infer_roles(model.chain, model.geometry, path, overrides)
     table = roles.keypoint_table()
     table.update({k: v for k, v in sites.items() if k not in table})
     return make_body_model(model.chain, model.geometry, table, roles=roles)
+
+
+def face_forward(chain: KinematicChain, roles: BodyRoles) -> KinematicChain:
+    """``chain`` turned about the vertical so that at q = 0 the body faces +x with its left
+    (right -> left shoulder) along +y, as every stage assumes (dm_control's CMU humanoid faces
+    -y): the turn goes into the root link's fixed offset. The same chain when it already
+    does (within 1e-6 rad)."""
+    rest = rest_transforms(chain)
+    table = roles.keypoint_table()
+
+    def world(k):
+        link, off = table[k]
+        return rest[chain.link_names.index(link)] @ np.append(np.asarray(off, float), 1.0)
+
+    left = (world("l_shoulder") - world("r_shoulder"))[:3]
+    angle = math.atan2(left[1], left[0]) - math.pi / 2  # the turn that took +y to `left`
+    if math.hypot(left[0], left[1]) < 1e-9 or abs(angle) < 1e-6:
+        return chain
+    c, s_ = math.cos(-angle), math.sin(-angle)
+    turn = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    origin = np.asarray(chain.joint_origin, np.float64).copy()
+    origin[0] = turn @ origin[0]
+    return eqx.tree_at(lambda ch: ch.joint_origin, chain,
+                       jnp.asarray(origin, chain.joint_origin.dtype))
 
 
 def body_digest(model) -> str:

@@ -191,7 +191,8 @@ def scale_body(model: BodyModel | None = None, **measurements: float | None) -> 
     dt = chain.joint_origin.dtype
     new_chain = _chain_with(chain, joint_origin=jnp.asarray(new_origin, dt))
     new_geom = Geometry(link=geom.link, kind=geom.kind, pose=jnp.asarray(pose, dt),
-                        size=jnp.asarray(size, dt), rgba=geom.rgba, names=geom.names)
+                        size=jnp.asarray(size, dt), rgba=geom.rgba, names=geom.names,
+                        materials=geom.materials)
     scaled = BodyModel(chain=new_chain, geometry=new_geom, keypoint_link=model.keypoint_link,
                        keypoint_offset=jnp.asarray(kp_off, model.keypoint_offset.dtype),
                        keypoint_names=model.keypoint_names,
@@ -314,7 +315,7 @@ def rename_body(model: BodyModel, naming: str | Callable[[str], str] | Mapping[s
         if len(set(names)) != len(names):
             raise ValueError(f"rename_body: two {what}s would share a name: {names}")
     new_geom = Geometry(link=geom.link, kind=geom.kind, pose=geom.pose, size=geom.size,
-                        rgba=geom.rgba, names=geoms)
+                        rgba=geom.rgba, names=geoms, materials=geom.materials)
     dof = lambda s: s if s.startswith("root_") else fn(s)
     return BodyModel(chain=_chain_with(chain, link_names=links, dof_names=dofs),
                      geometry=new_geom, keypoint_link=model.keypoint_link,
@@ -342,7 +343,8 @@ def swap_capsules(model: BodyModel, kind: str) -> BodyModel:
         kinds[cap] = BOX
         size[cap] = np.stack([r, r, h + r], -1)
     new_geom = Geometry(link=g.link, kind=jnp.asarray(kinds, g.kind.dtype), pose=g.pose,
-                        size=jnp.asarray(size, g.size.dtype), rgba=g.rgba, names=g.names)
+                        size=jnp.asarray(size, g.size.dtype), rgba=g.rgba, names=g.names,
+                        materials=g.materials)
     return BodyModel(chain=model.chain, geometry=new_geom, keypoint_link=model.keypoint_link,
                      keypoint_offset=model.keypoint_offset,
                      keypoint_names=model.keypoint_names, roles=model.roles)

@@ -280,6 +280,8 @@ def parse_geometry(robot: ET.Element, where: str = "<urdf>") -> list[dict]:
                     pose=_origin(vis, w),
                     size=size,
                     rgba=_rgba(vis, materials, w),
+                    material=(vis.find("material").get("name", "")
+                              if vis.find("material") is not None else ""),
                 )
             )
     return rows

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 
 from jaxmocap.body import BodyModel, default_body, load_body
+from jaxmocap.errors import InputError
 from jaxmocap.garment import Garment, default_garment, load_garment
 
 BODY_HELP = ("your body model: a URDF (.urdf) or MJCF (.xml) file, its roles in "
@@ -27,6 +28,12 @@ def add_body_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup,
                   garment: bool = True) -> None:
     """Add ``--body`` (and ``--garment``) to a command's parser."""
     parser.add_argument("--body", metavar="URDF_OR_MJCF", help=BODY_HELP)
+    parser.add_argument("--body-scale", type=float, default=1.0, metavar="S",
+                        help="a URDF's units in metres (pybullet's DeepMimic humanoid.urdf: "
+                        "0.25, as pybullet's globalScaling; default: %(default)s)")
+    parser.add_argument("--body-up", choices=("z", "y"), default="z",
+                        help="a URDF's up axis (pybullet's humanoid.urdf: y; default: "
+                        "%(default)s)")
     if garment:
         parser.add_argument("--garment", metavar="GARMENT_JSON", help=GARMENT_HELP)
 
@@ -34,7 +41,14 @@ def add_body_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup,
 def body_from_args(args: argparse.Namespace) -> BodyModel:
     """The body of ``--body`` (the bundled body without it)."""
     path = getattr(args, "body", None)
-    return load_body(path) if path else default_body()
+    scale, up = getattr(args, "body_scale", 1.0), getattr(args, "body_up", "z")
+    if not path:
+        if (scale, up) != (1.0, "z"):
+            raise InputError("--body-scale/--body-up describe a --body URDF; give --body")
+        return default_body()
+    if not scale > 0:
+        raise InputError(f"--body-scale: expected a positive number, got {scale}")
+    return load_body(path, scale=scale, up=up)
 
 
 def garment_from_args(args: argparse.Namespace, model: BodyModel, colors=None) -> Garment:

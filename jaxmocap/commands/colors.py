@@ -3,7 +3,10 @@ or with ``--white-balance`` one scribbled frame per camera of the capture's ligh
 initial white balance ``W0`` per camera (``white_balance.json``).
 
 Scribbles are a label image beside each photo: a single-channel PNG (8 or 16 bit) of the
-photo's size where pixel value ``k`` marks colour ``k`` (1..K) and 0 marks "no label".
+photo's size where pixel value ``k`` marks colour ``k`` (1..K) and 0 marks "no label". Masks
+written by another tool (e.g. values 0..9 with 255 = unlabelled) come with ``--labels
+labels.json``, a map ``{"<value>": "<colour name>" | "unlabelled" | "room"}`` that translates
+them (colour k = the k-th of ``--names`` / the garment's / the colour model's colours).
 
 ``white_balance.json``::
 
@@ -39,7 +42,7 @@ from jaxmocap.color import (
 )
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
-from jaxmocap.io.preflight import check_outputs, int_range
+from jaxmocap.io.preflight import check_outputs, int_range, read_json
 from jaxmocap.io.video import decode_image
 from jaxmocap.io.white_balance import (
     WhiteBalanceFileError,
@@ -111,7 +114,65 @@ def read_label_mask(path: str | os.PathLike) -> np.ndarray:
     return lab.astype(np.int32)
 
 
-def _read_pairs(args) -> tuple[list[np.ndarray], list[np.ndarray]]:
+UNLABELLED, ROOM = "unlabelled", "room"  # the label map's special names
+
+
+def read_label_map(path: str | os.PathLike) -> dict[int, str]:
+    """Another tool's label map (``--labels``): ``{"<mask value>": "<colour name>" |
+    "unlabelled" | "room"}``; one InputError line naming the file and the entry."""
+    path = Path(path)
+    data = read_json(path, "a label map of --labels (mask value -> colour name, 'unlabelled' "
+                     "or 'room')")
+    if not isinstance(data, dict) or not data:
+        raise InputError(f"{path}: expected an object {{\"<mask value>\": \"<colour name>\" | "
+                         f"\"{UNLABELLED}\" | \"{ROOM}\"}}")
+    out = {}
+    for k, v in data.items():
+        if not (isinstance(k, str) and k.isdigit() and int(k) <= 65535):
+            raise InputError(f"{path}: key {k!r}: expected a mask value 0..65535 (as a string)")
+        if not isinstance(v, str) or not v:
+            raise InputError(f"{path}: {k!r}: expected a colour name, {UNLABELLED!r} or {ROOM!r}")
+        out[int(k)] = v
+    if all(v in (UNLABELLED, ROOM) for v in out.values()):
+        raise InputError(f"{path}: names no colour (only {UNLABELLED!r}/{ROOM!r} values)")
+    return out
+
+
+def _label_names(mapping: dict[int, str]) -> list[str]:
+    """Colour names of a label map in the order of their smallest mask value."""
+    names: list[str] = []
+    for _, v in sorted(mapping.items()):
+        if v not in (UNLABELLED, ROOM) and v not in names:
+            names.append(v)
+    return names
+
+
+def _translate(args, labels: list[np.ndarray], names: list[str], room: int) -> list[np.ndarray]:
+    """The masks in our convention (k = the k-th of ``names``, 0 = none, ``room`` = room) from
+    another tool's values through ``--labels``."""
+    mapping = read_label_map(args.labels)
+    missing = [n for n in _label_names(mapping) if n not in names]
+    if missing:
+        raise InputError(f"{args.labels}: colours {missing} are not among {names}")
+    ids = {**{n: k + 1 for k, n in enumerate(names)}, UNLABELLED: 0, ROOM: room}
+    out = []
+    for mp, lab in zip(args.masks, labels, strict=True):
+        values = np.unique(lab)
+        unknown = [int(v) for v in values if int(v) not in mapping]
+        if unknown:
+            raise InputError(f"{mp}: mask values {unknown[:5]} are not in the label map "
+                             f"{args.labels}")
+        lut = np.zeros(int(values.max()) + 1, np.int32)
+        for v in values:
+            lut[int(v)] = ids[mapping[int(v)]]
+        out.append(lut[lab])
+    return out
+
+
+def _read_pairs(args, names: list[str] | None = None, room: int = 0
+                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Images and label masks; with ``--labels`` the masks are translated (colour names in the
+    order ``names``; default: the map's own order, which then names the model)."""
     if not args.images:
         raise InputError("--images: give at least one image")
     if len(args.masks or []) != len(args.images):
@@ -125,6 +186,9 @@ def _read_pairs(args) -> tuple[list[np.ndarray], list[np.ndarray]]:
                              f"is {img.shape[1]}x{img.shape[0]}; they must be the same size")
         images.append(img)
         labels.append(lab)
+    if getattr(args, "labels", None):
+        labels = _translate(args, labels, names or _label_names(read_label_map(args.labels)),
+                            room)
     return images, labels
 
 
@@ -165,7 +229,14 @@ def _garment_colours(args) -> tuple[str, ...] | None:
 
 def _run_model(args, out: Path) -> int:
     garment_names = _garment_colours(args)
-    images, labels = _read_pairs(args)
+    if getattr(args, "labels", None) and garment_names is None:
+        map_names = _label_names(read_label_map(args.labels))
+        if args.names and sorted(args.names) != sorted(map_names):
+            raise InputError(f"--names {args.names}: the label map {args.labels} names "
+                             f"{map_names}")
+        args.names = list(args.names or map_names)
+        args.n_colors = args.n_colors or len(args.names)
+    images, labels = _read_pairs(args, list(garment_names or args.names or []) or None)
     if garment_names is not None:
         args.names, args.n_colors = list(garment_names), len(garment_names)
     n = args.n_colors or int(max(lab.max() for lab in labels))
@@ -198,7 +269,7 @@ def _run_pf(args, out: Path) -> int:
     marks skin (the face), label 2 the shirt."""
     from jaxmocap.pf.colors import fit_capture_colors, save_capture_colors
 
-    images, labels = _read_pairs(args)
+    images, labels = _read_pairs(args, ["skin", "shirt"])
     counts = _check_labels(args.masks, labels, 2, need_all=True)
     colors = fit_capture_colors(images, [lab == 1 for lab in labels],
                                 [lab == 2 for lab in labels])
@@ -213,7 +284,13 @@ def _run_white_balance(args, out: Path) -> int:
     if not args.colors:
         raise InputError("--white-balance needs --colors colors.json (the colour model)")
     model: ColorModel = load_color_model(args.colors)
-    images, labels = _read_pairs(args)
+    if getattr(args, "labels", None):
+        if args.room_label is not None:
+            raise InputError(f"--room-label: the label map {args.labels} says which value is "
+                             f"the room ({ROOM!r}); leave --room-label out")
+        if ROOM in read_label_map(args.labels).values():
+            args.room_label = model.n_colors + 1
+    images, labels = _read_pairs(args, list(model.names), args.room_label or 0)
     names = args.names or [f"cam{i}" for i in range(len(images))]
     if len(names) != len(images) or len(set(names)) != len(names):
         raise InputError(f"--names: need {len(images)} distinct camera names, got {names}")
@@ -299,6 +376,11 @@ def add_parser(sub) -> None:
     p.add_argument("--room-label", type=int_range(1, 65535, "16-bit label values"),
                    metavar="V", help="with --white-balance: label V in the masks marks the room "
                    "(walls, floor, props); its colours become background for `jaxmocap track`")
+    p.add_argument("--labels", metavar="LABELS_JSON",
+                   help="masks written by another tool: a JSON map from mask value to colour "
+                   f"name, {UNLABELLED!r} or {ROOM!r} (e.g. {{\"0\": \"red\", ..., \"255\": "
+                   f"\"{UNLABELLED}\"}}); colour names follow --names / --garment / the colour "
+                   "model (--white-balance), else the map's order (by value)")
     p.add_argument("--room-colors", type=int_range(1, 64), default=16, metavar="N",
                    help="Gaussians of the room's colours with --room-label (default: "
                    "%(default)s)")
@@ -330,7 +412,7 @@ def run(args: argparse.Namespace) -> int:
         "pf_colors.json" if args.pf else "colors.json"
     out = check_output_file(args.out or default)
     check_outputs([out], [*args.images, *args.masks, args.colors, getattr(args, "body", None),
-                          getattr(args, "garment", None)])
+                          getattr(args, "garment", None), args.labels])
     if args.pf:
         return _run_pf(args, out)
     return _run_white_balance(args, out) if args.white_balance else _run_model(args, out)

@@ -51,7 +51,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxmocap.body import CAPSULE, CYLINDER, BodyModel, fk, keypoint_index, require_roles
-from jaxmocap.body.roles import CONTOUR_LIMBS, geom_support, limb_axis
+from jaxmocap.body.roles import (
+    CONTOUR_LIMBS,
+    geom_pose_in,
+    geom_support,
+    limb_axis,
+    owner_link,
+    rest_transforms,
+)
 from jaxmocap.camera import Camera, project
 from jaxmocap.errors import InputError
 from jaxmocap.rotations import so3_left_jacobian
@@ -166,24 +173,36 @@ def limb_model(
                    for e in limbs]
 
     p0, p1, rad, dep, side, link, names = [], [], [], [], [], [], []
+    rest = rest_transforms(model.chain)
     for name, geoms, axis in entries:
         unknown = [g for g in geoms if g not in geo.names]
         if unknown or not geoms:
+            where = (f"{model.roles.source}: limb_geoms[{name!r}]" if limbs is None
+                     else f"limb_model: limb {name!r}")
             raise InputError(
-                f"limb_model: limb {name!r}: unknown geoms {unknown or '(none)'}; the model "
-                f"has {geo.names}" + (f" (roles from {model.roles.source})" if limbs is None
-                                      else "")
+                f"{where}: " + (f"unknown geoms {unknown}" if unknown else "no geoms (the "
+                f"{name} link carries none that are not skin)") + "; name the limb's geoms "
+                f"in the roles file's 'limb_geoms' (the model's geoms: {geo.names})"
             )
         idx = [geo.names.index(g) for g in geoms]
-        if len({int(glink[g]) for g in idx}) != 1:
-            raise InputError(f"limb_model: limb {name!r}: geoms {geoms} lie on several links")
-        a, b, r, d, sd = fit_limb(model, idx, axis)
+        # geoms on fixed child links belong to the link they hang from
+        own = {int(glink[g]) for g in idx}
+        anchor = (model.chain.link_names.index(roles.link("chest" if name == "torso" else name))
+                  if limbs is None else min(own))
+        if any(owner_link(model.chain, li, {anchor}) is None for li in own):
+            raise InputError(
+                f"limb_model: limb {name!r}: geoms {geoms} lie on several links "
+                f"{[model.chain.link_names[li] for li in sorted(own)]} that no fixed joints "
+                "join" + (f" (roles from {model.roles.source}, field 'limb_geoms')"
+                          if limbs is None else ""))
+        poses = np.stack([geom_pose_in(model.chain, geo, g, anchor, rest) for g in idx])
+        a, b, r, d, sd = fit_limb(model, idx, axis, poses)
         p0.append(a)
         p1.append(b)
         rad.append(r)
         dep.append(d)
         side.append(sd)
-        link.append(int(glink[idx[0]]))
+        link.append(anchor)
         names.append(name)
     return LimbModel(
         p0=jnp.asarray(np.array(p0)),
@@ -196,13 +215,17 @@ def limb_model(
     )
 
 
-def fit_limb(model: BodyModel, geoms: Sequence[int], axis: np.ndarray | None
+def fit_limb(model: BodyModel, geoms: Sequence[int], axis: np.ndarray | None,
+             poses: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
     """(p0, p1, radius, depth, side) of the contour cylinder of ``geoms`` (one link) along
     the unit link-frame ``axis`` (None: a capsule/cylinder's own axis, else the direction of
-    the largest extent); see :func:`limb_model`."""
+    the largest extent); see :func:`limb_model`. ``poses``: the geoms' poses in the one link's
+    frame (default: their own ``geometry.pose``)."""
     geo = model.geometry
-    pose = np.asarray(geo.pose, np.float64)
+    pose = np.asarray(geo.pose, np.float64).copy()
+    if poses is not None:
+        pose[np.asarray(geoms)] = poses
     size = np.asarray(geo.size, np.float64)
     kind = np.asarray(geo.kind)
     g0 = geoms[0]

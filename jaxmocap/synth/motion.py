@@ -87,10 +87,27 @@ def driven_links(model: BodyModel, mapping: dict[str, str] = DEEPMIMIC_TO_BODY
     return tuple(roles.link(r) for r in mapping)
 
 
-@partial(jax.jit, static_argnums=(0,))
-def _deepmimic_q(groups, root_origin, lower, upper, arrays):
+def _shared_link_order(model: BodyModel, mapping: dict[str, str]) -> dict[str, str]:
+    """``mapping`` with one role per body link: where roles share a link (gymnasium's torso
+    is the root, the chest and the head) the link follows the role that owns its unnamed
+    geometry (:data:`~jaxmocap.body.roles._CONTAINER_ORDER`: the chest before the pelvis)."""
+    from jaxmocap.body.roles import _CONTAINER_ORDER
+
+    roles = require_roles(model, "clip_to_body_q")
+    rank = {r: i for i, r in enumerate(_CONTAINER_ORDER)}
+    best: dict[str, str] = {}
+    for role in mapping:
+        link = roles.link(role)
+        if link not in best or rank.get(role, 99) < rank.get(best[link], 99):
+            best[link] = role
+    keep = set(best.values())
+    return {r: v for r, v in mapping.items() if r in keep}
+
+
+@partial(jax.jit, static_argnums=(0, 5))
+def _deepmimic_q(groups, root_origin, lower, upper, arrays, mapping):
     clip = Clip(*arrays, name="", loop="none")
-    src = deepmimic_source(clip)
+    src = deepmimic_source(clip, dict(mapping))
     return _retarget_frames(groups, root_origin, lower, upper, src.root_pos, src.delta,
                             src.rest_dir)
 
@@ -106,12 +123,14 @@ def clip_to_body_q(clip: Clip, model: BodyModel | None = None, fps: float | None
     model = default_body() if model is None else model
     if fps is not None:
         clip = resample(clip, fps)
-    groups = plan(model, driven_links(model), role_bone_ends(model))
+    mapping = _shared_link_order(model, DEEPMIMIC_TO_BODY)
+    groups = plan(model, driven_links(model, mapping), role_bone_ends(model))
     n, nb = clip.n_frames, frame_bucket(clip.n_frames)
     arrays = tuple(pad_frames(a, nb) for a in
                    (clip.times, clip.root_pos, clip.root_quat, clip.joint_quat, clip.hinge))
     chain = model.chain
-    q, q_raw = _deepmimic_q(groups, chain.joint_origin[0], chain.lower, chain.upper, arrays)
+    q, q_raw = _deepmimic_q(groups, chain.joint_origin[0], chain.lower, chain.upper, arrays,
+                            tuple(mapping.items()))
     return Retargeted(q=q[:n], q_raw=q_raw[:n])
 
 

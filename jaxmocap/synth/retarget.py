@@ -18,7 +18,9 @@ decomposed exactly into the group's 1-DOF joints:
 * three orthogonal axes (ball joints ``*_x, *_y, *_z``): an Euler decomposition in the axes'
   order; of its two branches ``(a, b, c)`` and ``(a + pi, pi - b, c + pi)`` the one that
   violates the joint limits least is kept;
-* two axes (wrists): the Euler decomposition completed by the missing middle axis;
+* two axes (wrists): the Euler decomposition completed by the missing middle axis; two axes
+  whose missing third axis lies along the bone (gymnasium's shoulders, no twist): the swing
+  that reproduces the bone direction exactly (:func:`_swing`);
 * one axis (elbows): the hinge angle that best reproduces the child bone direction
   (projection onto the plane normal to the axis), exact when the source hinge is parallel.
 
@@ -212,6 +214,13 @@ def plan(model: BodyModel, links: tuple[str, ...],
             raise InputError(f"retarget: bone end {end!r} of {names[s]!r} is neither a "
                              "descendant link nor a keypoint")
         norm = np.linalg.norm(bone)
+        if norm < 1e-9 and end in model.keypoint_names and "neck" in model.keypoint_names:
+            # a head link whose origin is the head's centre (dm_control's humanoid): its bone
+            # runs from the neck keypoint on it to the end
+            k, kn = model.keypoint_names.index(end), model.keypoint_names.index("neck")
+            if kp_link[k] == s and kp_link[kn] == s:
+                bone = kp_off[k] - kp_off[kn]
+                norm = np.linalg.norm(bone)
         if norm < 1e-9 and names[s] not in links:  # not driven: its bone is never used
             bone, norm = np.array([0.0, 0.0, 1.0]), 1.0
         if norm < 1e-9:
@@ -257,6 +266,9 @@ def min_rotation(u: Float[Array, "*b 3"], v: Float[Array, "*b 3"]) -> Float[Arra
     return jnp.where(opposite[..., None, None], half, general)
 
 
+SWING_COS = np.cos(np.radians(30.0))  # a two-joint group whose missing axis is this near the bone
+
+
 def _wrap(a: Array) -> Array:
     return jnp.arctan2(jnp.sin(a), jnp.cos(a))
 
@@ -275,6 +287,9 @@ def _decompose(g: _Group, r: Array, lo: Array, hi: Array) -> Array:
         t = mv(r, d)
         d_perp = d - jnp.dot(a, d) * a
         return jnp.arctan2(jnp.dot(a, jnp.cross(d_perp, t)), jnp.dot(d_perp, t))[None]
+    if len(b) == 2 and abs(np.cross(b[0], b[1]) @ np.array(g.bone)) > SWING_COS * np.linalg.norm(
+            np.cross(b[0], b[1])):
+        return _swing(g, r, lo, hi)
     if len(b) == 2:
         p = np.stack([b[0], np.cross(b[1], b[0]), b[1]], axis=1)
         sign = np.sign(np.linalg.det(p))
@@ -288,6 +303,38 @@ def _decompose(g: _Group, r: Array, lo: Array, hi: Array) -> Array:
     alt = _wrap(jnp.stack([e[0] + jnp.pi, jnp.pi - e[1], e[2] + jnp.pi]))
     flip = jnp.asarray([1.0, 1.0, sign], dtype=dt)
     e, alt = e * flip, alt * flip
+    return jnp.where(_violation(alt, lo, hi) < _violation(e, lo, hi), alt, e)
+
+
+def _rotate(a: Array, v: Array, t: Array) -> Array:
+    """Rodrigues: ``v`` rotated by ``t`` about the unit axis ``a``."""
+    c, s_ = jnp.cos(t), jnp.sin(t)
+    return v * c + jnp.cross(a, v) * s_ + a * jnp.dot(a, v) * (1.0 - c)
+
+
+def _swing(g: _Group, r: Array, lo: Array, hi: Array) -> Array:
+    """Two joints whose missing third axis is the bone (gymnasium's shoulders: no twist): the
+    angles ``(t1, t2)`` with ``R_a1(t1) R_a2(t2) u = r u`` for the bone ``u`` -- the bone
+    direction exactly, the twist given up. ``a1 . R_a2(t2) u = a1 . r u`` fixes ``t2`` (two
+    roots), then ``t1`` turns ``R_a2(t2) u`` onto ``r u`` about ``a1``; of the two branches the
+    one that violates the limits least."""
+    dt = r.dtype
+    a1, a2 = (jnp.asarray(np.array(a), dtype=dt) for a in g.axes)
+    u = jnp.asarray(np.array(g.bone), dtype=dt)
+    t = mv(r, u)
+    k = jnp.dot(a1, a2) * jnp.dot(a2, u)
+    big_a, big_b = jnp.dot(a1, u) - k, jnp.dot(a1, jnp.cross(a2, u))
+    rho = jnp.sqrt(big_a**2 + big_b**2)
+    phi = jnp.arctan2(big_b, big_a)
+    off = jnp.arccos(jnp.clip((jnp.dot(a1, t) - k) / jnp.maximum(rho, 1e-12), -1.0, 1.0))
+
+    def branch(t2):
+        v = _rotate(a2, u, t2)
+        vp, tp = v - jnp.dot(a1, v) * a1, t - jnp.dot(a1, t) * a1
+        t1 = jnp.arctan2(jnp.dot(a1, jnp.cross(vp, tp)), jnp.dot(vp, tp))
+        return jnp.stack([t1, _wrap(t2)])
+
+    e, alt = branch(phi + off), branch(phi - off)
     return jnp.where(_violation(alt, lo, hi) < _violation(e, lo, hi), alt, e)
 
 
