@@ -15,21 +15,19 @@ from hypothesis import given, settings
 from jaxmocap import camera as jc
 from jaxmocap.camera import (
     Camera,
-    CameraFileError,
     camera_center,
     epipolar_distance,
     epipolar_distance_undistorted,
     fundamental_matrix,
-    load_cameras,
     look_at,
     pixel_rays,
     project,
-    save_cameras,
     stack_cameras,
     to_camera,
     triangulate,
     undistort_normalized,
 )
+from jaxmocap.io.cameras import CameraFileError, load_cameras, save_cameras
 
 W, H = 640, 480
 WEBCAM_DIST = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.012])  # realistic webcam lens

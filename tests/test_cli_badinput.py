@@ -19,13 +19,14 @@ import pytest
 from test_cli import run_cli
 
 from jaxmocap.body import default_body
-from jaxmocap.camera import look_at, save_cameras
+from jaxmocap.camera import look_at
 from jaxmocap.color import ColorModel, save_color_model
 from jaxmocap.commands import track as track_cmd
 from jaxmocap.commands.colors import save_white_balance
 from jaxmocap.errors import InputError
 from jaxmocap.garment import default_garment
 from jaxmocap.io.atomic import STAGING, AtomicFiles, sweep_temporaries
+from jaxmocap.io.cameras import save_cameras
 from jaxmocap.io.preflight import read_npz
 
 W, H, T = 48, 36, 3

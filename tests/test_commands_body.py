@@ -81,7 +81,8 @@ def test_build_db_for_your_body_and_refusal(tmp_path, capsys):
     assert meta["garment_digest"] == garment_digest(garment)
     assert meta["dof_names"] == list(body.chain.dof_names)
     capsys.readouterr()
-    from jaxmocap.camera import look_at, save_cameras
+    from jaxmocap.camera import look_at
+    from jaxmocap.io.cameras import save_cameras
 
     save_cameras(tmp_path / "cams.json", [look_at([2.5, 0, 1.2], [0, 0, 1.1], width=32,
                                                   height=24, fx=30.0)])  # fmt: skip

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 from test_cli import assert_refused, run_cli
 
 from jaxmocap.calibration import board_points, render_checkerboard
-from jaxmocap.camera import Camera, load_cameras, project
+from jaxmocap.camera import Camera, project
 from jaxmocap.commands.calibrate import bundle_adjust
+from jaxmocap.io.cameras import load_cameras
 
 W, H = 200, 150
 PATTERN, SQUARE = (5, 4), 0.05

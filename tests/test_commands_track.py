@@ -18,8 +18,9 @@ from bvh import Bvh
 from test_cli import assert_refused, run_cli
 
 from jaxmocap.body import default_body, keypoints
-from jaxmocap.camera import look_at, save_cameras
+from jaxmocap.camera import look_at
 from jaxmocap.commands import track as track_cmd
+from jaxmocap.io.cameras import save_cameras
 
 W, H, T = 48, 36, 3
 

@@ -12,8 +12,9 @@ import pytest
 from test_cli import run_cli
 from test_cli_badinput import _Fixed
 
-from jaxmocap.camera import look_at, save_cameras
+from jaxmocap.camera import look_at
 from jaxmocap.commands import track as track_cmd
+from jaxmocap.io.cameras import save_cameras
 from jaxmocap.io.video import SyncReader, VideoError, quiet_ffmpeg, resample_to_first
 
 H, W = 48, 64

@@ -222,7 +222,7 @@ def yaw_table(dataset: str, folder: str, bins=(0, 30, 60, 90, 120, 180)) -> dict
     its most frontal camera (the one the database query sees best) and by the least frontal.
     The facing direction is the ground truth's shoulder axis x up (no body naming beyond the
     keypoint roles ``l_shoulder`` / ``r_shoulder`` / ``neck``)."""
-    from jaxmocap.camera import load_cameras
+    from jaxmocap.io.cameras import load_cameras
 
     rows = []
     for name, d in _load(folder).items():
@@ -273,9 +273,9 @@ def database_views(dataset: str, joints: list[str], bins=(0, 30, 60, 90, 120, 18
     import jax.numpy as jnp
 
     from jaxmocap.body import keypoints
-    from jaxmocap.camera import load_cameras
     from jaxmocap.experiment import cell
     from jaxmocap.experiment.config import dataset_sequences
+    from jaxmocap.io.cameras import load_cameras
     from jaxmocap.posedb import load_or_build
     from jaxmocap.posedb._search import estimate_pose, tiny_from_classified
 

@@ -33,9 +33,10 @@ from jaxmocap.calibration import (
     calibrate_camera,
     find_corners,
 )
-from jaxmocap.camera import Camera, project, save_cameras
+from jaxmocap.camera import Camera, project
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
+from jaxmocap.io.cameras import save_cameras
 from jaxmocap.io.preflight import check_outputs, int_range, positive_float
 from jaxmocap.io.video import VideoError, check_frame_rates, open_source, quiet_ffmpeg
 

@@ -33,9 +33,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jaxmocap.camera import Camera, load_cameras
+from jaxmocap.camera import Camera
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
+from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.overlay import BONES, draw_skeleton
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float

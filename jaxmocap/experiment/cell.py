@@ -400,8 +400,8 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
 def _world_metrics(gt_folder: str, frame_err, valid, good_cm: float, result: dict):
     """:func:`jaxmocap.experiment.world_metrics.world_metrics` of the cell (None without
     visibility ground truth)."""
-    from jaxmocap.camera import load_cameras
     from jaxmocap.experiment.world_metrics import RECOVER_CM, world_metrics
+    from jaxmocap.io.cameras import load_cameras
 
     with np.load(Path(gt_folder) / "groundtruth.npz") as z:
         gt = {k: z[k] for k in ("occluded_fraction", "visible", "keypoints", "keypoint_names",

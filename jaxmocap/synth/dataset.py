@@ -5,7 +5,7 @@ A dataset folder holds
 * ``scene.json`` — ``{"version": 1, "scene": {SceneConfig fields}, "render": {...}}``: every
   setting (with the seed it regenerates the sequence bit-identically on the same machine
   and dtype, recorded in ``render.dtype``);
-* ``cameras.json`` — the rig (:func:`jaxmocap.camera.save_cameras`);
+* ``cameras.json`` — the rig (:func:`jaxmocap.io.cameras.save_cameras`);
 * ``groundtruth.npz`` — the ground truth of :func:`~jaxmocap.synth.sequence.render_sequence`;
 * ``<camera>.mp4`` — one video per camera (``mp4v``, lossy), and/or with ``--png``
   ``<camera>/000000.png, ...`` lossless frames.
@@ -24,8 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jaxmocap.camera import load_cameras, save_cameras
 from jaxmocap.errors import InputError
+from jaxmocap.io.cameras import load_cameras, save_cameras
 from jaxmocap.synth.scene import SCENE_JSON_VERSION, SceneConfig, SceneError
 from jaxmocap.synth.sequence import Sequence
 
