@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxmocap.body.roles import load_body, read_roles_file
+from jaxmocap.body import load_body, read_roles_file
 from jaxmocap.errors import InputError
 from jaxmocap.experiment.config import ExperimentError, _split_names, load_config
 from jaxmocap.garment import load_garment

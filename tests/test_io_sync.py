@@ -15,7 +15,8 @@ from test_cli_badinput import _Fixed
 from jaxmocap.camera import look_at
 from jaxmocap.commands import track as track_cmd
 from jaxmocap.io.cameras import save_cameras
-from jaxmocap.io.video import SyncReader, VideoError, quiet_ffmpeg, resample_to_first
+from jaxmocap.io.sync import SyncReader, resample_to_first
+from jaxmocap.io.video import VideoError, quiet_ffmpeg
 
 H, W = 48, 64
 

@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from jaxmocap.io.video import SyncReader, VideoError, VideoWriter, open_source, quiet_ffmpeg
+from jaxmocap.io.sync import SyncReader
+from jaxmocap.io.video import VideoError, VideoWriter, open_source, quiet_ffmpeg
 
 H, W = 24, 32
 

@@ -6,13 +6,13 @@ pytorch-kinematics, converted once to JAX arrays. See ``chain`` for the pose-vec
 
 from .chain import FIXED, PRISMATIC, REVOLUTE, ROOT_DOFS, KinematicChain, fk, so3_exp
 from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, KIND_NAMES, SPHERE, Geometry
+from .load import default_body, load_body
 from .mjcf import load_mjcf
 from .model import (
     KEYPOINT_NAMES,
     STEREO_JOINTS,
     BodyModel,
     clip_to_limits,
-    default_body,
     dof_index,
     expand_q,
     geom_world_poses,
@@ -29,7 +29,6 @@ from .roles import (
     BodyRoles,
     body_digest,
     infer_roles,
-    load_body,
     read_roles_file,
     require_roles,
     roles_path,

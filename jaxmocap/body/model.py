@@ -8,7 +8,6 @@ the stereo particle filter's 3D distance cue uses head and hand positions (Azad 
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,12 +18,8 @@ from jaxtyping import Array, Float, Int
 
 from .chain import ROOT_DOFS, KinematicChain, fk
 from .geometry import ArrayLike, Geometry
-from .roles import BodyRoles, require_roles
+from .roles import KEYPOINT_NAMES, BodyRoles, require_roles
 
-KEYPOINT_NAMES = (
-    "pelvis", "chest", "neck", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
-    "l_wrist", "r_wrist", "l_hand", "r_hand",
-)  # fmt: skip
 ROOT_DOF_NAMES = ("root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz")
 # Azad et al. 2007 §III.A: 6 root DOFs + 3 per shoulder + 1 per elbow = 14 DOFs (joint roles).
 STEREO_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow")
@@ -168,22 +163,8 @@ def rest_pose(model: BodyModel, dtype=None) -> Float[Array, " n_dof"]:
     return jnp.zeros((model.n_dof,), dtype=dtype)
 
 
-@functools.cache
-def default_body() -> BodyModel:
-    """The bundled generic adult upper body (``data/upper_body.urdf``), loaded once, with its
-    roles inferred from its names and the keypoints :data:`DEFAULT_KEYPOINTS` (which are what
-    the roles' keypoint rules give; tests/test_body_roles.py checks it)."""
-    from .roles import infer_roles
-    from .urdf import load_urdf
-
-    model = load_urdf(DEFAULT_URDF)
-    kp = {k: (link, tuple(float(v) for v in off)) for k, (link, off) in DEFAULT_KEYPOINTS.items()}
-    roles = infer_roles(model.chain, model.geometry, DEFAULT_URDF, {"keypoints": kp})
-    return make_body_model(model.chain, model.geometry, DEFAULT_KEYPOINTS, roles=roles)
-
-
 __all__ = [
     "KEYPOINT_NAMES", "ROOT_DOFS", "BodyModel", "make_body_model", "keypoints",
     "keypoints_from_transforms", "geom_world_poses", "keypoint_index", "dof_index",
-    "stereo_dofs", "expand_q", "clip_to_limits", "rest_pose", "default_body",
+    "stereo_dofs", "expand_q", "clip_to_limits", "rest_pose",
 ]  # fmt: skip

@@ -71,6 +71,10 @@ from .chain import FIXED, ROOT_DOFS, KinematicChain, path_to_root
 from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, Geometry
 
 SIDES = ("l", "r")
+KEYPOINT_NAMES = (
+    "pelvis", "chest", "neck", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
+    "l_wrist", "r_wrist", "l_hand", "r_hand",
+)  # fmt: skip
 LIMB_PARTS = ("upper_arm", "forearm", "hand")
 LINK_ROLES = ("pelvis", "chest", "neck", "head") + tuple(
     f"{s}_{p}" for s in SIDES for p in LIMB_PARTS
@@ -527,7 +531,6 @@ def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, st
     """The keypoint rules of the module docstring for every keypoint not in ``skip`` (those
     the roles file gives: a keypoint given there is never derived, so a head link without
     geometry is no error when the file places the head)."""
-    from .model import KEYPOINT_NAMES
 
     rest = rest_transforms(chain)
     idx = {r: chain.link_names.index(n) for r, n in links.items()}
@@ -682,7 +685,6 @@ def derive_roles(
             if n not in chain.dof_names:
                 raise InputError(f"{where}: mirror names unknown joint {n!r}; joints: "
                                  f"{chain.dof_names[ROOT_DOFS:]}")
-    from .model import KEYPOINT_NAMES
 
     given = dict(keypoints or {})
     kp = {} if set(KEYPOINT_NAMES) <= set(given) else _keypoints(
@@ -777,7 +779,6 @@ def read_roles_file(path: str | os.PathLike) -> dict:
         raise InputError(f"{path}: 'mirror' must be a list of [left joint, right joint] pairs")
     kps = data.get("keypoints")
     if kps is not None:
-        from .model import KEYPOINT_NAMES
 
         ok = isinstance(kps, dict) and all(
             k in KEYPOINT_NAMES and isinstance(v, list) and len(v) == 2 and isinstance(v[0], str)
@@ -803,62 +804,6 @@ def roles_to_json(roles: BodyRoles) -> dict:
         "mirror": [[a, b] for a, b, _ in roles.mirror if (b, a) not in pairs or a <= b],
         "keypoints": {k: [link, list(off)] for k, link, off in roles.keypoints},
     }
-
-
-# ----------------------------------------------------------------------------- loading
-MODEL_SUFFIXES = {".urdf": "urdf", ".xml": "mjcf", ".mjcf": "mjcf"}
-
-
-def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | None = None, *,
-              scale: float = 1.0, up: str = "z"):
-    """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
-    roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
-    beside the model if it exists, else inferred from the names) and the 12 keypoints placed
-    from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
-    named like one of the 12 places that keypoint). ``scale``/``up``: a URDF's units and up
-    axis (:func:`~jaxmocap.body.load_urdf`). Bad files and missing roles: one
-    :class:`InputError`."""
-    from .mjcf import load_mjcf
-    from .model import make_body_model
-    from .urdf import load_urdf
-
-    path = Path(path)
-    kind = MODEL_SUFFIXES.get(path.suffix.lower())
-    if kind is None:
-        raise InputError(f"{path}: a body model must be a URDF (.urdf) or MJCF (.xml, .mjcf) file")
-    if not path.is_file():
-        raise InputError(f"{path}: body model file not found")
-    try:
-        if kind == "mjcf" and (scale != 1.0 or up != "z"):
-            raise InputError(f"{path}: scale/up apply to URDF files (MJCF is metres, z up)")
-        model = load_urdf(path, scale=scale, up=up) if kind == "urdf" else load_mjcf(path)
-    except InputError:
-        raise
-    except (ValueError, RuntimeError, KeyError) as e:
-        msg = " ".join(str(e).split())
-        raise InputError(msg if str(path) in msg else f"{path}: {msg}") from None
-    from .model import KEYPOINT_NAMES
-
-    # MJCF <site> markers (load_mjcf's keypoints): a site named like one of the 12 keypoints
-    # places it (under the roles file's keypoints), the others are kept as extra keypoints
-    links = np.asarray(model.keypoint_link).tolist()
-    offsets = np.asarray(model.keypoint_offset, np.float64)
-    sites = {k: (model.chain.link_names[links[i]], tuple(float(v) for v in offsets[i]))
-             for i, k in enumerate(model.keypoint_names)}
-    if not isinstance(roles, BodyRoles):
-        file = Path(roles) if roles is not None else roles_path(path)
-        overrides = read_roles_file(file) if (roles is not None or file.is_file()) else {}
-        named = {k: v for k, v in sites.items() if k in KEYPOINT_NAMES}
-        if named:
-            overrides["keypoints"] = {**named, **overrides.get("keypoints", {})}
-        roles = infer_roles(model.chain, model.geometry, path, overrides)
-        turned = face_forward(model.chain, roles)
-        if turned is not model.chain:  # roles again: the mirror pairs are found at rest
-            model = eqx.tree_at(lambda m: m.chain, model, turned)
-            roles = infer_roles(model.chain, model.geometry, path, overrides)
-    table = roles.keypoint_table()
-    table.update({k: v for k, v in sites.items() if k not in table})
-    return make_body_model(model.chain, model.geometry, table, roles=roles)
 
 
 def face_forward(chain: KinematicChain, roles: BodyRoles) -> KinematicChain:

@@ -45,7 +45,8 @@ from jaxmocap.errors import InputError
 
 from .chain import KinematicChain
 from .geometry import BOX, CAPSULE, CYLINDER, ELLIPSOID, SPHERE, Geometry
-from .model import BodyModel, default_body, keypoint_index
+from .load import default_body
+from .model import BodyModel, keypoint_index
 
 REFERENCE_PELVIS_HEIGHT = 0.87  # m, standing pelvis height of the motion source (docstring)
 MEASUREMENTS = ("height", "shoulder_width", "upper_arm", "forearm")

@@ -38,7 +38,8 @@ from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import check_output_file
 from jaxmocap.io.cameras import save_cameras
 from jaxmocap.io.preflight import check_outputs, int_range, positive_float
-from jaxmocap.io.video import VideoError, check_frame_rates, open_source, quiet_ffmpeg
+from jaxmocap.io.sync import check_frame_rates
+from jaxmocap.io.video import VideoError, open_source, quiet_ffmpeg
 
 __all__ = ["BundleResult", "add_parser", "bundle_adjust", "parse_board", "run"]
 

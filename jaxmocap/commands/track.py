@@ -40,7 +40,8 @@ from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.overlay import BONES, draw_skeleton
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
-from jaxmocap.io.video import SYNC_MODES, SyncReader, VideoWriter, quiet_ffmpeg
+from jaxmocap.io.sync import SYNC_MODES, SyncReader
+from jaxmocap.io.video import VideoWriter, quiet_ffmpeg
 from jaxmocap.trackers.driver import (
     MAX_PARTICLES,
     VALIDITY,
