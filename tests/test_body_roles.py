@@ -37,10 +37,9 @@ from jaxmocap.garment import (
     default_garment,
     garment_digest,
     garment_from_model,
-    load_garment,
     patch_at,
-    save_garment,
 )
+from jaxmocap.io.garment_file import load_garment, save_garment
 from jaxmocap.pf import cues
 from jaxmocap.posedb import mirror_pose, mirror_table
 

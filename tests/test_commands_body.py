@@ -15,7 +15,8 @@ from _foreign_body import foreign_urdf
 from jaxmocap.body import body_digest, default_body, load_body
 from jaxmocap.body.roles import rest_transforms
 from jaxmocap.cli import main
-from jaxmocap.garment import garment_digest, garment_from_model, save_garment
+from jaxmocap.garment import garment_digest, garment_from_model
+from jaxmocap.io.garment_file import save_garment
 from jaxmocap.trackers.shirt.covariances import (
     AXIS_COS,
     DEFAULT_BLEND_STD,

@@ -141,7 +141,7 @@ def test_model_named_by_garment(tmp_path, capsys):
     so the garment loads against the model with the same colour ids."""
     from jaxmocap.body import default_body
     from jaxmocap.color import load_color_model
-    from jaxmocap.garment import load_garment
+    from jaxmocap.io.garment_file import load_garment
 
     names = ["yellow", "red", "blue", "green"]  # the file's order, not alphabetical
     garment = {"format": "jaxmocap.garment", "version": 1,

@@ -136,7 +136,7 @@ def test_the_papers_layout_and_the_bodys_own_colours_stay(models):
 def test_garment_json_from_another_tool(models, tmp_path, capsys):
     """Patches by link (taking the link's fixed child visuals) and by geom, American
     spellings, and extra fields ignored with one note on stderr naming them."""
-    from jaxmocap.garment import load_garment
+    from jaxmocap.io.garment_file import load_garment
 
     model = models["deepmimic"]
     spec = {

@@ -12,7 +12,7 @@ import pytest
 from jaxmocap.body import load_body, read_roles_file
 from jaxmocap.errors import InputError
 from jaxmocap.experiment.config import ExperimentError, _split_names, load_config
-from jaxmocap.garment import load_garment
+from jaxmocap.io.garment_file import load_garment
 from jaxmocap.io.preflight import MAX_JSON_DEPTH, read_json, read_text
 
 DEEP = "[" * 100_000 + "]" * 100_000  # RecursionError in json.loads

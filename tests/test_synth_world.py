@@ -119,7 +119,7 @@ def test_dataset_round_trip(world_seq, tmp_path):
     # the subject's body and shirt as files: roles inferred from the mixamo names, the
     # garment.json loads against the URDF body with the world's patches
     from jaxmocap.body import keypoints, load_body
-    from jaxmocap.garment import load_garment
+    from jaxmocap.io.garment_file import load_garment
 
     for body_file in ("body.urdf", "body.xml"):
         body = load_body(folder / body_file)

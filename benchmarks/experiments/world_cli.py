@@ -48,7 +48,7 @@ def main() -> int:
     args = ap.parse_args()
     from jaxmocap.body import load_body
     from jaxmocap.experiment.cell import scribble_frames
-    from jaxmocap.garment import load_garment
+    from jaxmocap.io.garment_file import load_garment
     from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers.shirt import SCRIBBLE_EROSION, scribbles
 

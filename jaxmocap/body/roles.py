@@ -50,6 +50,12 @@ the elbow's (a hand geom on the forearm link, a wrist link fixed at the elbow) t
 hand geom's end nearest the elbow, and where the head has no joint of its own the neck is the
 head geom's end nearest the chest. The roles file may override any keypoint; the keypoints it
 does not give are placed by these rules.
+
+Why one file: role inference is one algorithm over names and geometry together -- the name
+rules ask which geoms a link owns (roles from geom names, skin materials), the geometry rules
+ask the roles found so far (ownership of fixed child links, the torso's crosswise capsules,
+keypoints from the role geoms), and the derivation joins both; split, each part imports the
+others. Loading a body (which joins these roles to the file readers) is :mod:`.load`.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 ``--body FILE`` is a URDF (``.urdf``) or MJCF (``.xml``/``.mjcf``) file; its roles come from
 ``<stem>.roles.json`` beside it or are inferred from the names
 (:func:`jaxmocap.body.load_body`). ``--garment FILE`` is a ``garment.json``
-(:func:`jaxmocap.garment.load_garment`); without it the paper's 20-patch shirt is laid out on
-the body by its roles (:func:`jaxmocap.garment.default_garment`), which refuses, in one line,
+(:func:`jaxmocap.io.garment_file.load_garment`); without it the paper's 20-patch shirt is laid
+out on the body by its roles (:func:`jaxmocap.garment.default_garment`), which refuses, in one line,
 a body where that layout does not fit. Both default to the bundled body and shirt. Every
 problem is one :class:`~jaxmocap.errors.InputError` (exit code 2) before any work.
 """
@@ -15,7 +15,8 @@ import argparse
 
 from jaxmocap.body import BodyModel, default_body, load_body
 from jaxmocap.errors import InputError
-from jaxmocap.garment import Garment, default_garment, load_garment
+from jaxmocap.garment import Garment, default_garment
+from jaxmocap.io.garment_file import load_garment
 
 BODY_HELP = ("your body model: a URDF (.urdf) or MJCF (.xml) file, its roles in "
              "<stem>.roles.json beside it or inferred from its link names (default: the bundled "

@@ -71,7 +71,8 @@ def _body(cfg: dict, folder=None):
 
 
 def _garment(cfg: dict, body, folder=None):
-    from jaxmocap.garment import default_garment, load_garment
+    from jaxmocap.garment import default_garment
+    from jaxmocap.io.garment_file import load_garment
 
     path = _sequence_file(cfg, "garment", folder)
     return default_garment(body) if path is None else load_garment(path, body)

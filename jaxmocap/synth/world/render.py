@@ -257,10 +257,10 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
     """Write ``seq`` as a dataset folder (the layout of :func:`jaxmocap.synth.write_dataset`,
     read by :func:`jaxmocap.synth.load_dataset`), atomically, plus ``body.urdf`` and
     ``body.xml`` (the subject's body as the world names it), ``garment.json`` (its shirt on
-    that body, :func:`jaxmocap.garment.save_garment`) and, in ``scene.json``,
+    that body, :func:`jaxmocap.io.garment_file.save_garment`) and, in ``scene.json``,
     ``render.renderer = "mujoco"`` and ``world`` (the :class:`WorldSpec`)."""
     from jaxmocap.body.write import write_mjcf, write_urdf
-    from jaxmocap.garment import save_garment
+    from jaxmocap.io.garment_file import save_garment
     from jaxmocap.synth.dataset import _check_target, write_dataset
     from jaxmocap.synth.sequence import Sequence
 
