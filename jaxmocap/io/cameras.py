@@ -315,8 +315,10 @@ def load_cameras(path: str | os.PathLike, dtype=None) -> tuple[list[Camera], lis
     dtype = jnp.result_type(float) if dtype is None else dtype
     try:
         with open(path, "rb") as f:
-            head = f.read(4096).decode("utf-8", errors="replace")
-        kind = _file_kind(path, head)
+            raw = f.read(4096)
+        head = raw.decode("utf-8", errors="replace")
+        # binary content: the reader layer (read_json) says why in its one line
+        kind = "json" if b"\x00" in raw or "\ufffd" in head[:-4] else _file_kind(path, head)
     except OSError:
         kind = "json"  # read_json says why it cannot be read
     if kind == "toml":

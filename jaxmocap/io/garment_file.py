@@ -189,6 +189,6 @@ def garment_to_json(garment: Garment, model: BodyModel) -> dict:
 
 def save_garment(path: str | os.PathLike, garment: Garment, model: BodyModel) -> Path:
     """Write ``garment`` as a ``garment.json`` (atomically)."""
-    from .io.atomic import write_text
+    from jaxmocap.io.atomic import write_text
 
     return write_text(path, json.dumps(garment_to_json(garment, model), indent=1) + "\n")

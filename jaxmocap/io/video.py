@@ -33,6 +33,7 @@ Part 2 (``mp4v``) and says so in one line.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import os
@@ -140,8 +141,9 @@ def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR
             return None, "empty file"
     except OSError as e:
         return None, e.strerror
-    if _IMAGE_LOG is None:
+    if _IMAGE_LOG is None:  # one capture file for the process, closed at exit
         _IMAGE_LOG = _DecoderLog()
+        atexit.register(_IMAGE_LOG.close)
     with _IMAGE_LOG.capture() as said:
         try:
             img = cv2.imread(str(path), flags)
