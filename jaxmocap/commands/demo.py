@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxmocap.errors import UsageError
+from jaxmocap.trackers.driver import PF_JOINTS, SHIRT_JOINTS
 from jaxmocap.trackers.shirt.export import (
     DEMO_CLIP,
     DEMO_DB_SIZE,
@@ -41,9 +42,6 @@ from jaxmocap.trackers.shirt.export import (
     demo_setup,
 )
 
-EVAL_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
-               "neck", "chest")  # what the shirt's patches observe
-PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")  # Azad's
 BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"), ("chest", "l_shoulder"),
          ("chest", "r_shoulder"), ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"),
          ("l_wrist", "l_hand"), ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"),
@@ -181,13 +179,13 @@ def run(args: argparse.Namespace) -> int:
     names = list(model.keypoint_names)
     kp_true = np.asarray(seq.groundtruth["keypoints"], np.float64)
     err = np.linalg.norm(track.keypoints - kp_true, axis=-1) * 100.0  # cm
-    eval_idx = [names.index(j) for j in EVAL_JOINTS]
+    eval_idx = [names.index(j) for j in SHIRT_JOINTS]
     warm = step_s[1:] if step_s.size > 1 else step_s
     print(f"  tracked {len(step_s)} frames: first step {step_s[0]:.1f} s (compilation), then "
           f"{1e3 * np.median(warm):.0f} ms/frame ({1.0 / np.median(warm):.1f} fps); "
           f"valid frames {int(track.valid.sum())}/{len(step_s)}")
     print("  mean per-joint position error (cm), shirt tracker vs ground truth:")
-    for j, i in zip(EVAL_JOINTS, eval_idx, strict=True):
+    for j, i in zip(SHIRT_JOINTS, eval_idx, strict=True):
         print(f"    {j:12s} {np.nanmean(err[:, i]):6.1f}")
     overall = float(np.nanmean(err[:, eval_idx]))
     print(f"    {'mean':12s} {overall:6.1f}")
@@ -211,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         "db_size": DEMO_DB_SIZE, "lamp_off": config.lamp_off, "occluder": config.occluder,
         "shirt": {"mean_error_cm": overall,
                   "per_joint_error_cm": {j: float(np.nanmean(err[:, i]))
-                                         for j, i in zip(EVAL_JOINTS, eval_idx, strict=True)},
+                                         for j, i in zip(SHIRT_JOINTS, eval_idx, strict=True)},
                   "median_step_ms": float(1e3 * np.median(warm)),
                   "first_step_s": float(step_s[0]),
                   "valid_frames": int(track.valid.sum()),

@@ -7,8 +7,8 @@ metrics (in the driver, which writes the cell's folder):
 
 * per-joint error (cm) through :func:`jaxmocap.metrics.evaluate` (the frames the
   tracker reported valid) on the method's evaluated joints (the shirt: what its patches observe,
-  ``jaxmocap.demo.EVAL_JOINTS``; the stereo filter: Azad's shoulders, elbows and hands,
-  ``jaxmocap.demo.PF_JOINTS``);
+  ``jaxmocap.trackers.driver.SHIRT_JOINTS``; the stereo filter: Azad's shoulders, elbows and
+  hands, ``jaxmocap.trackers.driver.PF_JOINTS``);
 * the mean error over *all* frames of the raw estimate (what the accuracy scripts report: the
   shirt tracker holds its last pose on an invalid frame), the share of frames whose reported
   pose is within ``good_cm`` of the truth;
@@ -31,10 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxmocap.errors import InputError
+from jaxmocap.trackers.driver import PF_JOINTS, SHIRT_JOINTS
 
-SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
-                "neck", "chest")  # = jaxmocap.demo.EVAL_JOINTS (not imported: demo is heavy)
-PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 ISOTROPIC_COV = (2.0, 0.3, 0.5)  # px, blend std, prior std (setup_for_sequence's default)
 SCRIBBLE_FRAMES = 3  # colors = "scribbles": frames of the capture the user scribbles on
 SCRIBBLE_MIN_PIXELS = 20  # a colour with fewer scribbled pixels is scribbled on a later frame

@@ -38,6 +38,12 @@ from jaxmocap.errors import InputError
 from jaxmocap.io.overlay import OVERLAY_ALPHA, draw_skeleton
 
 MAX_PARTICLES = 100_000
+# The joints each tracker observes, on which its accuracy is reported (demo, experiment cells):
+# the shirt's patches see the shoulders, elbows, wrists, neck and chest (Wang Fig. 9); Azad's
+# filter reports shoulders, elbows and hands (the 14-DOF arm model).
+SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
+                "neck", "chest")
+PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 
 # The shirt tracker's per-frame validity rule (``shirt.make_params``): the paper's (§5.2: the
 # agreement gate engages once step 1 classifies 20% of a crop), or the one calibrated on the
@@ -450,6 +456,8 @@ def sequence_frames(frames: np.ndarray):
 
 
 __all__ = [
+    "PF_JOINTS",
+    "SHIRT_JOINTS",
     "VALIDITY",
     "FrameResult",
     "FrameTracker",

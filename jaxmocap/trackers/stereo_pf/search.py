@@ -137,7 +137,7 @@ def search_entities(
     metres. Returns (points, valid) with the found entities filled in (the others as given).
     ``skin_maps``: :func:`relaxed_skin` of both images if already computed."""
     if params.colors is None:
-        raise InputError("stereo_pf_search: the guided search needs the capture's colours "
+        raise InputError("stereo_pf.search: the guided search needs the capture's colours "
                          "(make_params(colors=...))")
     cams = params.likelihood.cams
     points = np.array(points, np.float64)
@@ -209,7 +209,7 @@ def observe_search(
     estimates. Returns the stacked observations and a log: ``found`` (T, 3) the entities the
     search added."""
     if params.colors is None:
-        raise InputError("stereo_pf_search.observe_search: the guided search needs the "
+        raise InputError("stereo_pf.search.observe_search: the guided search needs the "
                          "capture's colours (make_params(colors=...))")
     model = params.model
     idx = np.asarray([keypoint_index(model, k)[0] for k in ENTITIES])
