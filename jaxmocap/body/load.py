@@ -32,9 +32,9 @@ def load_body(path: str | os.PathLike, roles: BodyRoles | str | os.PathLike | No
     """A user's body model: URDF or MJCF by suffix (``.urdf``; ``.xml``/``.mjcf``), with its
     roles (``roles``: a :class:`BodyRoles`, a roles file, or None = ``<stem>.roles.json``
     beside the model if it exists, else inferred from the names) and the 12 keypoints placed
-    from the roles (module docstring), followed by the MJCF's other ``<site>`` markers (a site
-    named like one of the 12 places that keypoint). ``scale``/``up``: a URDF's units and up
-    axis (:func:`~jaxmocap.body.load_urdf`). Bad files and missing roles: one
+    from the roles (:mod:`jaxmocap.body.roles`), followed by the MJCF's other ``<site>``
+    markers (a site named like one of the 12 places that keypoint). ``scale``/``up``: a URDF's
+    units and up axis (:func:`~jaxmocap.body.load_urdf`). Bad files and missing roles: one
     :class:`InputError`."""
     path = Path(path)
     kind = MODEL_SUFFIXES.get(path.suffix.lower())

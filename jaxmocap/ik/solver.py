@@ -158,7 +158,7 @@ def solve_ik(
     Minimises the energy of :func:`ik_residuals` over the DOFs ``free_dofs`` (default all;
     a static tuple of indices into q), the others staying at ``q_init`` (default ``q_b``),
     which is also the initial guess. Joint limits of ``chain`` hold for the result (tanh
-    reparametrisation, see the module docstring). Levenberg-Marquardt stops on optimistix's
+    reparametrisation, see :mod:`jaxmocap.ik`). Levenberg-Marquardt stops on optimistix's
     test (``rtol``, ``atol``) or on MINPACK's relative reduction ``ftol``
     (:class:`FtolLevenbergMarquardt`; None: 8 float eps, 0: off); the three are traced:
     changing them does not recompile; ``free_dofs`` and ``max_steps`` are static. Never raises

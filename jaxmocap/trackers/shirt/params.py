@@ -126,7 +126,7 @@ class ShirtParams(eqx.Module):
     """Everything the tracker needs that does not change over a sequence.
 
     ``cams`` is a stacked :class:`~jaxmocap.camera.Camera` (leading axis = cameras); ``db`` a
-    :class:`jaxmocap.PoseDB`. Static switches select the ablations (module docstring).
+    :class:`jaxmocap.PoseDB`. Static switches select the ablations (:mod:`jaxmocap.trackers.shirt`).
     """
 
     color: ColorModel

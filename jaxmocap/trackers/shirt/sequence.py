@@ -31,7 +31,8 @@ def step(
     frames: UInt8[Array, "n_cams h w 3"] | UInt8[np.ndarray, "n_cams h w 3"],
     masks: Bool[Array, "n_cams h w"] | Bool[np.ndarray, "n_cams h w"] | None = None,
 ) -> tuple[ShirtState, ShirtOutput]:
-    """One frame of Wang et al. §4–5 for every camera (module docstring); jit-compiled once
+    """One frame of Wang et al. §4–5 for every camera (the frame walk:
+    :mod:`jaxmocap.trackers.shirt`); jit-compiled once
     per camera count, image size and settings. ``frames`` RGB ``uint8``; ``masks`` optional
     foreground masks (e.g. :class:`jaxmocap.color.BackgroundSubtractor`)."""
     frames, masks = _checked_inputs(params, frames, masks)

@@ -45,7 +45,8 @@ def _estimate(params: StereoPFParams, est: pf.PFEstimate) -> StereoEstimate:
 
 
 def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation) -> pf.PFState:
-    """Broad initial particle set around the triangulated head (module docstring)."""
+    """Broad initial particle set around the triangulated head (automatic initialisation:
+    :mod:`jaxmocap.trackers.stereo_pf`)."""
     n, dofs = params.n_particles, params.dofs
     dt = params.prior_lower.dtype
     k_yaw, k_tilt, k_root, k_joint = jax.random.split(key, 4)

@@ -261,7 +261,8 @@ def make_params(
 
     ``dofs``: indices of the filtered DOFs (default the 14 of :func:`stereo_dofs`; the six root
     DOFs must be among them); the others stay at ``default_q`` (default the rest pose).
-    ``guided``: the distance-cue-guided proposal (not in Azad's paper; module docstring):
+    ``guided``: the distance-cue-guided proposal (not in Azad's paper;
+    :mod:`jaxmocap.trackers.stereo_pf`):
     ``guided_fraction`` of the particles take ``guided_steps`` minimum-norm Gauss-Newton steps
     (Levenberg damping ``guided_damping``, m^2) toward the triangulated head / hands after the
     prediction, in the filter step and in the initialisation. ``guided=False`` is Azad's filter.
