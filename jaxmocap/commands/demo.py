@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxmocap.errors import UsageError
+from jaxmocap.io.overlay import BONES
 from jaxmocap.trackers.driver import PF_JOINTS, SHIRT_JOINTS
 from jaxmocap.trackers.shirt.export import (
     DEMO_CLIP,
@@ -41,11 +42,6 @@ from jaxmocap.trackers.shirt.export import (
     demo_scene,
     demo_setup,
 )
-
-BONES = (("pelvis", "chest"), ("chest", "neck"), ("neck", "head"), ("chest", "l_shoulder"),
-         ("chest", "r_shoulder"), ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"),
-         ("l_wrist", "l_hand"), ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"),
-         ("r_wrist", "r_hand"))
 
 
 def add_parser(sub) -> None:

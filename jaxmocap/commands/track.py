@@ -38,7 +38,6 @@ from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
-from jaxmocap.io.overlay import BONES, draw_skeleton
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.sync import SYNC_MODES, SyncReader
 from jaxmocap.io.video import VideoWriter, quiet_ffmpeg
@@ -55,13 +54,11 @@ from jaxmocap.trackers.driver import (
 )
 
 __all__ = [
-    "BONES",
     "FrameResult",
     "FrameTracker",
     "ShirtFrameTracker",
     "StereoPFFrameTracker",
     "add_parser",
-    "draw_skeleton",
     "run",
     "track_frames",
 ]
