@@ -5,9 +5,10 @@ Wang et al. (§5.2 step 5) follow the light with one 3 x 3 white balance per cam
 on the final pose's render, and fall back to *reference illuminations* when it is lost. One
 matrix per camera cannot represent two lamps of different colour on one shirt, nor a surface
 turning from one lamp to the other: on the test world's dev split even the best single W per
-camera (fitted to ground truth) gives 46-54% of the visible shirt pixels their colour, where a
-Gaussian per *patch* learned on-line from the pixels the pose assigns to it gives 82-88% (both
-with the pose-assisted distance prior; ``benchmarks/experiments/appearance_ladder.py``). This
+camera (fitted to ground truth) gives 54-63% of the visible shirt pixels their colour with
+Wang's pose prior, where a Gaussian per *patch* learned on-line from the pixels the true pose
+assigns to it gives 70-85% (``benchmarks/experiments/appearance_ladder.py``,
+docs/results/appearance.md). This
 module is that state, shared by the colour-shirt tracker (a part = a patch, per camera) and
 the stereo filter (a part = head, each hand, the shirt):
 
@@ -31,6 +32,13 @@ the stereo filter (a part = head, each hand, the shirt):
 
   so a lamp dimmed or switched off relights **every** part, also those not seen this frame,
   by its own mixture. Differentiable (jit / vmap / grad through the solve).
+* :func:`follow_light`: on a frame the tracker could not use shortly after a valid one, the
+  light alone, from the pixels of the held pose's render: each part seen there takes its own
+  observed gain (per-part gain model), the others the mixture fit's (a lamp switched off
+  within a frame makes that frame invalid: it is followed without a reset). The own gain:
+  in the tracker test of a warm and a cool lamp switched on over the two halves of the image,
+  the mixture alone (rms 0.18-0.20 in log) left every later frame invalid, the own gains had
+  it tracked again from the next frame.
 * :func:`update_parts`: the relit state moved toward the trimmed statistics with weight
   ``rate`` (moment-matched, exponential forgetting), its spread kept within
   ``[min_spread, max_spread]`` times the calibrated one's in every direction; an **invalid
@@ -57,18 +65,25 @@ from jaxtyping import Array, Bool, Float, Int
 
 RATE = 0.3  # one frame's statistics weigh this much (dev split: 0.3 follows a 30-frame dimming)
 MIN_PIXELS = 20.0  # a part needs this many trimmed pixels to be updated (and to enter the relight)
-GATE = 25.0  # trim: a pixel farther than this squared distance from its part's relit state
-# spread of an updated covariance along any direction, relative to the calibrated one's
-MAX_SPREAD = 1.0  # dev split: 1.5 gave +4 points right but twice the room false positives
+# trim: a pixel farther than this squared distance (5 standard deviations) from its part's
+# relit state is not the part's (a hand across a patch, a neighbour's colour bleeding in)
+GATE = 25.0
+# spread of an updated covariance along any direction, relative to the calibrated one's. With
+# the true pose (benchmarks/experiments/appearance_ladder.py, dev split) a looser state (gate
+# 100, spread 3) classified more pixels right (77-84% vs 70-75%), but in the tracker's loop
+# it learned the wrong patches from wrong poses: all-frames error over the dev split 14.0 ->
+# 22.9 cm (docs/results/appearance.md)
+MAX_SPREAD = 1.0
 MIN_SPREAD = 0.5
 GAIN_RANGE = (0.1, 10.0)  # a relight's per-part, per-channel gain must lie inside
 MAX_CHROMA = 4.0  # an illuminant change: largest over smallest channel gain at most this
 MAX_RELIGHT_RMS = 0.35  # RMS log residual over the seen parts' channels (~ 40% colour error)
 MIX_PRIOR = 0.3  # weight of the prior on the mixture logits (per unit logit)
-CHANGE_PRIOR = 0.05  # weight of the prior toward no illuminant change (per unit log gain)
+CHANGE_PRIOR = 0.2  # weight of the prior toward no illuminant change (per unit log gain)
 SCALE_PRIOR = 0.02  # weight of the prior toward a part's brightness unchanged (per unit log)
 LOST_FRAMES = 10  # invalid frames in a row after which the state relaxes toward the calibration
 RELAX_RATE = 0.1  # per invalid frame after that
+MAX_DRIFT = 4.0  # a relit mean stays within this factor of its calibrated mean per channel
 COLOUR_MAX = 255.0 * 1.5  # a mean stays inside [1, COLOUR_MAX] per channel (W-mapped colours
 # can leave 0..255 a little)
 _EPS = 1.0
@@ -204,7 +219,7 @@ def fit_relight(
             SCALE_PRIOR * log_s,
         ])  # fmt: skip
 
-    x0 = (jnp.zeros((2, 3), dt), logit0, jnp.zeros((n,), dt))
+    x0 = (*_split_start(log_obs - log_state, seen, state.mix), jnp.zeros((n,), dt))
     tol = 1e-8 if dt == jnp.float64 else 1e-5
     sol = optx.least_squares(residual, optx.LevenbergMarquardt(rtol=tol, atol=tol), x0,
                              max_steps=max_steps, throw=False)  # fmt: skip
@@ -226,6 +241,35 @@ def fit_relight(
     return Relight(gains, w, ok, rms, r)
 
 
+def _split_start(d, seen, mix, rounds: int = 6):
+    """Start of the relight solve from the seen parts' log changes ``d`` (n, 3): two-means of
+    the seen parts' chromatic changes (split first along their main direction, weighted by
+    ``seen``), the two illuminant changes the clusters' mean log changes, each part's logit
+    +-2 toward its cluster, the pair ordered to agree with the last mixture weights ``mix``.
+    (From equal illuminants and equal weights the problem is symmetric: a Gauss-Newton step
+    never splits the lamps; from the two most distant parts one outlier part sets a lamp.)"""
+    dc = d - jnp.mean(d, axis=-1, keepdims=True)
+    mean = jnp.sum(seen[:, None] * dc, 0) / jnp.maximum(jnp.sum(seen), 1e-9)
+    cov = jnp.einsum("n,ni,nj->ij", seen, dc - mean[None, :], dc - mean[None, :])
+    v = jnp.linalg.eigh(cov + 1e-12 * jnp.eye(3, dtype=d.dtype))[1][:, -1]
+    in0 = (dc - mean[None, :]) @ v >= 0
+    for _ in range(rounds):
+        w0, w1 = seen * in0, seen * ~in0
+        c0 = jnp.sum(w0[:, None] * dc, 0) / jnp.maximum(jnp.sum(w0), 1e-9)
+        c1 = jnp.sum(w1[:, None] * dc, 0) / jnp.maximum(jnp.sum(w1), 1e-9)
+        in0 = (jnp.linalg.norm(dc - c0[None, :], axis=-1)
+               <= jnp.linalg.norm(dc - c1[None, :], axis=-1))
+    w0, w1 = seen * in0, seen * ~in0
+    r0 = jnp.sum(w0[:, None] * d, 0) / jnp.maximum(jnp.sum(w0), 1e-9)
+    r1 = jnp.sum(w1[:, None] * d, 0) / jnp.maximum(jnp.sum(w1), 1e-9)
+    r1 = jnp.where(jnp.sum(w1) > 0, r1, r0)
+    r0 = jnp.where(jnp.sum(w0) > 0, r0, r1)
+    sign = jnp.where(in0, 1.0, -1.0).astype(d.dtype)
+    swap = jnp.sum(seen * (mix - 0.5) * sign) < 0
+    log_r = jnp.where(swap, jnp.stack([r1, r0]), jnp.stack([r0, r1]))
+    return log_r, 2.0 * jnp.where(swap, -sign, sign)
+
+
 def _bounded_cov(cov, ref_cov, min_spread, max_spread):
     """``cov`` with its eigenvalues in ``ref_cov``'s whitened space clipped to
     ``[min_spread^2, max_spread^2]`` (spread and condition number bounded by the reference's)."""
@@ -243,7 +287,11 @@ def relit(state: PartColours, relight: Relight) -> PartColours:
     """``state`` with every part's Gaussian under the fitted light change (``relight.ok``
     false: unchanged): ``mean -> g * mean``, ``cov -> diag(g) cov diag(g)``."""
     g = jnp.where(relight.ok, relight.gains, 1.0)
-    mean = jnp.clip(g * state.mean, 1.0, COLOUR_MAX)
+    # a part unseen for long is relit by every frame's fit: bounded within MAX_DRIFT of its
+    # calibration per channel, its colour cannot random-walk off (the stereo filter's hands,
+    # seen on few frames, reached the colour range's bound within 20 frames without it)
+    mean = jnp.clip(g * state.mean, state.ref_mean / MAX_DRIFT, state.ref_mean * MAX_DRIFT)
+    mean = jnp.clip(mean, 1.0, COLOUR_MAX)
     cov = g[:, :, None] * state.cov * g[:, None, :]
     mix = jnp.where(relight.ok, relight.mix, state.mix)
     return eqx.tree_at(lambda s: (s.mean, s.cov, s.mix), state, (mean, cov, mix))
@@ -294,6 +342,28 @@ def update_parts(
                         lost)  # fmt: skip
     out = jax.tree.map(lambda u, v: jnp.where(valid, u, v), new, lost)
     return out, use & valid, fit._replace(ok=fit.ok & valid)
+
+
+def follow_light(
+    state: PartColours, stats: PartStats, on: Bool[Array, ""],
+    min_pixels: float | Float[Array, ""] = MIN_PIXELS,
+) -> tuple[PartColours, Relight]:
+    """The light followed through a frame the tracker could not use (``on``: invalid, but
+    the last valid pose is recent): only the two-illuminant relight (no statistics enter the
+    Gaussians), fitted on the pixels that the **held** pose's render gives each part
+    (``stats``, untrimmed: after a lamp switch every pixel is far from the old state, and a
+    trimmed fit sees nothing). A lamp switched off makes every classification fail at once,
+    so the frame is invalid and :func:`update_parts` leaves the state as it was; without
+    this the tracker would stay lost under the new light. A part seen there takes its own
+    observed gain (within :data:`GAIN_RANGE`), the others the mixture fit's; applied only
+    where the fit is physical."""
+    fit = fit_relight(state, stats, min_pixels)
+    seen = stats.count >= min_pixels
+    own = jnp.maximum(stats.raw_mean, _EPS) / jnp.maximum(state.mean, _EPS)
+    own_ok = jnp.all((own >= GAIN_RANGE[0]) & (own <= GAIN_RANGE[1]), axis=-1)
+    gains = jnp.where((seen & own_ok)[:, None], own, fit.gains)
+    fit = fit._replace(gains=gains, ok=fit.ok & on)
+    return relit(state, fit), fit
 
 
 def relax(state: PartColours, rate: float | Float[Array, ""]) -> PartColours:

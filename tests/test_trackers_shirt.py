@@ -341,3 +341,44 @@ def test_step_renders_with_static_geom_kinds(setup):
     cam0 = jax.tree.map(lambda a: a[0], p.cams)
     ref = np.asarray(render_uv(model, p.garment, setup["q_true"], cam0, uv).patch)  # eager
     assert np.mean(got == ref) > 0.995 and (ref > 0).sum() > 100
+
+
+def test_patch_colours_follow_a_lamp_change(setup):
+    """Issue 37's per-patch colour states in the tracker: tracked under white light, then
+    under a warm lamp on one half of each image and a dimmer cool one on the other (per-pixel
+    channel gains), every frame within tolerance and, from the frame after the switch on,
+    valid again; the patches' states follow the lamp that lights them (their means'
+    chromaticity moves to that lamp's, both lamps among them); a blank frame is invalid and
+    leaves every state untouched. Without the light followed from the held pose
+    (``follow_light``) every frame after the switch stayed invalid (measured: 1-3% of the
+    crops classified)."""
+    p, model = setup["params"], setup["model"]
+    q = dataclasses.replace(p, shading=(0.5, 4.0), patch_colours=True, follow_light=True)
+    kp = jax.jit(lambda x: keypoints(model, x))
+    truth = np.asarray(kp(setup["q_true"]))
+    state = shirt.init(q, setup["W0"], jnp.zeros(model.n_dof))
+    warm, cool = np.array([1.0, 0.8, 0.55]), np.array([0.6, 0.7, 0.85])
+    half = (np.arange(W_IMG) < W_IMG // 2)[None, :, None]
+    gains = np.where(half, warm, cool)  # (1, W, 3): left half warm, right half cool
+    lit = np.clip(setup["frames"].astype(np.float64) * gains[None], 0, 255).astype(np.uint8)
+    start = np.asarray(state.look.mean)
+    valid = []
+    for frames in [setup["frames"]] * 2 + [lit] * 6:
+        state, out = shirt.step(q, state, frames)
+        err = np.linalg.norm(np.asarray(kp(out.q)) - truth, axis=-1).mean()
+        valid.append(bool(out.valid))
+        assert err < 0.08, err
+    # the switch frame itself classifies almost nothing (invalid, the light followed from the
+    # held pose, appearance.follow_light); from the next frame on it is tracked again
+    assert valid[:2] == [True, True] and all(valid[3:]), valid
+    assert int(np.asarray(out.colour_updated).min()) >= 8
+    moved = np.asarray(state.look.mean) / start  # (n_cams, P, 3)
+    chroma = moved / moved.sum(-1, keepdims=True)
+    near = lambda g: np.linalg.norm(chroma - g / g.sum(), axis=-1)  # noqa: E731
+    warm_like = near(warm) < near(cool)
+    assert warm_like.any() and (~warm_like).any()  # both lamps are followed
+    before = jax.tree.map(np.asarray, state.look)
+    state, out = shirt.step(q, state, np.full_like(setup["frames"], 128))
+    assert not bool(out.valid)
+    for a, b in zip(jax.tree.leaves(before)[:5], jax.tree.leaves(state.look)[:5], strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))

@@ -116,18 +116,30 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
         d[f"recall_{n}"] = float(out.signals.recall[c])
     d["agreement"] = float(out.agreement)
     d["patches"] = float(np.sum(out.visible))
-    return {k: d[k] for k in shirt_diagnostic_names(names)}  # in column order
+    patch_colours = out.relight_ok is not None
+    if patch_colours:
+        for c, n in enumerate(names):
+            d[f"colour_updated_{n}"] = float(out.colour_updated[c])
+            d[f"relight_ok_{n}"] = float(out.relight_ok[c])
+            d[f"relight_rms_{n}"] = float(out.relight_rms[c])
+    return {k: d[k] for k in shirt_diagnostic_names(names, patch_colours)}  # in column order
 
 
-def shirt_diagnostic_names(names: list[str]) -> tuple[str, ...]:
-    """The keys of :func:`shirt_diagnostics`, in column order."""
+def shirt_diagnostic_names(names: list[str], patch_colours: bool = False) -> tuple[str, ...]:
+    """The keys of :func:`shirt_diagnostics`, in column order; with ``patch_colours`` per
+    camera also the patches whose colour state was updated, whether the relight was applied
+    (a rejected one is 0) and its RMS log residual."""
+    extra = []
+    if patch_colours:
+        extra = ([f"colour_updated_{n}" for n in names] + [f"relight_ok_{n}" for n in names]
+                 + [f"relight_rms_{n}" for n in names])
     return tuple(
         [f"fraction_{n}" for n in names]
         + [f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")]
         + [f"reference_used_{n}" for n in names]
         + [f"reference_added_{n}" for n in names]
         + [f"residual_{n}" for n in names] + [f"recall_{n}" for n in names]
-        + ["agreement", "patches"])
+        + ["agreement", "patches"] + extra)
 
 
 def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=None,
@@ -172,7 +184,7 @@ class ShirtFrameTracker:
         self.body = params.body
         self.cams, self.names, self.color = cams, names, color
         self.W0 = np.stack([np.eye(3)] * len(cams)) if W0 is None else W0
-        self.diagnostic_names = shirt_diagnostic_names(names)
+        self.diagnostic_names = shirt_diagnostic_names(names, params.patch_colours)
         self.background = background
         self.announce = announce
         self.state = None

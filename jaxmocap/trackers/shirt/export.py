@@ -116,8 +116,14 @@ def _output_tree(state) -> jax.tree_util.PyTreeDef:
     from jaxmocap.trackers.shirt.params import FrameSignals, ShirtOutput
 
     signals = FrameSignals(*([0] * len(FrameSignals._fields)))
-    out = ShirtOutput(**{f.name: signals if f.name == "signals" else 0
-                         for f in dataclasses.fields(ShirtOutput)})  # fmt: skip
+    colours = state.look is not None  # the optional outputs of ``patch_colours``
+
+    def leaf(f):
+        if f.name == "signals":
+            return signals
+        return 0 if f.default is not None or colours else None
+
+    out = ShirtOutput(**{f.name: leaf(f) for f in dataclasses.fields(ShirtOutput)})
     return jax.tree.structure((state, out))
 
 

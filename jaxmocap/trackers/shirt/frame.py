@@ -10,8 +10,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
+from jaxmocap import appearance
 from jaxmocap.camera import Camera, camera_center, pixel_rays, to_camera
 from jaxmocap.color import (
+    ColorModel,
+    classified_fraction,
+    classify,
     classify_views_with_references,
     histogram_search,
     maybe_add_reference,
@@ -54,6 +58,8 @@ from jaxmocap.sampling import (
     sample_nearest,
 )
 from jaxmocap.trackers.shirt.params import (
+    COLOUR_MAX_RESIDUAL,
+    COLOUR_MIN_RECALL,
     MAX_ROOT_OFFSET,
     MIN_VALID_PATCHES,
     REFERENCE_PIXELS,
@@ -131,6 +137,43 @@ class RoundContext(NamedTuple):
     cov: IKCovariances
     uvs: Float[Array, "n_cams n n 2"]
     rays: tuple[Float[Array, "n_cams 3"], Float[Array, "n_cams n n 3"]]
+    look: appearance.PartColours | None = None  # the patch colour states (``patch_colours``)
+    look_W: Array | None = None
+
+
+def _patch_model(params: ShirtParams, look: appearance.PartColours) -> ColorModel:
+    """One camera's patch colour states as a colour model whose "colours" are the patches."""
+    return ColorModel(look.mean, look.cov, shading=params.shading)
+
+
+def _in_look_space(crop, W):
+    """A crop in the colour space of the patch states (the camera's initial white balance)."""
+    return crop.astype(W.dtype) @ W.T
+
+
+def _patch_colour_of(params: ShirtParams, patch):
+    """Colour ids (0 background) of a patch id map (0 background, ``1..P``)."""
+    pc = jnp.asarray(params.garment.patch_colour).astype(jnp.int32)
+    return jnp.where(patch > 0, jnp.take(pc, jnp.maximum(patch - 1, 0)), 0)
+
+
+def classify_by_patch(
+    params: ShirtParams, state: ShirtState, crops, fgs
+) -> ReferenceClassification:
+    """Step 1 with ``patch_colours``: every crop pixel compared with every patch's colour state
+    (threshold ``T``, the scene's colours as background), given the colour of the nearest
+    patch; stacked over cameras (``W`` and ``used_reference`` as if the plain step ran)."""
+
+    def one(look, W_look, W, crop, fg):
+        img = _in_look_space(crop, W_look)
+        eye = jnp.eye(3, dtype=W_look.dtype)
+        patch, dist = classify(_patch_model(params, look), eye, img, fg, THRESHOLD,
+                               params.shading, params.scene_colors)  # fmt: skip
+        ids = _patch_colour_of(params, patch)
+        return ReferenceClassification(ids, dist, W, classified_fraction(ids, fg), jnp.array(False))
+
+    fg_ax = None if fgs is None else 0
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, fg_ax))(state.look, state.look_W, state.W, crops, fgs)
 
 
 def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
@@ -149,6 +192,9 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
         windows.append(win), s_found.append(res.s.astype(dt)), found.append(res.found)
     crops = jnp.stack(crops)
     fgs = None if masks is None else jnp.stack(fgs)
+    if params.patch_colours:
+        cls = classify_by_patch(params, state, crops, fgs)
+        return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
     cls = classify_views_with_references(
         params.color, state.refs, state.W, crops, fgs, THRESHOLD,
         min_fraction=MIN_CLASSIFIED_FRACTION if params.adaptive_white_balance else 0.0,
@@ -208,6 +254,8 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
         fresh = state.tracked < params.reacquire_frames
         cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
     rays = jax.vmap(lambda cam, uv: (camera_center(cam), pixel_rays(cam, uv)[1]))(params.cams, uvs)
+    if params.patch_colours:
+        return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W)
     return RoundContext(views, okq, q_g, q_h, cov, uvs, rays)
 
 
@@ -231,7 +279,7 @@ def pose_assisted_centroids(
     v = ctx.views
     patch_colour = params.garment.patch_colour
 
-    def one(patch_map, W, crop, fg, s_found, window):
+    def one(patch_map, W, crop, fg, s_found, window, look, W_look):
         dist = patch_distance_maps(patch_map, P, dt)
         if params.pose_prior:
             weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
@@ -239,15 +287,24 @@ def pose_assisted_centroids(
             thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
         else:
             weight, thr = TIE_BREAK_WEIGHT, THRESHOLD
-        pa = pose_assisted_classify(
-            params.color, W, crop, dist, patch_colour, weight, fg, thr, params.shading,
-            params.scene_colors,
-        )  # fmt: skip
+        if look is None:
+            pa = pose_assisted_classify(
+                params.color, W, crop, dist, patch_colour, weight, fg, thr, params.shading,
+                params.scene_colors,
+            )  # fmt: skip
+        else:  # every patch its own colour state: the "colours" are the patches
+            pa = pose_assisted_classify(
+                _patch_model(params, look), jnp.eye(3, dtype=W_look.dtype),
+                _in_look_space(crop, W_look), dist, jnp.arange(1, P + 1), weight, fg, thr,
+                params.shading, params.scene_colors,
+            )  # fmt: skip
         return patch_centroids(pa.patch, P, window, dtype=dt)
 
     fg_ax = None if v.fgs is None else 0
-    c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0))(
-        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows
+    look, look_W = ctx.look, ctx.look_W
+    l_ax = None if look is None else 0
+    c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0, l_ax, l_ax))(
+        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows, look, look_W
     )
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
 
@@ -360,11 +417,14 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
 def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> Array:
     """Found in some camera, ``min_patches`` centroids measured, and (when step 1
     classified ``gate_min_fraction`` of some crop: after a sudden lighting change it
-    classifies almost nothing until W is re-fitted) the agreement gate passed."""
+    classifies almost nothing until W is re-fitted; with ``patch_colours`` always) the
+    agreement gate passed."""
     rule = params.validity
     valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= rule.min_patches)
     frac = jnp.max(ctx.views.cls.fraction * ctx.okq)
     seen = frac >= rule.gate_min_fraction
+    if params.patch_colours:  # the light is followed by the colour states, not by a W refit
+        seen = jnp.array(True)  # that needs the frame valid: the gate always applies
     return valid & ((agreement >= rule.min_agreement) | ~seen)
 
 
@@ -448,6 +508,46 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
     )
 
 
+def colour_update(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid,
+                  learn):
+    """Step 5 with ``patch_colours`` (:mod:`jaxmocap.appearance`), per camera that found the
+    shirt: on a valid frame, in the cameras where ``learn`` (the final pose explains the crop:
+    :data:`COLOUR_MAX_RESIDUAL`, :data:`COLOUR_MIN_RECALL`), each patch's colour state relit
+    and moved toward the pixels that the final pose's render ``r*`` (eroded by one pixel)
+    gives it, trimmed; with ``follow_light``, on the first invalid frame after a frame the
+    camera learned from, only
+    the light, from the render of the held pose (eroded by two pixels: it is a frame old), so
+    that a lamp switched off is followed (:func:`jaxmocap.appearance.follow_light`); else the
+    states stay. Returns ``(look, updated patches, relight applied,
+    relight RMS)`` stacked over cameras."""
+    v = ctx.views
+    held = hits.patch
+    if params.follow_light:
+        held = jax.lax.cond(valid, lambda: hits.patch,
+                            lambda: render_views(params, ctx, state.q).patch)  # fmt: skip
+    # follow only from a pose the camera learned from on the previous frame (a trusted one)
+    follow = ~valid & (jnp.min(state.look.age, axis=-1) == 0) & params.follow_light
+
+    def one(look, W_look, patch, held_patch, crop, fg, ok_cam, follow_cam, learn_cam):
+        img = _in_look_space(crop, W_look)
+        stats = appearance.part_statistics(look, img, erode_ids(patch), shading=params.shading,
+                                           mask=fg)  # fmt: skip
+        new, used, fit = appearance.update_parts(look, stats, learn_cam & ok_cam)
+        if not params.follow_light:
+            return new, jnp.sum(used).astype(jnp.int32), fit.ok, fit.rms
+        held_stats = appearance.part_statistics(look, img, erode_ids(erode_ids(held_patch)),
+                                                gate=jnp.inf, mask=fg)  # fmt: skip
+        new, fol = appearance.follow_light(new, held_stats, follow_cam & ok_cam)
+        ok = fit.ok | fol.ok
+        rms = jnp.where(valid, fit.rms, fol.rms)
+        return new, jnp.sum(used).astype(jnp.int32), ok, rms
+
+    fg_ax = None if v.fgs is None else 0
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, fg_ax, 0, 0, 0))(
+        state.look, state.look_W, hits.patch, held, v.crops, v.fgs, ctx.okq, follow, learn
+    )
+
+
 def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
     dt = state.q.dtype
     views = locate_and_classify(params, state, frames, masks)
@@ -459,16 +559,26 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     q_sol, c_obs, v_obs, hits, agree = rounds(params, state, ctx, n_more)
     valid = frame_validity(params, ctx, v_obs, agree)
     q_star = jnp.where(valid, q_sol, state.q)
-    W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
-    new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
+    signals = frame_signals(params, state, ctx, db, q_sol, c_obs, v_obs, hits)
+    colour_out = {}
+    if params.patch_colours:
+        learn = valid & (signals.residual <= COLOUR_MAX_RESIDUAL) & (
+            signals.recall >= COLOUR_MIN_RECALL)
+        look, n_upd, r_ok, r_rms = colour_update(params, state, ctx, hits, valid, learn)
+        W_new, refs, added = state.W, state.refs, jnp.zeros(params.n_cams, bool)
+        colour_out = dict(colour_updated=n_upd, relight_ok=r_ok, relight_rms=r_rms)
+        new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked,
+                               look=look, look_W=state.look_W)  # fmt: skip
+    else:
+        W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
+        new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
     if params.validity.hold_invalid:
         q_out, own = q_star, valid
     else:  # this frame's estimate where there was something to fit (else it is unconstrained)
         measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
         own = measured & near_placement(ctx, q_sol)
         q_out = jnp.where(own, q_sol, state.q)
-    signals = frame_signals(params, state, ctx, db, q_sol, c_obs, v_obs, hits)
     out = ShirtOutput(
         q=q_out,
         q_blend=q_g,
@@ -481,6 +591,7 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
         visible=v_obs,
         agreement=agree,
         signals=signals,
+        **colour_out,
     )
     return new_state, out
 

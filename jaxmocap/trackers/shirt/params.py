@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxmocap.appearance import LOST_FRAMES, PartColours, init_parts
 from jaxmocap.body import BodyModel
 from jaxmocap.camera import Camera
 from jaxmocap.color import (
@@ -56,6 +57,13 @@ REACQUIRE_FRAMES = 3
 MAX_ROOT_OFFSET = 1.0  # metres: an invalid frame's estimate this far from the blend is not shown
 GATE_MIN_FRACTION = 0.2  # the gate applies only if step 1 classified this share in some camera
 REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* refit
+# Not in the paper: with ``patch_colours`` a camera's colour states learn from a valid frame
+# only where the final pose explains its crop: centroid residual <= 5.3% of the crop side and
+# >= 31% of the rendered shirt pixels classified as their colour in step 1 (the reported
+# validity calibrated on the dev split's ground truth, world_shirt.toml "validated"). States
+# that learn from a wrong pose learn the wrong patches and lead the next frames there.
+COLOUR_MAX_RESIDUAL = 0.053
+COLOUR_MIN_RECALL = 0.31
 
 
 def scales_for_width(width: int, stride: int = 6) -> tuple[int, ...]:
@@ -165,6 +173,13 @@ class ShirtParams(eqx.Module):
     shading: tuple[float, float] | None = eqx.field(static=True, default=None)
     # when a frame is valid and what the output reports (thresholds traced)
     validity: ValidityRule | None = None
+    # ``patch_colours``: steps 1 and 3 compare every pixel with a colour state *per patch and
+    # camera* (jaxmocap.appearance), relit and updated from the final pose's render in step 5,
+    # instead of the colour model under one white balance per camera (issue 37)
+    patch_colours: bool = eqx.field(static=True, default=False)
+    # ``follow_light`` (with ``patch_colours``): on the first invalid frame after one a camera
+    # learned from, relight its states from the held pose's render (appearance.follow_light)
+    follow_light: bool = eqx.field(static=True, default=False)
 
     @property
     def n_cams(self) -> int:
@@ -189,6 +204,10 @@ class ShirtState(eqx.Module):
     q: Float[Array, " n_dof"]
     valid: Bool[Array, ""]
     tracked: Int[Array, ""]  # consecutive valid frames up to the previous one (0: lost)
+    # with ``patch_colours``: per camera, each patch's colour state (in the colour space of
+    # the camera's initial white balance ``look_W``, fixed: the scene colours live there)
+    look: PartColours | None = None
+    look_W: Float[Array, "n_cams 3 3"] | None = None
 
 
 class FrameSignals(NamedTuple):
@@ -230,6 +249,11 @@ class ShirtOutput(eqx.Module):
     visible: Bool[Array, "n_cams n_patches"]
     agreement: Float[Array, ""]  # render vs step-1 classification (the validity gate)
     signals: FrameSignals  # the final pose checked against the images (frame_signals)
+    # with ``patch_colours``, per camera: the patches whose colour state this frame updated,
+    # whether the two-illuminant relight was physical and applied, and its RMS log residual
+    colour_updated: Int[Array, " n_cams"] | None = None
+    relight_ok: Bool[Array, " n_cams"] | None = None
+    relight_rms: Float[Array, " n_cams"] | None = None
 
 
 def make_params(
@@ -264,6 +288,8 @@ def make_params(
     report_patches: int | None = None,
     max_residual: float | None = None,
     min_recall: float | None = None,
+    patch_colours: bool = False,
+    follow_light: bool = False,
 ) -> ShirtParams:
     """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
 
@@ -312,6 +338,19 @@ def make_params(
     state (temporal prior, W re-fit) still follows the tracker's own rule: gating it with the
     stricter rule lost shirt_03 of the dev split (9.4 -> 22.6 cm, docs/results/shirt.md).
 
+    ``patch_colours`` (not in the paper; off by default): a colour state per patch and camera
+    (:mod:`jaxmocap.appearance`) starts from the colour model (each patch its colour's
+    Gaussian, in the colour space of the initial white balance ``W0``), classifies steps 1
+    and 3 per patch (a pixel's colour is its patch's) and is relit by a two-illuminant
+    mixture and updated from the final pose's render in step 5 (valid frames only); the
+    per-camera ``W`` and reference illuminations are then not used. A camera's states learn
+    only where the final pose explains its crop (:data:`COLOUR_MAX_RESIDUAL`,
+    :data:`COLOUR_MIN_RECALL`). ``follow_light`` (off by default) relights them on the first
+    invalid frame after a learned one from the held pose's render: it keeps a lamp switched
+    on over half the image followed (tests), but on the dev split it took the occluder's
+    colours into the states (shirt_03: 7.1 -> 20.1 cm over all frames; shirt_00's lamp
+    switched off: 12.6 -> 14.0; shirt_06: 18.6 -> 16.5; docs/results/appearance.md).
+
     The validity thresholds are traced (:class:`ValidityRule`): replacing
     ``params.validity`` with another :func:`validity_rule` of the same checks reuses the
     compiled step."""
@@ -348,7 +387,8 @@ def make_params(
         bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
         bool(temporal_start), bool(reacquire_start),
         int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
-        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, rule,
+        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, rule, bool(patch_colours),
+        bool(follow_light),
     )  # fmt: skip
 
 
@@ -362,8 +402,18 @@ def init(
     if W0.shape != (params.n_cams, 3, 3):
         raise ValueError(f"init: W0 must be ({params.n_cams}, 3, 3), got {W0.shape}")
     refs = jax.vmap(init_references)(W0)
+    look = look_W = None
+    if params.patch_colours:
+        k = jnp.asarray(params.garment.patch_colour) - 1
+        one = init_parts(params.color.mean[k], params.color.cov[k])
+        # no frame learned from yet: nothing to follow the light from (frame.colour_update)
+        one = eqx.tree_at(lambda s: (s.age, s.lost), one,
+                          (jnp.ones_like(one.age), jnp.asarray(LOST_FRAMES, jnp.int32)))
+        look = jax.tree.map(lambda x: jnp.stack([x] * params.n_cams), one)
+        look_W = W0
     return ShirtState(
-        W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False), tracked=jnp.array(0, jnp.int32)
+        W=W0, refs=refs, q=jnp.asarray(q0), valid=jnp.array(False),
+        tracked=jnp.array(0, jnp.int32), look=look, look_W=look_W,
     )
 
 
