@@ -202,6 +202,9 @@ class StereoPFParams(eqx.Module):
     adapt: tuple[float, float, float] | None = eqx.field(static=True, default=None)
     # hysteresis skin (pf.colors.hysteresis_masks): px grown into the relaxed skin map; 0: off
     skin_grow: int = eqx.field(static=True, default=0)
+    # per-part colours and the seeded search (jaxmocap.trackers.stereo_pf.parts): its
+    # thresholds; None: off
+    part_colours: object | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -255,6 +258,8 @@ def make_params(
     adapt_shirt_rate: float = ADAPT_RATE,
     adapt_spread: float = ADAPT_MAX_SPREAD,
     skin_grow: int = 0,
+    part_colours: bool = False,
+    seed_params=None,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -289,6 +294,11 @@ def make_params(
     ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
     with the filter alongside. ``skin_grow`` (px, needs ``colors``): the skin map grown into
     a relaxed skin map by up to this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`).
+    ``part_colours`` (needs ``colors``): a colour state per part (head, each hand, shirt)
+    updated from the estimate's render, and each skin part searched near its prediction with
+    its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
+    :class:`~jaxmocap.trackers.stereo_pf.parts.SeedParams`); :func:`track` then observes the
+    frames with the filter alongside.
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -305,6 +315,12 @@ def make_params(
     if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
         raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
                          f"capture's colours (colors=...), got {skin_grow!r}")
+    if part_colours and colors is None:
+        raise InputError("stereo_pf.make_params: part_colours: needs the capture's colour model "
+                         "(colors=...) for the parts' calibrated start")
+    if part_colours and adapt_colors:
+        raise InputError("stereo_pf.make_params: part_colours and adapt_colors both adapt the "
+                         "colours; give one")
     if adapt_colors and colors is None:
         raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
                          "(colors=...); the HSV intervals are not adapted")
@@ -396,7 +412,19 @@ def make_params(
         adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
         else None,
         skin_grow=int(skin_grow),
+        part_colours=_seed_params(seed_params) if part_colours else None,
     )
+
+
+def _seed_params(seed):
+    from jaxmocap.trackers.stereo_pf.parts import SeedParams
+
+    if seed is None:
+        return SeedParams()
+    if not isinstance(seed, SeedParams):
+        raise InputError(f"stereo_pf.make_params: seed_params: expected a parts.SeedParams, got "
+                         f"{type(seed).__name__}")
+    return seed
 
 
 class TrackerState(eqx.Module):
