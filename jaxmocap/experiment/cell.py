@@ -251,7 +251,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         if k in opts:
             opts[k] = tuple(opts[k])
     if "seed_replace" in opts:  # part_colours: which parts the seeded search may replace
-        from jaxmocap.trackers.stereo_pf.parts import SeedParams
+        from jaxmocap.trackers.stereo_pf.params import SeedParams
 
         opts["seed_params"] = SeedParams(replace=tuple(bool(x) for x in opts.pop("seed_replace")))
     kw.update(opts)

@@ -4,6 +4,7 @@ and the extensions' defaults, the elbow-swivel proposal, :class:`StereoPFParams`
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -175,6 +176,31 @@ def _swivel_arms(model: BodyModel, dofs: np.ndarray):
     return tuple(out)
 
 
+@dataclasses.dataclass(frozen=True)
+class SeedParams:
+    """Settings of the per-part colours and their seeded search
+    (:mod:`jaxmocap.trackers.stereo_pf.parts`)."""
+
+    window_m: float = 0.15  # search radius around the projected prediction, metres
+    gate_m: float = 0.2  # the triangulated point within this of the prediction, metres
+    threshold: float = 16.0  # squared shading-invariant distance to the part's colour
+    min_area: int = 3  # px per view (as the prediction-guided search, stereo_pf.search)
+    max_epipolar_px: float = 3.0
+    head_exclude_m: float = 0.12  # hands: the head's disc (measured, else predicted) is left out
+    velocity_damping: float = 0.5  # weight of the last estimated velocity in the prediction
+    # per skin part (head, left hand, right hand): a part found replaces the blob line's
+    # measurement of it (True) or is searched only where the blob line missed it (False, the
+    # default). Dev split (pf_03, 50 frames): the search's hands replacing the blob line's
+    # were within 8 cm of the true hand on 0 of 45 / 49 frames (the filter's hands were off,
+    # the window around them held the face's rim or the shirt's); a head replaced by the
+    # search pulled the filter off and its head then confirmed the search
+    replace: tuple[bool, bool, bool] = (False, False, False)
+    # the update's two-illuminant relight (parts.update_colours); dev: off (the hands, seen on
+    # few frames, were relit by every frame's fit of the head and shirt and drifted to the
+    # colour cube's bound)
+    relight: bool = False
+
+
 class StereoPFParams(eqx.Module):
     """Everything fixed over a sequence: the likelihood (body, cameras, cues), the particle
     filter's box and noise, the image pipeline's parameters and the initialisation prior."""
@@ -204,7 +230,7 @@ class StereoPFParams(eqx.Module):
     skin_grow: int = eqx.field(static=True, default=0)
     # per-part colours and the seeded search (jaxmocap.trackers.stereo_pf.parts): its
     # thresholds; None: off
-    part_colours: object | None = eqx.field(static=True, default=None)
+    part_colours: SeedParams | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -297,7 +323,7 @@ def make_params(
     ``part_colours`` (needs ``colors``): a colour state per part (head, each hand, shirt)
     updated from the estimate's render, and each skin part searched near its prediction with
     its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
-    :class:`~jaxmocap.trackers.stereo_pf.parts.SeedParams`); :func:`track` then observes the
+    :class:`SeedParams`); :func:`track` then observes the
     frames with the filter alongside.
     """
     model = default_body() if model is None else model
@@ -417,12 +443,10 @@ def make_params(
 
 
 def _seed_params(seed):
-    from jaxmocap.trackers.stereo_pf.parts import SeedParams
-
     if seed is None:
         return SeedParams()
     if not isinstance(seed, SeedParams):
-        raise InputError(f"stereo_pf.make_params: seed_params: expected a parts.SeedParams, got "
+        raise InputError(f"stereo_pf.make_params: seed_params: expected a SeedParams, got "
                          f"{type(seed).__name__}")
     return seed
 

@@ -51,7 +51,7 @@ from jaxmocap.body.roles import geom_roles
 from jaxmocap.camera import Camera
 from jaxmocap.garment import Garment, shirt_geoms, single_colour_garment
 from jaxmocap.render import render_ids
-from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS
+from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, SeedParams
 
 PARTS = ("head", "l_hand", "r_hand", "shirt")  # labels 1..4 of render_parts
 SKIN_PARTS = 3  # the first three are skin (the blob line's entities, same order)
@@ -117,7 +117,7 @@ UPDATE_GATE = 9.0  # update: a pixel farther than this squared distance is trimm
 RATES = (0.3, 0.3, 0.3, 0.1)  # weight of one frame's pixels per part (head, hands, shirt)
 MIN_STD = 4.0  # RGB floor of a calibrated class's standard deviation per channel (noise ~2.5)
 AGREE_HAND_M = 0.05  # a hand's pixels update its colour when its measurement is this near
-RELIGHT = False  # the two-illuminant relight in the update (see update_colours)
+RELIGHT = SeedParams.relight  # the update's two-illuminant relight (SeedParams)
 SEED_MAX_AGE = 30  # a part not updated for this many frames is searched no more (a loss)
 
 
@@ -185,27 +185,6 @@ def _distances(state: appearance.PartColours, images: Float[Array, "v h w 3"]):
 
 
 # ----------------------------------------------------------------------------- seeded search
-@dataclasses.dataclass(frozen=True)
-class SeedParams:
-    """Thresholds of the seeded search (module docstring, 2)."""
-
-    window_m: float = 0.15  # search radius around the projected prediction, metres
-    gate_m: float = 0.2  # the triangulated point within this of the prediction, metres
-    threshold: float = 16.0  # squared shading-invariant distance to the part's colour
-    min_area: int = 3  # px per view (as the prediction-guided search, stereo_pf.search)
-    max_epipolar_px: float = 3.0
-    head_exclude_m: float = 0.12  # hands: the head's disc (measured, else predicted) is left out
-    velocity_damping: float = 0.5  # weight of the last estimated velocity in the prediction
-    # per skin part (head, left hand, right hand): a part found replaces the blob line's
-    # measurement of it (True) or is searched only where the blob line missed it (False, the
-    # default). Dev split (pf_03, 50 frames): the search's hands replacing the blob line's
-    # were within 8 cm of the true hand on 0 of 45 / 49 frames (the filter's hands were off,
-    # the window around them held the face's rim or the shirt's); a head replaced by the
-    # search pulled the filter off and its head then confirmed the search
-    replace: tuple[bool, bool, bool] = (False, False, False)
-    relight: bool = RELIGHT  # the update's two-illuminant relight (update_colours)
-
-
 def seeded_search(
     params,
     colours: appearance.PartColours,
@@ -213,7 +192,7 @@ def seeded_search(
     predicted: Float[np.ndarray, "3 3"],
     points: Float[np.ndarray, "3 3"],
     valid: Bool[np.ndarray, " 3"],
-    seed: SeedParams = SeedParams(),
+    seed: SeedParams | None = None,
     searched: Bool[np.ndarray, " 3"] | None = None,
 ) -> tuple[Float[np.ndarray, "3 3"], Bool[np.ndarray, " 3"], Bool[np.ndarray, " 3"]]:
     """Each skin part (head, left hand, right hand) searched near its ``predicted`` position
@@ -222,6 +201,8 @@ def seeded_search(
     valid flags with the found parts filled in (the others as the blob line gave them) and
     which parts the search found."""
     from jaxmocap.trackers.stereo_pf.search import _components, _project_both
+
+    seed = SeedParams() if seed is None else seed
 
     cams = params.likelihood.cams
     points = np.array(points, np.float64)
