@@ -30,6 +30,16 @@ per-channel gain (the relight of :func:`jaxmocap.appearance.fit_relight` needs a
 the grey-world chromaticity of :mod:`jaxmocap.pf.colors` is not one). The calibrated start is the
 capture's classes on the first frame with a triangulated head (:func:`calibrate_parts`): the
 pixels of its skin map (all three skin parts start from it) and of its shirt map.
+
+**Measured: not an improvement; opt-in** (``make_params(part_colours=True)``, experiment
+option ``part_colours``; ``docs/results/world_pf_parts.md``). Dev split, seed 0, against the
+same filter without it: each hand within 8 cm of the truth on 40 / 9 / 20 / 6% (left) and
+51 / 0 / 22 / 2% (right) of its visible frames, against 46 / 0 / 24 / 6% and 55 / 0 / 26 / 0%;
+mean joint error 14.4 / 44.7 / 37.1 / 44.9 cm against 13.9 / 42.4 / 34.5 / 41.6 (pf_00, 03, 06,
+09). Both steps need the estimate: where the filter's hands are 15-40 cm off (most frames of
+the dev split) the prediction's window does not hold the hand and the render does not cover
+it. The frame costs ~8x as much (11 -> 89 ms, the seeded search's full-image distance maps
+~60 ms of it; ``benchmarks/experiments/pf_parts_timing.py``).
 """
 
 from __future__ import annotations
