@@ -21,6 +21,8 @@ the stereo filter (a part = head, each hand, the shirt):
   around the part's relit state, with the shading-invariant distance of
   :mod:`jaxmocap.color.classify` when ``shading`` is given (pixels brought to the part's
   brightness first, as :func:`jaxmocap.color.fit_color_model` does).
+* :func:`part_distances`: every pixel's (shading-invariant) squared distance to every part's
+  state, to classify pixels by the parts' current colours.
 * :func:`fit_relight`: **a mixture of two illuminants per camera** with the parts' own states
   as the reference materials (Hsu et al., "Light mixture estimation for spatially varying
   white balance", SIGGRAPH 2008: each pixel's light is ``w L_0 + (1 - w) L_1``; here each
@@ -169,6 +171,31 @@ def part_statistics(
     return PartStats(count, raw, m, cov)
 
 
+def part_distances(
+    state: PartColours,
+    pixels: Float[Array, "*s 3"],
+    shading: tuple[float, float] | None = None,
+) -> Float[Array, "*s n"]:
+    """Squared Mahalanobis distance of every pixel to every part's Gaussian; with ``shading =
+    (lo, hi)`` the shading-invariant ``min_a (a x - mean)^T cov^-1 (a x - mean)`` over ``a`` in
+    ``[lo, hi]`` (a surface in its own shadow or highlight: the distance
+    :func:`part_statistics` trims with). For classifying pixels by the parts' states, e.g. a
+    search for one part's pixels near where it is predicted."""
+    dt = state.mean.dtype
+    n = state.mean.shape[0]
+    x = jnp.broadcast_to(pixels.reshape(-1, 1, 3).astype(dt), (pixels.size // 3, n, 3))
+    prec = _precision(state.cov)[None]  # (1, n, 3, 3)
+    mu = state.mean[None]  # (1, n, 3)
+    if shading is not None:
+        xpx = jnp.einsum("kni,knij,knj->kn", x, jnp.broadcast_to(prec, x.shape + (3,)), x)
+        a = jnp.einsum("kni,knij,knj->kn", x, jnp.broadcast_to(prec, x.shape + (3,)),
+                       jnp.broadcast_to(mu, x.shape)) / jnp.maximum(xpx, 1e-12)
+        x = jnp.clip(a, shading[0], shading[1])[..., None] * x
+    d = x - jnp.broadcast_to(mu, x.shape)
+    d2 = jnp.einsum("kni,knij,knj->kn", d, jnp.broadcast_to(prec, x.shape + (3,)), d)
+    return d2.reshape(pixels.shape[:-1] + (n,))
+
+
 class Relight(NamedTuple):
     """A fitted change of two illuminants: per part the gain of its light (3 channels, the
     part's brightness change included where it was seen) and mixture weight, whether the fit
@@ -301,7 +328,7 @@ def update_parts(
     state: PartColours,
     stats: PartStats,
     valid: Bool[Array, ""],
-    rate: float | Float[Array, ""] = RATE,
+    rate: float | Float[Array, ""] | Float[Array, " n"] = RATE,
     min_pixels: float | Float[Array, ""] = MIN_PIXELS,
     min_spread: float = MIN_SPREAD,
     max_spread: float = MAX_SPREAD,
@@ -309,7 +336,8 @@ def update_parts(
 ) -> tuple[PartColours, Bool[Array, " n"], Relight]:
     """One frame's update (module docstring): relight (when ``relight`` and the fit is
     physical), then each part with ``min_pixels`` trimmed pixels moved toward its
-    statistics by ``rate``; an invalid frame (``valid`` false) returns ``state`` unchanged
+    statistics by ``rate`` (one for all parts, or one per part); an invalid frame (``valid``
+    false) returns ``state`` unchanged
     but for the lost-frame count and, after :data:`LOST_FRAMES`, the relaxation toward the
     calibration. Returns ``(state, updated parts, relight fit)``."""
     dt = state.mean.dtype

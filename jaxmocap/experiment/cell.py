@@ -250,6 +250,10 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     for k in ("step_betas", "init_betas"):
         if k in opts:
             opts[k] = tuple(opts[k])
+    if "seed_replace" in opts:  # part_colours: which parts the seeded search may replace
+        from jaxmocap.trackers.stereo_pf.params import SeedParams
+
+        opts["seed_params"] = SeedParams(replace=tuple(bool(x) for x in opts.pop("seed_replace")))
     kw.update(opts)
     segment, colors = None, None
     if skin == "synth":
@@ -271,6 +275,11 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
 
         def observe():
             return pfs.observe_search(params, key, seq.frames, blob, sparams)[0]
+    elif params.part_colours is not None:  # per-part colours, seeded search (filter alongside)
+        from jaxmocap.trackers.stereo_pf.parts import observe_parts
+
+        def observe():
+            return observe_parts(params, key, seq.frames, blob)[0]
     elif params.adapt is None:
         def observe():  # host image line + blob tracker
             return sp.observe_sequence(params, seq.frames, blob)

@@ -3,7 +3,8 @@
 Files, one per stage: :mod:`.params` (settings, ``make_params``, state), :mod:`.observation`
 (the host's image line and blobs), :mod:`.filter` (initialisation, the jitted step, the scan),
 :mod:`.sequence` (live loops and whole sequences), :mod:`.checks` (per-frame validity, reach),
-:mod:`.adapt` (on-line colour adaptation) and :mod:`.search` (guided search for missed blobs).
+:mod:`.adapt` (on-line colour adaptation), :mod:`.search` (guided search for missed blobs)
+and :mod:`.parts` (per-part colours, the seeded search).
 
 Per stereo frame (320x240 pair in the paper, §V):
 
@@ -96,6 +97,7 @@ from jaxmocap.trackers.stereo_pf.params import (
     SIGMA_MIN,
     SWIVEL_FRACTION,
     SYNTH_SKIN_HSV,
+    SeedParams,
     StereoEstimate,
     StereoPFParams,
     SwivelProposal,
@@ -120,6 +122,7 @@ __all__ = [
     "SIGMA_MIN",
     "SWIVEL_FRACTION",
     "SYNTH_SKIN_HSV",
+    "SeedParams",
     "StereoEstimate",
     "StereoPFParams",
     "SwivelProposal",

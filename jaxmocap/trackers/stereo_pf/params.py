@@ -4,6 +4,7 @@ and the extensions' defaults, the elbow-swivel proposal, :class:`StereoPFParams`
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -175,6 +176,31 @@ def _swivel_arms(model: BodyModel, dofs: np.ndarray):
     return tuple(out)
 
 
+@dataclasses.dataclass(frozen=True)
+class SeedParams:
+    """Settings of the per-part colours and their seeded search
+    (:mod:`jaxmocap.trackers.stereo_pf.parts`)."""
+
+    window_m: float = 0.15  # search radius around the projected prediction, metres
+    gate_m: float = 0.2  # the triangulated point within this of the prediction, metres
+    threshold: float = 16.0  # squared shading-invariant distance to the part's colour
+    min_area: int = 3  # px per view (as the prediction-guided search, stereo_pf.search)
+    max_epipolar_px: float = 3.0
+    head_exclude_m: float = 0.12  # hands: the head's disc (measured, else predicted) is left out
+    velocity_damping: float = 0.5  # weight of the last estimated velocity in the prediction
+    # per skin part (head, left hand, right hand): a part found replaces the blob line's
+    # measurement of it (True) or is searched only where the blob line missed it (False, the
+    # default). Dev split (pf_03, 50 frames): the search's hands replacing the blob line's
+    # were within 8 cm of the true hand on 0 of 45 / 49 frames (the filter's hands were off,
+    # the window around them held the face's rim or the shirt's); a head replaced by the
+    # search pulled the filter off and its head then confirmed the search
+    replace: tuple[bool, bool, bool] = (False, False, False)
+    # the update's two-illuminant relight (parts.update_colours); dev: off (the hands, seen on
+    # few frames, were relit by every frame's fit of the head and shirt and drifted to the
+    # colour cube's bound)
+    relight: bool = False
+
+
 class StereoPFParams(eqx.Module):
     """Everything fixed over a sequence: the likelihood (body, cameras, cues), the particle
     filter's box and noise, the image pipeline's parameters and the initialisation prior."""
@@ -202,6 +228,9 @@ class StereoPFParams(eqx.Module):
     adapt: tuple[float, float, float] | None = eqx.field(static=True, default=None)
     # hysteresis skin (pf.colors.hysteresis_masks): px grown into the relaxed skin map; 0: off
     skin_grow: int = eqx.field(static=True, default=0)
+    # per-part colours and the seeded search (jaxmocap.trackers.stereo_pf.parts): its
+    # thresholds; None: off
+    part_colours: SeedParams | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -255,6 +284,8 @@ def make_params(
     adapt_shirt_rate: float = ADAPT_RATE,
     adapt_spread: float = ADAPT_MAX_SPREAD,
     skin_grow: int = 0,
+    part_colours: bool = False,
+    seed_params=None,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
@@ -289,6 +320,12 @@ def make_params(
     ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
     with the filter alongside. ``skin_grow`` (px, needs ``colors``): the skin map grown into
     a relaxed skin map by up to this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`).
+    ``part_colours`` (needs ``colors``): a colour state per part (head, each hand, shirt)
+    updated from the estimate's render, and each skin part searched near its prediction with
+    its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
+    :class:`SeedParams`); :func:`track` then observes the
+    frames with the filter alongside. Off by default: on the dev split of the test world it
+    found no more hands within 8 cm and cost ~8x per frame (the module's docstring).
     """
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
@@ -305,6 +342,12 @@ def make_params(
     if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
         raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
                          f"capture's colours (colors=...), got {skin_grow!r}")
+    if part_colours and colors is None:
+        raise InputError("stereo_pf.make_params: part_colours: needs the capture's colour model "
+                         "(colors=...) for the parts' calibrated start")
+    if part_colours and adapt_colors:
+        raise InputError("stereo_pf.make_params: part_colours and adapt_colors both adapt the "
+                         "colours; give one")
     if adapt_colors and colors is None:
         raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
                          "(colors=...); the HSV intervals are not adapted")
@@ -396,7 +439,17 @@ def make_params(
         adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
         else None,
         skin_grow=int(skin_grow),
+        part_colours=_seed_params(seed_params) if part_colours else None,
     )
+
+
+def _seed_params(seed):
+    if seed is None:
+        return SeedParams()
+    if not isinstance(seed, SeedParams):
+        raise InputError(f"stereo_pf.make_params: seed_params: expected a SeedParams, got "
+                         f"{type(seed).__name__}")
+    return seed
 
 
 class TrackerState(eqx.Module):

@@ -103,8 +103,14 @@ def track(
     ``lax.scan`` (``smooth_lag``: see :func:`run`). Estimates (T, ...). With
     ``params.adapt`` the observations come from
     :func:`jaxmocap.trackers.stereo_pf.adapt.observe_adaptive` (the colour model re-fitted on
-    line); the filter over them is the same."""
-    if params.adapt is not None:
+    line); with ``params.part_colours`` from
+    :func:`jaxmocap.trackers.stereo_pf.parts.observe_parts` (per-part colours, seeded search).
+    The filter over them is the same."""
+    if params.part_colours is not None:
+        from jaxmocap.trackers.stereo_pf.parts import observe_parts
+
+        obs, _ = observe_parts(params, key, frames, blob_params)
+    elif params.adapt is not None:
         from jaxmocap.trackers.stereo_pf.adapt import observe_adaptive
 
         obs, _ = observe_adaptive(params, key, frames, blob_params)
