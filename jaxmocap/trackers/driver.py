@@ -116,7 +116,7 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
         d[f"recall_{n}"] = float(out.signals.recall[c])
     d["agreement"] = float(out.agreement)
     d["patches"] = float(np.sum(out.visible))
-    patch_colours = out.relight_ok is not None
+    patch_colours = getattr(out, "relight_ok", None) is not None
     if patch_colours:
         for c, n in enumerate(names):
             d[f"colour_updated_{n}"] = float(out.colour_updated[c])

@@ -13,9 +13,6 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 from jaxmocap import appearance
 from jaxmocap.camera import Camera, camera_center, pixel_rays, to_camera
 from jaxmocap.color import (
-    ColorModel,
-    classified_fraction,
-    classify,
     classify_views_with_references,
     histogram_search,
     maybe_add_reference,
@@ -56,6 +53,12 @@ from jaxmocap.sampling import (
     erode_ids,
     sample_bilinear_clamped,
     sample_nearest,
+)
+from jaxmocap.trackers.shirt.colours import (
+    classify_by_patch,
+    colour_update,
+    in_look_space,
+    patch_model,
 )
 from jaxmocap.trackers.shirt.params import (
     COLOUR_MAX_RESIDUAL,
@@ -139,41 +142,6 @@ class RoundContext(NamedTuple):
     rays: tuple[Float[Array, "n_cams 3"], Float[Array, "n_cams n n 3"]]
     look: appearance.PartColours | None = None  # the patch colour states (``patch_colours``)
     look_W: Array | None = None
-
-
-def _patch_model(params: ShirtParams, look: appearance.PartColours) -> ColorModel:
-    """One camera's patch colour states as a colour model whose "colours" are the patches."""
-    return ColorModel(look.mean, look.cov, shading=params.shading)
-
-
-def _in_look_space(crop, W):
-    """A crop in the colour space of the patch states (the camera's initial white balance)."""
-    return crop.astype(W.dtype) @ W.T
-
-
-def _patch_colour_of(params: ShirtParams, patch):
-    """Colour ids (0 background) of a patch id map (0 background, ``1..P``)."""
-    pc = jnp.asarray(params.garment.patch_colour).astype(jnp.int32)
-    return jnp.where(patch > 0, jnp.take(pc, jnp.maximum(patch - 1, 0)), 0)
-
-
-def classify_by_patch(
-    params: ShirtParams, state: ShirtState, crops, fgs
-) -> ReferenceClassification:
-    """Step 1 with ``patch_colours``: every crop pixel compared with every patch's colour state
-    (threshold ``T``, the scene's colours as background), given the colour of the nearest
-    patch; stacked over cameras (``W`` and ``used_reference`` as if the plain step ran)."""
-
-    def one(look, W_look, W, crop, fg):
-        img = _in_look_space(crop, W_look)
-        eye = jnp.eye(3, dtype=W_look.dtype)
-        patch, dist = classify(_patch_model(params, look), eye, img, fg, THRESHOLD,
-                               params.shading, params.scene_colors)  # fmt: skip
-        ids = _patch_colour_of(params, patch)
-        return ReferenceClassification(ids, dist, W, classified_fraction(ids, fg), jnp.array(False))
-
-    fg_ax = None if fgs is None else 0
-    return jax.vmap(one, in_axes=(0, 0, 0, 0, fg_ax))(state.look, state.look_W, state.W, crops, fgs)
 
 
 def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
@@ -294,8 +262,8 @@ def pose_assisted_centroids(
             )  # fmt: skip
         else:  # every patch its own colour state: the "colours" are the patches
             pa = pose_assisted_classify(
-                _patch_model(params, look), jnp.eye(3, dtype=W_look.dtype),
-                _in_look_space(crop, W_look), dist, jnp.arange(1, P + 1), weight, fg, thr,
+                patch_model(params, look), jnp.eye(3, dtype=W_look.dtype),
+                in_look_space(crop, W_look), dist, jnp.arange(1, P + 1), weight, fg, thr,
                 params.shading, params.scene_colors,
             )  # fmt: skip
         return patch_centroids(pa.patch, P, window, dtype=dt)
@@ -508,46 +476,6 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
     )
 
 
-def colour_update(params: ShirtParams, state: ShirtState, ctx: RoundContext, hits, valid,
-                  learn):
-    """Step 5 with ``patch_colours`` (:mod:`jaxmocap.appearance`), per camera that found the
-    shirt: on a valid frame, in the cameras where ``learn`` (the final pose explains the crop:
-    :data:`COLOUR_MAX_RESIDUAL`, :data:`COLOUR_MIN_RECALL`), each patch's colour state relit
-    and moved toward the pixels that the final pose's render ``r*`` (eroded by one pixel)
-    gives it, trimmed; with ``follow_light``, on the first invalid frame after a frame the
-    camera learned from, only
-    the light, from the render of the held pose (eroded by two pixels: it is a frame old), so
-    that a lamp switched off is followed (:func:`jaxmocap.appearance.follow_light`); else the
-    states stay. Returns ``(look, updated patches, relight applied,
-    relight RMS)`` stacked over cameras."""
-    v = ctx.views
-    held = hits.patch
-    if params.follow_light:
-        held = jax.lax.cond(valid, lambda: hits.patch,
-                            lambda: render_views(params, ctx, state.q).patch)  # fmt: skip
-    # follow only from a pose the camera learned from on the previous frame (a trusted one)
-    follow = ~valid & (jnp.min(state.look.age, axis=-1) == 0) & params.follow_light
-
-    def one(look, W_look, patch, held_patch, crop, fg, ok_cam, follow_cam, learn_cam):
-        img = _in_look_space(crop, W_look)
-        stats = appearance.part_statistics(look, img, erode_ids(patch), shading=params.shading,
-                                           mask=fg)  # fmt: skip
-        new, used, fit = appearance.update_parts(look, stats, learn_cam & ok_cam)
-        if not params.follow_light:
-            return new, jnp.sum(used).astype(jnp.int32), fit.ok, fit.rms
-        held_stats = appearance.part_statistics(look, img, erode_ids(erode_ids(held_patch)),
-                                                gate=jnp.inf, mask=fg)  # fmt: skip
-        new, fol = appearance.follow_light(new, held_stats, follow_cam & ok_cam)
-        ok = fit.ok | fol.ok
-        rms = jnp.where(valid, fit.rms, fol.rms)
-        return new, jnp.sum(used).astype(jnp.int32), ok, rms
-
-    fg_ax = None if v.fgs is None else 0
-    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, fg_ax, 0, 0, 0))(
-        state.look, state.look_W, hits.patch, held, v.crops, v.fgs, ctx.okq, follow, learn
-    )
-
-
 def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtState, ShirtOutput]:
     dt = state.q.dtype
     views = locate_and_classify(params, state, frames, masks)
@@ -565,7 +493,12 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     if params.patch_colours:
         learn = valid & (signals.residual <= COLOUR_MAX_RESIDUAL) & (
             signals.recall >= COLOUR_MIN_RECALL)
-        look, n_upd, r_ok, r_rms = colour_update(params, state, ctx, hits, valid, learn)
+        held = hits.patch
+        if params.follow_light:  # the held pose rendered only on an invalid frame
+            held = jax.lax.cond(valid, lambda: hits.patch,
+                                lambda: render_views(params, ctx, state.q).patch)  # fmt: skip
+        look, n_upd, r_ok, r_rms = colour_update(params, state, views, db.okq, hits.patch,
+                                                 held, valid, learn)
         W_new, refs, added = state.W, state.refs, jnp.zeros(params.n_cams, bool)
         colour_out = dict(colour_updated=n_upd, relight_ok=r_ok, relight_rms=r_rms)
         new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked,
