@@ -21,10 +21,12 @@ import builtins
 import contextlib
 import gc
 import importlib
+import opcode
 import os
 import signal
 import sys
 import threading
+import typing
 
 from jaxmocap.errors import InputError, UsageError
 
@@ -79,9 +81,12 @@ def _in_finaliser(frame) -> bool:
 
 
 def _importing(frame) -> bool:
-    """Whether a module is being imported somewhere up the stack of ``frame``."""
+    """Whether a module is being imported somewhere up the stack of ``frame``: importlib's
+    frames, or :func:`_import`'s own (a signal landing there, before or after the import
+    proper, may be in an import that native code called)."""
     while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
+        if frame.f_code.co_filename.startswith("<frozen importlib") or \
+                frame.f_code is _import.__code__:
             return True
         frame = frame.f_back
     return False
@@ -147,9 +152,11 @@ def _on_signal(signum, frame):
     see :func:`entry`) it is raised where the outermost ``import`` statement ends
     (:func:`_import`: at a fixed point, whatever the timing); in a finaliser (Python prints
     it as "Exception ignored" and drops it), or an import not made by an ``import`` statement
-    (``importlib.import_module``), the signal is sent again ``RESEND_S`` later. The signal
-    raised is recorded, so that an exception a library made of it still reads as the
-    interrupt in :func:`main`, and a watchdog ends the process if no handler reports it within
+    (``importlib.import_module``, or native code: ``PyImport_Import`` from jaxlib's nanobind
+    modules, see :func:`_import`), the signal is sent again ``RESEND_S`` later, and raised by
+    the first copy that lands outside an import and a finaliser. The signal raised is
+    recorded, so that an exception a library made of it still reads as the interrupt in
+    :func:`main`, and a watchdog ends the process if no handler reports it within
     ``LOST_INTERRUPT_S`` (a library swallowed it)."""
     resent = bool(_RESENT)
     if resent:
@@ -165,15 +172,38 @@ def _on_signal(signum, frame):
 
 
 _BUILTIN_IMPORT = builtins.__import__
+_IMPORT_NAME = opcode.opmap["IMPORT_NAME"]
 
 
+def _import_statement(frame) -> bool:
+    """Whether ``frame`` is executing an ``import`` statement (its current instruction is
+    ``IMPORT_NAME``), i.e. the ``__import__`` it called was called by Python code. Native code
+    calls ``__import__`` too (``PyImport_Import``, e.g. nanobind's ``module_::import_``): the
+    innermost Python frame is then the one that called into native code, which is executing
+    a call, not ``IMPORT_NAME``."""
+    return frame.f_code.co_code[frame.f_lasti] == _IMPORT_NAME
+
+
+# unwrapped (the tests' jaxtyping import hook wraps every function not marked so): its own
+# frame and its caller's, the frame that called __import__, are what the checks read
+@typing.no_type_check
 def _import(*args, **kwargs):
     """``__import__`` while :func:`main` runs: an interrupt deferred during the import is
-    raised as soon as the outermost ``import`` statement of the main thread is done."""
+    raised as soon as the outermost ``import`` statement of the main thread is done.
+
+    Only an ``import`` statement's: an exception raised at the end of an import that native
+    code started returns into that native code, and jaxlib's nanobind modules (which import
+    ``jaxlib.mlir`` dialect modules while a program is lowered) turn it into a C++
+    ``nanobind::python_error`` that can reach ``std::terminate`` (the process aborts, exit
+    status -6, no line). Such an interrupt stays deferred until the import is over: a re-sent
+    copy (:func:`_on_signal`) raises it in the Python code that runs next outside an import,
+    or the next ``import`` statement raises it where it ends. (Python code that native code
+    calls, and that runs an ``import`` statement, can still receive it there, as it can
+    receive any interrupt that lands in it.)"""
     module = _BUILTIN_IMPORT(*args, **kwargs)
     if _DEFERRED and threading.current_thread() is threading.main_thread():
         caller = sys._getframe(1)
-        if not (_importing(caller) or _in_finaliser(caller)):
+        if _import_statement(caller) and not (_importing(caller) or _in_finaliser(caller)):
             _raise_interrupt(_DEFERRED[0])
     return module
 

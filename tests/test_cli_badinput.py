@@ -638,6 +638,20 @@ def in_import(args):
     print("after the import statement", flush=True)  # never: the interrupt lands before
     raise AssertionError("not interrupted")
 
+def in_native_import(args):
+    # the same import started by native code (PyImport_Import, as nanobind's module_::import_
+    # does in jaxlib): the interrupt must not be raised into the native caller (a C++ caller
+    # aborts the process) but in the Python code after it
+    import ctypes
+    sys.path.insert(0, FOLDER)
+    native_import = ctypes.pythonapi.PyImport_ImportModule
+    native_import.argtypes, native_import.restype = [ctypes.c_char_p], ctypes.py_object
+    native_import(b"sends_sigint_while_imported")
+    print("native import returned", flush=True)
+    for _ in range(3000):  # the re-sent signal lands in here
+        time.sleep(0.01)
+    raise AssertionError("not interrupted")
+
 def swallowed(args):
     try:
         os.kill(os.getpid(), signal.SIGINT)
@@ -664,13 +678,16 @@ print("import finished", done, flush=True)
 """
 
 
-@pytest.mark.parametrize("case", ["in_string_exec", "in_import", "swallowed"])
+@pytest.mark.parametrize("case", ["in_string_exec", "in_import", "in_native_import",
+                                  "swallowed"])
 def test_interrupt_machinery_exits_130_with_one_line(tmp_path, case):
     """A KeyboardInterrupt that left a string ``exec`` (CPython's exit would make it -2); one
     that lands while a module is imported (deferred, sent again and deferred again while the
     import runs, raised where the import statement ends: never inside the import, never
-    later); one a library swallows (the watchdog ends the process): each exits 130 with the
-    one line, and writes nothing. Every step waits for an event, none for a time."""
+    later); one that lands while native code imports a module (never raised into the native
+    caller: raised by a re-send once the native call has returned); one a library swallows
+    (the watchdog ends the process): each exits 130 with the one line, and writes nothing.
+    Every step waits for an event, none for a time."""
     (tmp_path / "cases.py").write_text(SIGNAL_CASES)
     mods = tmp_path / "mods"
     mods.mkdir()
@@ -681,13 +698,15 @@ def test_interrupt_machinery_exits_130_with_one_line(tmp_path, case):
     # interrupt that once left a string exec into SIGINT (a script's sys.exit ends earlier)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)]),
                JAX_PLATFORMS="cpu")
-    args = [sys.executable, "-m", "cases", case, str(mods if case == "in_import" else out)]
+    args = [sys.executable, "-m", "cases", case, str(mods if "import" in case else out)]
     t0 = time.time()
     proc = subprocess.run(args, env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 130, (proc.stdout, proc.stderr)
     assert proc.stderr.strip() == "jaxmocap body: interrupted; nothing written", proc.stderr
     if case == "in_import":  # the import ran to its end, the interrupt landed right after it
         assert proc.stdout.strip() == "import finished True"
+    if case == "in_native_import":  # the native call returned the module, then it landed
+        assert proc.stdout.split("\n")[:2] == ["import finished True", "native import returned"]
     if case == "swallowed":
         assert time.time() - t0 < 40
     assert os.listdir(out) == []
