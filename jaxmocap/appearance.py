@@ -251,11 +251,10 @@ def fit_relight(
     tol = 1e-8 if dt == jnp.float64 else 1e-5
     sol = optx.least_squares(residual, optx.LevenbergMarquardt(rtol=tol, atol=tol), x0,
                              max_steps=max_steps, throw=False)  # fmt: skip
-    log_r, logit, log_s = sol.value
-    _, w, r = model(sol.value)
+    log_s = sol.value[2]
+    pred, w, r = model(sol.value)
     scale = jnp.exp(log_s * seen)  # unseen parts keep their brightness
     gains = scale[:, None] * (w[:, None] * r[0][None, :] + (1 - w[:, None]) * r[1][None, :])
-    pred, _, _ = model(sol.value)
     n_seen = jnp.maximum(jnp.sum(seen), 1)
     rms = jnp.sqrt(jnp.sum(seen[:, None] * jnp.square(pred - log_obs)) / (3 * n_seen))
     chroma = jnp.max(r, axis=1) / jnp.min(r, axis=1)

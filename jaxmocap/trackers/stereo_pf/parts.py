@@ -210,7 +210,7 @@ def seeded_search(
     docstring, 2); ``searched``: the parts to search (default all). Returns the points and
     valid flags with the found parts filled in (the others as the blob line gave them) and
     which parts the search found."""
-    from jaxmocap.trackers.stereo_pf.search import _components, _project_both
+    from jaxmocap.trackers.stereo_pf.search import _components, _paired, _project_both
 
     seed = SeedParams() if seed is None else seed
 
@@ -242,17 +242,10 @@ def seeded_search(
                 rh = f[v] * seed.head_exclude_m / depth[v, 3]
                 region &= (xx - uv[v, 3, 0]) ** 2 + (yy - uv[v, 3, 1]) ** 2 > rh * rh
             cands.append(_components(region, region, uv[v, e], seed.min_area, 0, m))
-        nl, nr = len(cands[0]), len(cands[1])
-        if nl == 0 or nr == 0:
+        pairs = _paired(cams, cands, m, predicted[e], seed.max_epipolar_px, seed.gate_m)
+        if pairs is None:
             continue
-        a, b = np.zeros((m, 2)), np.zeros((m, 2))
-        a[:nl], b[:nr] = cands[0], cands[1]
-        epi, X, dep, _ = (np.asarray(x) for x in bloblib._frame_geometry(
-            cams, a, b, np.zeros((3, 3)), False))
-        epi, X, dep = epi[:nl, :nr], X[:nl, :nr], dep[:, :nl, :nr]
-        dist = np.linalg.norm(X - predicted[e], axis=-1)
-        ok = (epi <= seed.max_epipolar_px) & np.all(dep > 0, axis=0) & (dist <= seed.gate_m)
-        ok &= np.all(np.isfinite(X), axis=-1)
+        X, dist, ok = pairs
         if not ok.any():
             continue
         i, j = np.unravel_index(np.argmin(np.where(ok, dist, np.inf)), ok.shape)

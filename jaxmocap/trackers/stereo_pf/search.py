@@ -111,6 +111,27 @@ def _project_both(
     return uv, depth
 
 
+def _paired(cams, cands, m: int, predicted: np.ndarray, max_epipolar_px: float,
+            gate_m: float):
+    """Every pair of the two views' candidate centres (``cands``, at most ``m`` each)
+    triangulated: the points (nl, nr, 3), their distance from ``predicted`` and which pairs
+    pass the epipolar, in-front-of-both-cameras, gate and finiteness checks; None when a view
+    has no candidate. The pairs are padded to ``m`` so that one compiled geometry serves
+    every frame."""
+    nl, nr = len(cands[0]), len(cands[1])
+    if nl == 0 or nr == 0:
+        return None
+    a, b = np.zeros((m, 2)), np.zeros((m, 2))
+    a[:nl], b[:nr] = cands[0], cands[1]
+    epi, X, dep, _ = (np.asarray(x) for x in bloblib._frame_geometry(
+        cams, a, b, np.zeros((3, 3)), False))
+    epi, X, dep = epi[:nl, :nr], X[:nl, :nr], dep[:, :nl, :nr]
+    dist = np.linalg.norm(X - predicted, axis=-1)
+    ok = (epi <= max_epipolar_px) & np.all(dep > 0, axis=0) & (dist <= gate_m)
+    ok &= np.all(np.isfinite(X), axis=-1)
+    return X, dist, ok
+
+
 def _components(mask: np.ndarray, seeds: np.ndarray, centre: np.ndarray, min_area: int,
                 seed_px: int, m: int) -> np.ndarray:
     """Centroids (<= m, 2) of the components of ``mask`` with >= min_area px of which
@@ -174,17 +195,10 @@ def search_entities(
                     region &= ~disc(1 + other, search.hand_exclude_m)
             cands.append(_components(region, skin_maps[v][1], uv[v, 0], search.min_area,
                                      search.seed_px, m))
-        nl, nr = len(cands[0]), len(cands[1])
-        if nl == 0 or nr == 0:
+        pairs = _paired(cams, cands, m, predicted[e], search.max_epipolar_px, search.gate_m)
+        if pairs is None:
             continue
-        a, b = np.zeros((m, 2)), np.zeros((m, 2))
-        a[:nl], b[:nr] = cands[0], cands[1]
-        epi, X, dep, _ = (np.asarray(x) for x in bloblib._frame_geometry(
-            cams, a, b, np.zeros((3, 3)), False))
-        epi, X, dep = epi[:nl, :nr], X[:nl, :nr], dep[:, :nl, :nr]
-        dist = np.linalg.norm(X - predicted[e], axis=-1)
-        ok = (epi <= search.max_epipolar_px) & np.all(dep > 0, axis=0) & (dist <= search.gate_m)
-        ok &= np.all(np.isfinite(X), axis=-1)
+        X, dist, ok = pairs
         if e != bloblib.HEAD:
             dh = np.linalg.norm(X - ref[bloblib.HEAD], axis=-1)
             ok &= (dh >= near) & (dh <= far)
