@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 from jaxmocap import body
 from jaxmocap.body import roles as rl
 from jaxmocap.body.mjcf import compile_mjcf
+from jaxmocap.body.packages import PACKAGE_BODIES, package_body_file
 from jaxmocap.body.urdf import prepare_urdf, read_urdf_text
 from jaxmocap.errors import InputError
 from jaxmocap.garment import garment_from_model, shirt_geoms
@@ -48,13 +49,8 @@ def package_file(package: str, *parts: str) -> Path:
     return Path(next(iter(spec.submodule_search_locations))).joinpath(*parts)
 
 
-BODIES = {
-    "deepmimic": (("pybullet_data", "humanoid", "humanoid.urdf"), {"scale": 0.25, "up": "y"}),
-    "cmu": (("dm_control", "suite", "humanoid_CMU.xml"), {}),
-    "dmc_humanoid": (("dm_control", "suite", "humanoid.xml"), {}),
-    "gym_humanoid": (("gymnasium", "envs", "mujoco", "assets", "humanoid.xml"), {}),
-    "pybullet_mjcf": (("pybullet_data", "mjcf", "humanoid.xml"), {}),
-}
+BODIES = {name: ((package, *parts), kw) for name, (package, parts, kw) in
+          PACKAGE_BODIES.items()}
 # The roles as read off each file by hand: link roles, and the geoms that are the head and the
 # hands (the keypoints' geoms) -- the oracle for the inference.
 EXPECTED = {
@@ -89,6 +85,7 @@ def bodies():
     out = {}
     for name, (parts, kw) in BODIES.items():
         path = package_file(*parts)
+        assert (path, kw) == package_body_file(name)
         assert not body.roles_path(path).exists()  # inferred, not read from a file beside it
         out[name] = (path, body.load_body(path, **kw))
     return out

@@ -195,9 +195,13 @@ def primitive_geoms(model: BodyModel) -> GeomWriter:
 
 def mjcf_body(model: BodyModel, geoms: GeomWriter | None = None, root_joint: str = "root"
               ) -> ET.Element:
-    """The ``<body>`` tree of ``model`` (module docstring) for a ``<worldbody>``."""
+    """The ``<body>`` tree of ``model`` (module docstring) for a ``<worldbody>``. A root link
+    with a fixed offset (``joint_origin[0]``, e.g. a body turned to face +x) hangs at that
+    offset inside a frame body ``<root>__frame`` that carries the free joint (our FK's
+    ``T(q) joint_origin[0]``)."""
     chain = model.chain
-    origin = _check_root(model)
+    origin = np.asarray(chain.joint_origin, np.float64)
+    offset = not np.allclose(origin[0], np.eye(4), atol=1e-12)
     axis = np.asarray(chain.joint_axis, np.float64)
     lower, upper = np.asarray(chain.lower, float), np.asarray(chain.upper, float)
     geoms = primitive_geoms(model) if geoms is None else geoms
@@ -208,8 +212,11 @@ def mjcf_body(model: BodyModel, geoms: GeomWriter | None = None, root_joint: str
         if i > 0:
             attrs |= {"pos": _nums(origin[i, :3, 3]),
                       "quat": _nums(matrix_quat(origin[i, :3, :3]))}
+        if i == 0 and offset:
+            attrs |= {"pos": _nums(origin[0, :3, 3]),
+                      "quat": _nums(matrix_quat(origin[0, :3, :3]))}
         b = ET.Element("body", **attrs)
-        if i == 0:
+        if i == 0 and not offset:
             ET.SubElement(b, "freejoint", name=root_joint)
         elif jtype != FIXED:
             jattrs = {"name": chain.dof_names[dof],
@@ -226,6 +233,12 @@ def mjcf_body(model: BodyModel, geoms: GeomWriter | None = None, root_joint: str
         if i > 0:
             elems[parent].append(b)
         elems.append(b)
+    if offset:
+        frame = ET.Element("body", name=f"{chain.link_names[0]}__frame")
+        ET.SubElement(frame, "freejoint", name=root_joint)
+        ET.SubElement(frame, "inertial", pos="0 0 0", mass="0.001", diaginertia="1e-6 1e-6 1e-6")
+        frame.append(elems[0])
+        return frame
     return elems[0]
 
 

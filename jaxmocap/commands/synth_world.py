@@ -10,9 +10,14 @@ from jaxmocap.errors import InputError
 from jaxmocap.synth.world.spec import WorldSpec
 
 EPILOG = """examples:
-  jaxmocap synth-world world --split dev
+  jaxmocap synth-world world --split dev --blender-python ~/blender-env/bin/python
   jaxmocap synth-world world --split test --tracker shirt
   jaxmocap synth-world quick --split dev --only shirt_00 pf_00 --frames 10
+  jaxmocap synth-world world --split test --renderer mujoco     # no Blender needed
+
+The Cycles sequences (renderer "cycles" in the split) need a Python with bpy (Blender as a
+module; bpy pins NumPy 1.26, so it lives in an environment of its own:
+python3.11 -m venv ~/blender-env && ~/blender-env/bin/pip install bpy).
 
 Sequences already in OUT are kept (delete a folder to render it again).
 """
@@ -20,7 +25,8 @@ Sequences already in OUT are kept (delete a folder to render it again).
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
-        "synth-world", help="render the independent test world (dev or test split, MuJoCo)",
+        "synth-world", help="render the independent test world (dev or test split; MuJoCo and "
+        "Blender Cycles)",
         description="Render the test world's sequences of one split (jaxmocap/synth/world/"
         "test_world.json; docs/results/test_world.md) into OUT/<name>/, each a jaxmocap "
         "synth dataset folder. Tune on dev only.", epilog=EPILOG,
@@ -34,6 +40,11 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", type=int, metavar="N", help="at most N frames per sequence "
                    "(quick checks; the split's numbers are for the full length)")
     p.add_argument("--png", action="store_true", help="also write lossless PNG frames")
+    p.add_argument("--blender-python", metavar="PYTHON",
+                   help="a Python with bpy (Blender as a module) for the sequences rendered by "
+                   "Cycles (default $JAXMOCAP_BLENDER_PYTHON, else this Python)")
+    p.add_argument("--renderer", choices=("mujoco", "cycles", "both"), default="both",
+                   help="only the sequences of this renderer (default both)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -48,7 +59,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames {args.frames}: expected a number of frames >= 1")
     seqs = [s for s in load_split()
             if (args.split == "all" or s["split"] == args.split)
-            and (args.tracker == "both" or s["tracker"] == args.tracker)]
+            and (args.tracker == "both" or s["tracker"] == args.tracker)
+            and (args.renderer == "both"
+                 or s["world"].get("renderer", "mujoco") == args.renderer)]
     if args.only:
         known = {s["name"] for s in load_split()}
         bad = sorted(set(args.only) - known)
@@ -56,6 +69,11 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--only: unknown sequence(s) {bad}; known: {sorted(known)}")
         seqs = [s for s in seqs if s["name"] in args.only]
     todo = [s for s in seqs if not (out / s["name"]).exists()]
+    python = None
+    if any(s["world"].get("renderer") == "cycles" for s in todo):
+        from jaxmocap.synth.world.cycles import blender_python
+
+        python = blender_python(args.blender_python)  # before any work: one line if unusable
     if len(todo) < len(seqs):
         print(f"jaxmocap synth-world: {len(seqs) - len(todo)} sequence(s) already in {out}, "
               "kept")
@@ -66,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         if args.frames is not None:
             spec_d["n_frames"] = min(args.frames, spec_d["n_frames"] or args.frames)
         spec = WorldSpec.from_dict(spec_d, s["name"])
-        seq = render_world(spec, progress=not args.quiet)
+        seq = render_world(spec, progress=not args.quiet, blender_python=python)
         write_world(seq, out / s["name"], png=args.png)
         t, c = seq.frames.shape[:2]
         print(f"jaxmocap synth-world: {s['name']} ({s['split']}, {t} frames x {c} cameras "

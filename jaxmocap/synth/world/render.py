@@ -1,4 +1,5 @@
-"""Rendering a test-world sequence with MuJoCo and writing it as a ``jaxmocap synth`` dataset.
+"""Rendering a test-world sequence with MuJoCo (images of ``renderer = "cycles"`` sequences from
+Blender: :mod:`jaxmocap.synth.world.cycles`) and writing it as a ``jaxmocap synth`` dataset.
 
 Per frame and camera: the subject's pose (our ``q`` -> MuJoCo ``qpos``,
 :func:`jaxmocap.body.write.qpos_from_q`), the lamps' power (:func:`spec.lamp_levels`), the moving
@@ -78,6 +79,7 @@ class WorldSequence(NamedTuple):
     garment: object  # the shirt on that body (geom indices shared with it)
     seconds: float  # total, set-up (retargeting, tessellation, MuJoCo compile) included
     render_seconds: float  # the frame loop only (MuJoCo renders, noise, JPEG)
+    blender: dict | None = None  # Cycles: Blender's version and seconds per image
 
 
 def _subframe_offsets(spec: WorldSpec) -> np.ndarray:
@@ -111,12 +113,15 @@ def _mocap_positions(spec: WorldSpec, t_sub: np.ndarray) -> dict[str, np.ndarray
     return out
 
 
-def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> WorldSequence:
-    """Render ``spec`` in memory (module docstring)."""
+def render_world(spec: WorldSpec, progress: bool = False, segments=None,
+                 blender_python: str | None = None, silhouette: bool = False) -> WorldSequence:
+    """Render ``spec`` in memory (module docstring). With ``spec.renderer == "cycles"`` the
+    images come from Blender (:mod:`jaxmocap.synth.world.cycles`, run in ``blender_python``;
+    ``silhouette``: the body white on black, a check of Blender's geometry and cameras),
+    everything else from MuJoCo as here."""
     import time as _time
 
     ensure_gl()
-    import cv2
     import jax
     import jax.numpy as jnp
     import mujoco
@@ -166,12 +171,19 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
     body_px = np.zeros((n, len(cams)), np.int64)
     shown_px = np.zeros((n, len(cams)), np.int64)
     mid = spec.motion_blur // 2
+    cycles = spec.renderer == "cycles"
+    if cycles:
+        from jaxmocap.synth.world import cycles as cy
+
+        python = cy.blender_python(blender_python)
+        moving = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) != 0]
+        poses = {g: (np.zeros((n, 3)), np.zeros((n, 3, 3))) for g in moving}
     t_loop = _time.perf_counter()
     it = range(n)
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(it, desc="synth (mujoco)", unit="frame")
+        it = tqdm(it, desc="synth (ground truth)" if cycles else "synth (mujoco)", unit="frame")
     for t in it:
         for k, li in enumerate(lamp_ids):
             lv = levels[t, k]
@@ -181,13 +193,20 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
             m.light_ambient[li] = ambient[k] * lv
         acc = np.zeros((len(cams), h, w, 3))
         for s in range(spec.motion_blur):
+            if cycles and s != mid:  # Blender blurs between the frames' keyframes itself
+                continue
             d.qpos[:] = qpos[t, s]
             for nm, mid_id in mocap_ids.items():
                 d.mocap_pos[mid_id] = mocap[nm][t, s]
             mujoco.mj_forward(m, d)
+            if cycles:
+                for g in moving:
+                    poses[g][0][t] = d.geom_xpos[g]
+                    poses[g][1][t] = d.geom_xmat[g].reshape(3, 3)
             for c, cname in enumerate(names):
-                rgb_r.update_scene(d, camera=cname, scene_option=everything)
-                acc[c] += rgb_r.render()
+                if not cycles:
+                    rgb_r.update_scene(d, camera=cname, scene_option=everything)
+                    acc[c] += rgb_r.render()
                 if s == mid:
                     seg_r.update_scene(d, camera=cname, scene_option=everything)
                     ids = seg_r.render()[..., 0]
@@ -195,18 +214,21 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
                     shown_px[t, c] = is_body[ids + 1].sum()
                     seg_r.update_scene(d, camera=cname, scene_option=body_only)
                     body_px[t, c] = is_body[seg_r.render()[..., 0] + 1].sum()
-        img = acc / spec.motion_blur
-        for c in range(len(cams)):
-            rng = np.random.default_rng([spec.seed, t, c])
-            v = img[c] + spec.noise_sigma * 255 * rng.standard_normal(img[c].shape)
-            v = np.clip(np.round(v), 0, 255).astype(np.uint8)
-            if spec.jpeg_quality is not None:
-                ok, buf = cv2.imencode(".jpg", v[..., ::-1],
-                                       [cv2.IMWRITE_JPEG_QUALITY, spec.jpeg_quality])
-                v = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
-            frames[t, c] = v
+        if not cycles:
+            _camera(spec, acc / spec.motion_blur, t, frames[t])
     rgb_r.close()
     seg_r.close()
+    blender = None
+    if cycles:
+        with tempfile.TemporaryDirectory(prefix="jaxmocap_world_") as tmp:
+            fill = m.light_dir[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_LIGHT, "fill")]
+            scene_file = cy.export_scene(Path(tmp) / "scene.npz", spec, m, poses, cams,
+                                         levels, fill, threads=os.cpu_count() or 1,
+                                         silhouette=silhouette)
+            linear, blender = cy.render_with_blender(scene_file, n, len(cams), python,
+                                                     progress=progress)
+        for t in range(n):
+            _camera(spec, linear[t].astype(np.float64), t, frames[t])
     t_loop = _time.perf_counter() - t_loop
     dt = jnp.result_type(float)
     kp = jax.jit(jax.vmap(lambda q: keypoints(sb.model, q)))(jnp.asarray(q_frames, dt))
@@ -231,7 +253,39 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None) -> Worl
         "lamp_levels": levels,
     }
     return WorldSequence(frames, cams, names, gt, spec, shown, garment,
-                         _time.perf_counter() - t0, t_loop)
+                         _time.perf_counter() - t0, t_loop, blender)
+
+
+def _camera(spec: WorldSpec, images: np.ndarray, t: int, out: np.ndarray) -> None:
+    """The camera past the renderer: sensor noise (``noise_sigma`` x 255, seeded per frame and
+    camera), 8-bit rounding, JPEG (``jpeg_quality``); ``images`` (C, H, W, 3) in 0..255."""
+    import cv2
+
+    for c in range(images.shape[0]):
+        rng = np.random.default_rng([spec.seed, t, c])
+        v = images[c] + spec.noise_sigma * 255 * rng.standard_normal(images[c].shape)
+        v = np.clip(np.round(v), 0, 255).astype(np.uint8)
+        if spec.jpeg_quality is not None:
+            ok, buf = cv2.imencode(".jpg", v[..., ::-1],
+                                   [cv2.IMWRITE_JPEG_QUALITY, spec.jpeg_quality])
+            v = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+        out[c] = v
+
+
+def sequence_body_file(folder: str | os.PathLike) -> tuple[Path, dict]:
+    """The body file of a world sequence folder and its ``load_body`` keywords: its
+    ``body.urdf``, or the package file that its ``body.json`` names."""
+    from jaxmocap.errors import InputError
+
+    folder = Path(folder)
+    if (folder / "body.urdf").is_file():
+        return folder / "body.urdf", {}
+    if (folder / "body.json").is_file():
+        from jaxmocap.body.packages import package_body_file
+
+        doc = json.loads((folder / "body.json").read_text())
+        return package_body_file(doc.get("package_body", ""))
+    raise InputError(f"{folder}: no body.urdf or body.json in the sequence folder")
 
 
 def scene_config(spec: WorldSpec, n_frames: int):
@@ -256,9 +310,11 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
                 png: bool = False, sheet: bool = False) -> Path:
     """Write ``seq`` as a dataset folder (the layout of :func:`jaxmocap.synth.write_dataset`,
     read by :func:`jaxmocap.synth.load_dataset`), atomically, plus ``body.urdf`` and
-    ``body.xml`` (the subject's body as the world names it), ``garment.json`` (its shirt on
-    that body, :func:`jaxmocap.io.garment_file.save_garment`) and, in ``scene.json``,
-    ``render.renderer = "mujoco"`` and ``world`` (the :class:`WorldSpec`)."""
+    ``body.xml`` (the subject's body as the world names it; for a package body instead
+    ``body.json``, which names the file in its package: :func:`sequence_body_file`),
+    ``garment.json`` (its shirt on that body, :func:`jaxmocap.io.garment_file.save_garment`)
+    and, in ``scene.json``, ``render.renderer`` (``mujoco`` or ``cycles``, with Blender's
+    version and seconds per image) and ``world`` (the :class:`WorldSpec`)."""
     from jaxmocap.body.write import write_mjcf, write_urdf
     from jaxmocap.io.garment_file import save_garment
     from jaxmocap.synth.dataset import _check_target, write_dataset
@@ -274,14 +330,26 @@ def write_world(seq: WorldSequence, folder: str | os.PathLike, video: bool = Tru
                      groundtruth=seq.groundtruth, config=cfg)
         inner = write_dataset(s, tmp / "d", video=video, png=png, sheet=sheet)
         doc = json.loads((inner / "scene.json").read_text())
-        doc["render"]["renderer"] = "mujoco"
+        doc["render"]["renderer"] = seq.spec.renderer
         doc["render"]["mujoco_gl"] = os.environ.get("MUJOCO_GL")
+        if seq.blender is not None:
+            sec = seq.blender["seconds_per_image"]
+            doc["render"]["blender"] = seq.blender["blender"]
+            doc["render"]["seconds_per_image"] = round(float(np.mean(sec)), 2)
         doc["render"]["seconds"] = round(seq.seconds, 2)
         doc["render"]["render_seconds"] = round(seq.render_seconds, 2)
         doc["world"] = seq.spec.to_dict()
         (inner / "scene.json").write_text(json.dumps(doc, indent=2) + "\n")
-        write_urdf(seq.body, inner / "body.urdf")
-        write_mjcf(seq.body, inner / "body.xml")
+        if seq.spec.body == "scaled":
+            write_urdf(seq.body, inner / "body.urdf")
+            write_mjcf(seq.body, inner / "body.xml")
+        else:  # a package body is read from its own file, as it comes (body.json names it)
+            from jaxmocap.body.packages import PACKAGE_BODIES
+
+            package, parts, kw = PACKAGE_BODIES[seq.spec.body]
+            (inner / "body.json").write_text(json.dumps(
+                {"package_body": seq.spec.body, "package": package, "path": "/".join(parts),
+                 **kw}, indent=1) + "\n")
         save_garment(inner / "garment.json", seq.garment, seq.body)
         _check_target(folder)
         if folder.is_dir():

@@ -48,6 +48,7 @@ PROP_GROUP = 3  # MuJoCo geom group of the room and props (hidden for the body-o
 ROOM = dict(wall_x=-2.6, side_y=3.2, ceiling=3.0)
 OCCLUDER_X, OCCLUDER_HALF, OCCLUDER_Z = 1.0, (0.03, 0.3, 0.75), 1.1
 MOVER_X, MOVER_R, MOVER_SWING, MOVER_PERIOD = -1.4, 0.16, 1.2, 3.0
+FLOOR_RGB = ((0.52, 0.48, 0.44), (0.36, 0.33, 0.31))  # the floor's checker, display values
 SEGMENTS = (40, 20)  # tessellation: around, along (half-sphere latitudes / rings)
 
 
@@ -252,7 +253,8 @@ def build_scene(spec: WorldSpec, model: BodyModel, garment: Garment, cams: list[
     ET.SubElement(vis, "map", znear="0.005", zfar="20", shadowclip="4", shadowscale="0.8")
     asset = ET.SubElement(root, "asset")
     ET.SubElement(asset, "texture", name="floor_tex", type="2d", builtin="checker",
-                  width="512", height="512", rgb1="0.52 0.48 0.44", rgb2="0.36 0.33 0.31",
+                  width="512", height="512", rgb1=" ".join(map(str, FLOOR_RGB[0])),
+                  rgb2=" ".join(map(str, FLOOR_RGB[1])),
                   mark="random", random="0.02", markrgb="0.2 0.2 0.2")
     ET.SubElement(asset, "material", name="floor", texture="floor_tex", texrepeat="6 6",
                   reflectance="0.08", specular="0.3", shininess="0.3")

@@ -40,7 +40,8 @@ from jaxmocap.synth.motion import HELDOUT_CLIPS
 from jaxmocap.synth.scene import settings_kwargs, settings_to_dict
 
 WORLD_VERSION = 1
-GARMENT_LAYOUTS = ("wang", "bands", "single")
+GARMENT_LAYOUTS = ("wang", "bands", "single", "generated")
+RENDERERS = ("mujoco", "cycles")
 RIG_KINDS = ("webcams", "stereo")
 LAMP_COLOURS = {  # linear RGB of the lamps (warm: ~2700 K tungsten, cool: ~6500 K daylight)
     "warm": (1.0, 0.72, 0.42), "cool": (0.72, 0.85, 1.0), "neutral": (1.0, 1.0, 1.0)}
@@ -60,8 +61,13 @@ class WorldSpec:
     ``yaw`` (deg, the whole motion turned about z; 90 = the subject's left side faces the
     cameras) and ``spin`` (deg/s, an extra turn growing with time). Body: measurements in m
     (None: proportional), ``naming`` (:data:`jaxmocap.body.scale.NAMINGS`) and ``limbs``
-    (capsule, cylinder, box). Shirt: ``garment`` (``wang``: the paper's layout; ``bands``: the
-    other 20-patch / 10-colour layout; ``single``: Azad's one colour ``shirt_rgb`` + skin).
+    (capsule, cylinder, box); or ``body`` one of :data:`jaxmocap.body.packages.PACKAGE_BODIES`
+    (a humanoid that ships in another package, loaded from its own file with its roles
+    inferred; measurements, naming and limbs then stay unset). Shirt: ``garment`` (``wang``:
+    the paper's layout; ``bands``: the other 20-patch / 10-colour layout; ``single``: Azad's
+    one colour ``shirt_rgb`` + skin; ``generated``: drawn over the body's geometry by
+    :func:`jaxmocap.garment_layout.generated_garment` from ``layout_seed``, ``n_colours``
+    (null: drawn) and ``shoulders``).
     Rig: ``rig`` kind (``webcams``: 2 x 640x480 converging; ``stereo``: 320x240 parallel head)
     with ``width``, ``height``, ``distance`` (m, horizontal from the pelvis' mean position),
     ``camera_height``, ``baseline``, ``fov`` (horizontal, deg), ``converge`` (look at the
@@ -72,6 +78,8 @@ class WorldSpec:
     box and an orange ball), ``moving_object``, ``occluder`` (frames the panel crosses the
     view). Camera: ``noise_sigma`` (fraction of 255), ``motion_blur`` (odd sub-frames),
     ``shutter`` (fraction of the frame interval), ``jpeg_quality`` (None: no compression).
+    Renderer: ``mujoco`` (OpenGL rasteriser) or ``cycles`` (Blender's path tracer with
+    ``samples`` per pixel, :mod:`jaxmocap.synth.world.cycles`).
     """
 
     clip: str = "humanoid3d_punch"
@@ -86,8 +94,12 @@ class WorldSpec:
     forearm: float | None = None
     naming: str = "jaxmocap"
     limbs: str = "capsule"
+    body: str = "scaled"
     garment: str = "wang"
     shirt_rgb: tuple[float, float, float] = (0.1, 0.25, 0.8)
+    layout_seed: int = 0
+    n_colours: int | None = None
+    shoulders: bool = False
     rig: str = "webcams"
     width: int | None = None
     height_px: int | None = None
@@ -108,6 +120,8 @@ class WorldSpec:
     motion_blur: int = 1
     shutter: float = 0.5
     jpeg_quality: int | None = None
+    renderer: str = "mujoco"
+    samples: int = 32
     allow_train: bool = False
     seed: int = 0
 
@@ -186,6 +200,28 @@ def _validate(s: WorldSpec) -> None:
     _check(s.limbs in LIMBS, "limbs", f"one of {list(LIMBS)}", s.limbs)
     _check(s.garment in GARMENT_LAYOUTS, "garment", f"one of {list(GARMENT_LAYOUTS)}",
            s.garment)
+    from jaxmocap.body.packages import PACKAGE_BODIES
+
+    _check(s.body == "scaled" or s.body in PACKAGE_BODIES, "body",
+           f"'scaled' or a package body of {sorted(PACKAGE_BODIES)}", s.body)
+    if s.body != "scaled":
+        for name in ("height", "shoulder_width", "upper_arm", "forearm"):
+            _check(getattr(s, name) is None, name,
+                   "null with a package body (it is used as it comes)", getattr(s, name))
+        _check(s.naming == "jaxmocap" and s.limbs == "capsule", "naming/limbs",
+               "the defaults with a package body (its own names and primitives)",
+               (s.naming, s.limbs))
+        _check(s.garment in ("generated", "single"), "garment",
+               "'generated' or 'single' with a package body (the designed layouts are drawn "
+               "on the bundled body's geoms)", s.garment)
+    _check(_int(s.layout_seed) and s.layout_seed >= 0, "layout_seed", "an integer >= 0",
+           s.layout_seed)
+    _check(s.n_colours is None or (_int(s.n_colours) and 2 <= s.n_colours <= 14), "n_colours",
+           "null or an integer in 2..14", s.n_colours)
+    _check(isinstance(s.shoulders, bool), "shoulders", "true or false", s.shoulders)
+    _check(s.renderer in RENDERERS, "renderer", f"one of {list(RENDERERS)}", s.renderer)
+    _check(_int(s.samples) and 1 <= s.samples <= 4096, "samples", "an integer in 1..4096",
+           s.samples)
     _check(isinstance(s.shirt_rgb, tuple) and len(s.shirt_rgb) == 3
            and all(_num(v) and 0 <= v <= 1 for v in s.shirt_rgb), "shirt_rgb",
            "three numbers in [0, 1]", s.shirt_rgb)
@@ -235,7 +271,14 @@ def _validate(s: WorldSpec) -> None:
 
 def world_body(spec: WorldSpec) -> tuple[ScaledBody, BodyModel]:
     """(the scaled body with the library's names, the body as the world shows it: renamed and
-    with its limb primitives). Both share chain order, DOF order and geom order."""
+    with its limb primitives). Both share chain order, DOF order and geom order. A package
+    body is both, unscaled (factors 1)."""
+    if spec.body != "scaled":
+        from jaxmocap.body.packages import package_body
+
+        model = package_body(spec.body)
+        ones = np.ones((len(model.geometry.names), 3))
+        return ScaledBody(model, {}, 1.0, ones), model
     sb = scale_body(height=spec.height, shoulder_width=spec.shoulder_width,
                     upper_arm=spec.upper_arm, forearm=spec.forearm)
     shown = rename_body(swap_capsules(sb.model, spec.limbs), spec.naming)
@@ -292,6 +335,11 @@ def world_garment(spec: WorldSpec, sb: ScaledBody) -> Garment:
     base = default_body()
     if spec.garment == "single":
         return single_colour_garment(sb.model, spec.shirt_rgb)
+    if spec.garment == "generated":
+        from jaxmocap.garment_layout import generated_garment
+
+        return generated_garment(sb.model, spec.layout_seed, shoulders=spec.shoulders,
+                                 n_colours=spec.n_colours)
     g = default_garment(base) if spec.garment == "wang" else bands_garment(base)
     return scale_garment(g, sb.geom_scale)
 

@@ -10,6 +10,14 @@ bundled body's), names (jaxmocap / left_right / mixamo) and limb primitives
 lamps; one switched off or dimmed mid-sequence), clutter, a moving ball, an occluder panel,
 side-on views (``yaw`` +-90 deg), spins, motion blur and JPEG compression. Sequences 0, 3, 6
 and 9 of each tracker are **dev** (tune on these only), the other eight **test**.
+
+**Second round** (issue 36): per tracker six more sequences (``shirt_12..17``, ``pf_12..17``)
+that the project did not design: bodies that ship in other packages, used as they come
+(pybullet's DeepMimic humanoid, dm_control's CMU humanoid; one bundled body scaled for
+comparison), shirts generated over the body's geometry (8-14 colours, with and without
+shoulder pieces; the stereo filter's single-colour shirt), and four of the six path-traced by
+Blender Cycles (24 frames; the others MuJoCo, 60 frames). ``12`` and ``13`` are dev.
+
 ``test_world.json`` beside this module is :func:`world_sequences`' output, committed (a test
 checks that they agree).
 """
@@ -50,6 +58,18 @@ PATTERN = (
     dict(lamps=("warm", "cool"), n_clutter=6, occluder=(10, 30), motion_blur=3, spin=60.0),
 )
 SINGLE_SHIRTS = ((0.1, 0.25, 0.8), (0.05, 0.5, 0.2), (0.55, 0.1, 0.6), (0.1, 0.6, 0.65))
+# Second round: (body, renderer, nuisances) per slot 12..17; 12 and 13 are dev.
+SECOND = (
+    ("deepmimic", "cycles", dict(lamps=("warm", "cool"), lamp_off=12, n_clutter=5)),
+    ("cmu", "mujoco", dict(lamps=("cool", "warm"), n_clutter=6, yaw=60.0, jpeg_quality=75)),
+    ("scaled", "cycles", dict(lamps=("warm", "cool"), n_clutter=4, yaw=-30.0, motion_blur=3)),
+    ("cmu", "cycles", dict(lamps=("cool", "warm"), dim=(6, 18, 0.1), n_clutter=6)),
+    ("deepmimic", "mujoco", dict(lamps=("warm",), n_clutter=7, yaw=120.0, spin=40.0)),
+    ("deepmimic", "cycles", dict(lamps=("warm", "cool"), n_clutter=5, yaw=90.0,
+                                 jpeg_quality=80)),
+)
+SECOND_DEV = (12, 13)
+CYCLES_FRAMES, SECOND_FRAMES, CYCLES_SAMPLES = 24, 60, 16
 
 
 def _rig(tracker: str, rng: np.random.Generator) -> dict:
@@ -88,6 +108,32 @@ def world_sequences(seed: int = WORLD_SEED) -> list[dict]:
             world = WorldSpec.from_dict({k2: list(v) if isinstance(v, tuple) else v
                                          for k2, v in spec.items()})
             out.append(dict(name=f"{tracker}_{k:02d}", split="dev" if k in DEV else "test",
+                            tracker=tracker, world=world.to_dict()))
+    for t_i, tracker in enumerate(("shirt", "pf")):
+        rng = np.random.default_rng([seed, 10 + t_i])
+        for j, (body, renderer, nuisance) in enumerate(SECOND):
+            k = N_PER_TRACKER + j
+            cycles = renderer == "cycles"
+            spec = dict(
+                clip=CLIPS[(k + t_i) % len(CLIPS)], start=int(rng.integers(0, 20)),
+                n_frames=CYCLES_FRAMES if cycles else SECOND_FRAMES, body=body,
+                garment="generated" if tracker == "shirt" else "single",
+                layout_seed=int(rng.integers(0, 2**31)), shoulders=bool(j % 2),
+                shirt_rgb=SINGLE_SHIRTS[(j + 1) % len(SINGLE_SHIRTS)],
+                noise_sigma=round(float(rng.uniform(0.005, 0.015)), 4), renderer=renderer,
+                samples=CYCLES_SAMPLES, seed=int(rng.integers(0, 2**31)),
+                **_rig(tracker, rng), **nuisance)
+            if body == "scaled":
+                f = rng.uniform(0.85, 1.15, 4)
+                spec.update({name: round(ref[name] * float(f[i]), 4) for i, name in
+                             enumerate(("height", "shoulder_width", "upper_arm", "forearm"))})
+            if tracker == "pf":
+                spec["width"], spec["height_px"] = (RIG_PRESETS["stereo"]["width"],
+                                                    RIG_PRESETS["stereo"]["height"])
+            world = WorldSpec.from_dict({k2: list(v) if isinstance(v, tuple) else v
+                                         for k2, v in spec.items()})
+            out.append(dict(name=f"{tracker}_{k:02d}",
+                            split="dev" if k in SECOND_DEV else "test",
                             tracker=tracker, world=world.to_dict()))
     return out
 
