@@ -5,6 +5,7 @@
     python -m benchmarks.experiments.shirt_validity calibrate /work/res_shirtval_sig
     python -m benchmarks.experiments.shirt_validity yaw /work/tw_dev_shirt /work/res_shirtval_sig
     python -m benchmarks.experiments.shirt_validity database /work/tw_dev_shirt --out x.json
+    python -m benchmarks.experiments.shirt_validity lowo /work/world /work/res_sig --out y.json
 
 ``run`` tracks every sequence of a dataset folder with one configuration of an experiment
 file (the experiment's own set-up, :func:`jaxmocap.experiment.cell._track_shirt`) and writes
@@ -23,7 +24,9 @@ report_patches=, max_residual=, min_recall=)``): for each rule the share of the 
 > 15 cm off flagged invalid and of the frames < 5 cm off flagged valid. ``yaw`` bins
 ``run``'s per-frame error by the subject's yaw to the cameras (:func:`yaw_table`);
 ``database`` scores the database query on the ground-truth maps of every view, by yaw
-(:func:`database_views`). Results:
+(:func:`database_views`); ``lowo`` fits the reported rule's three thresholds (patch-centroid
+share, residual, recall) on the dev frames of all worlds but one and scores it on that world's
+test frames (:func:`leave_one_world_out`, issue 36 item 5). Results:
 docs/results/shirt.md ("A validity flag from the final pose").
 """
 
@@ -329,6 +332,99 @@ def database_views(dataset: str, joints: list[str], bins=(0, 30, 60, 90, 120, 18
     return {"bins": out}
 
 
+WORLD_RULE = (26 / 40, 0.053, 0.31)  # validated: 26 of 40 centroids, residual, recall
+
+
+def world_family(spec: dict, name: str) -> str:
+    """The test world a sequence belongs to for leave-one-world-out (issue 36 item 5): the
+    first round (MuJoCo, the bundled body scaled), MuJoCo with a body from another package,
+    or Blender Cycles."""
+    from jaxmocap.synth.world.split import N_PER_TRACKER
+
+    if int(name.split("_")[1]) < N_PER_TRACKER:
+        return "first round"
+    return "cycles" if spec.get("renderer") == "cycles" else "package bodies"
+
+
+def _rule_features(dataset: str, data: dict) -> dict:
+    """Per sequence: the three signals of the reported rule in a form that carries across
+    shirts (the share of the shirt's patch centroids measured in all cameras, not a count),
+    the error, the flag, the family and the split."""
+    from jaxmocap.synth.world.split import load_split
+
+    split = {s["name"]: s for s in load_split()}
+    out = {}
+    for name, d in data.items():
+        doc = json.loads((Path(dataset) / name / "garment.json").read_text())
+        n_cams = d["sig_recall"].shape[1]
+        out[name] = dict(
+            share=d["patches"] / (n_cams * len(doc["patches"])),
+            residual=d["sig_residual"].max(1), recall=d["sig_recall"].min(1), err=d["err"],
+            family=world_family(split[name]["world"], name), split=split[name]["split"])
+    return out
+
+
+def _rates(f: dict, rule, good: float, bad: float) -> dict:
+    ok = (f["share"] >= rule[0]) & (f["residual"] <= rule[1]) & (f["recall"] >= rule[2])
+    err = f["err"]
+    isbad, isgood = err > bad, err < good
+    return {"frames": int(len(err)),
+            "bad_invalid": float((~ok & isbad).sum() / max(isbad.sum(), 1)),
+            "good_valid": float((ok & isgood).sum() / max(isgood.sum(), 1)),
+            "valid": float(ok.mean()), "valid_cm": float(np.mean(err[ok])) if ok.any() else None,
+            "all_cm": float(np.mean(err)), "bad_frames": int(isbad.sum()),
+            "good_frames": int(isgood.sum())}
+
+
+def fit_rule(f: dict, good: float = 5.0, bad: float = 15.0) -> tuple:
+    """The three thresholds (share >=, residual <=, recall >=) that best reach >= 95% of the
+    bad frames invalid and >= 90% of the good ones valid (max of the smaller margin) on a grid
+    of each signal's quantiles, as ``calibrate``."""
+    isbad, isgood = f["err"] > bad, f["err"] < good
+    qs = np.linspace(0, 1, 31)
+    grid = [np.unique(np.quantile(f[k], qs)) for k in ("share", "residual", "recall")]
+    best = None
+    for a in grid[0]:
+        va = f["share"] >= a
+        for b in grid[1]:
+            vab = va & (f["residual"] <= b)
+            ok = vab[None] & (f["recall"][None] >= grid[2][:, None])
+            bi = (~ok & isbad).sum(1) / max(isbad.sum(), 1)
+            gv = (ok & isgood).sum(1) / max(isgood.sum(), 1)
+            score = np.minimum(bi - 0.95, gv - 0.90)
+            i = int(np.argmax(score))
+            if best is None or score[i] > best[0]:
+                best = (float(score[i]), float(a), float(b), float(grid[2][i]))
+    return best[1:]
+
+
+def leave_one_world_out(dataset: str, folder: str, good: float = 5.0, bad: float = 15.0
+                        ) -> dict:
+    """For each world: the rule fitted on the **dev** frames of the other worlds, scored on the
+    held-out world's **test** frames; beside it the first-round rule (``validated``,
+    calibrated on the first round's dev) on every world's test frames."""
+    feats = _rule_features(dataset, _load(folder))
+
+    def pool(pred):
+        rows = [v for v in feats.values() if pred(v)]
+        return {k: np.concatenate([r[k] for r in rows]) for k in
+                ("share", "residual", "recall", "err")} if rows else None
+
+    out = {"good_cm": good, "bad_cm": bad, "worlds": {}}
+    for w in sorted({v["family"] for v in feats.values()}):
+        train = pool(lambda v, w=w: v["family"] != w and v["split"] == "dev")
+        test = pool(lambda v, w=w: v["family"] == w and v["split"] == "test")
+        if test is None:
+            continue
+        row = {"first_round_rule": _rates(test, WORLD_RULE, good, bad)}
+        if train is not None:
+            rule = fit_rule(train, good, bad)
+            row |= {"rule": rule, "held_out": _rates(test, rule, good, bad)}
+        out["worlds"][w] = row
+        print(w, json.dumps(row))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -344,6 +440,10 @@ def main() -> None:
     y = sub.add_parser("yaw")
     y.add_argument("dataset")
     y.add_argument("folder")
+    lo = sub.add_parser("lowo")
+    lo.add_argument("dataset")
+    lo.add_argument("folder")
+    lo.add_argument("--out")
     v = sub.add_parser("database")
     v.add_argument("dataset")
     v.add_argument("--out")
@@ -352,6 +452,10 @@ def main() -> None:
         run(a.dataset, a.config, a.name, a.out, a.only, a.set)
     elif a.cmd == "yaw":
         yaw_table(a.dataset, a.folder)
+    elif a.cmd == "lowo":
+        res = leave_one_world_out(a.dataset, a.folder)
+        if a.out:
+            Path(a.out).write_text(json.dumps(res, indent=1))
     elif a.cmd == "database":
         res = database_views(a.dataset, JOINTS)
         if a.out:
