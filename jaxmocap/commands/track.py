@@ -1,16 +1,19 @@
 """``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, C3D, CSV, NPZ),
 per-frame diagnostics and an optional overlay video (H.264 MP4 at the capture's frame rate).
 
-The command drives either tracker through the frame protocol of
-:mod:`jaxmocap.trackers.driver` (:class:`~jaxmocap.trackers.driver.ShirtFrameTracker`,
-:class:`~jaxmocap.trackers.driver.StereoPFFrameTracker`, :func:`~jaxmocap.trackers.driver.drive`).
-Frames that cannot be read are not stepped: their row is NaN (``valid`` 0) in every output
-and the command reports them in one line (exit code 1). All outputs are written to
-temporaries (outside ``--out``, :func:`jaxmocap.io.atomic.staging_dir`) and renamed into place
-only at the end, together, with ``run.json`` saying whether the run was complete. Everything
-that can be refused is refused before the first frame is read: outputs that would touch an
-input, an ``--out`` holding an earlier run's results (unless
-``--overwrite``: the earlier set is then replaced as a whole), cameras the tracker cannot use.
+The command drives either tracker through the frame protocol of :mod:`jaxmocap.trackers.driver`
+(:class:`~jaxmocap.trackers.driver.ShirtFrameTracker`,
+:class:`~jaxmocap.trackers.driver.StereoPFFrameTracker`,
+:func:`~jaxmocap.trackers.driver.drive`). Every stepped frame's estimate is written, valid or
+not, with its ``valid`` flag and the tracker's per-frame diagnostics beside it
+(:mod:`jaxmocap.io.export` says how each format marks an invalid frame). Frames that cannot be
+read are not stepped: their row is NaN (``valid`` 0) in every output and the command reports
+them in one line (exit code 1). All outputs are written to temporaries (outside ``--out``,
+:func:`jaxmocap.io.atomic.staging_dir`) and renamed into place only at the end, together, with
+``run.json`` saying whether the run was complete. Everything that can be refused is refused
+before the first frame is read: outputs that would touch an input, an ``--out`` holding an
+earlier run's results (unless ``--overwrite``: the earlier set is then replaced as a whole),
+cameras the tracker cannot use.
 
 **Interrupts.** Ctrl-C (or SIGTERM) while frames are being tracked ends the loop; the frames
 tracked so far are written as a complete result marked partial (``run.json`` ``complete``
@@ -49,6 +52,7 @@ from jaxmocap.trackers.driver import (
     ShirtFrameTracker,
     StereoPFFrameTracker,
     Tracked,
+    diagnostics_table,
     drive,
     shirt_params,
 )
@@ -80,7 +84,10 @@ EPILOG = """examples:
       --max-frames 300 --show
 
 outputs in --out: poses.bvh poses.trc poses.c3d poses.csv poses.npz (see --formats),
-diagnostics.csv, run.json, overlay.mp4 (--overlay: H.264 at the capture's frame rate). An
+diagnostics.csv, run.json, overlay.mp4 (--overlay: H.264 at the capture's frame rate).
+Every frame's estimate is written, valid or not: poses.npz/.csv hold it with its valid flag
+and diagnostics; TRC and C3D mark invalid frames as missing markers; BVH holds every
+estimate (its validity: diagnostics.csv). An
 --out holding an earlier run's results is refused unless --overwrite (the earlier set is then
 replaced as a whole). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
 2 bad input (nothing written), 130 interrupted (Ctrl-C or SIGTERM: the frames tracked so far,
@@ -350,6 +357,7 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
     doc = {"format": "jaxmocap.track_run", "version": 1,
            "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
+           "frames_estimated": int(np.isfinite(tracked.q).all(axis=1).sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
            "method": args.method, "inputs": [str(i) for i in args.inputs],
            "sync": args.sync, "sync_report": reader.sync_report,
@@ -407,7 +415,9 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
             # a second Ctrl-C must not leave the set half renamed: the writing is short
             handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
             try:
-                track = pose_track(tracker.body, tracked.q, tracked.valid, fps)
+                names_d = tuple(tracker.diagnostic_names)
+                track = pose_track(tracker.body, tracked.q, tracked.valid, fps,
+                                   diagnostics_table(tracked.rows, names_d), names_d)
                 write_exports(files, out, tracker.body, track, formats,
                               complete=np.asarray(tracked.interrupted is None),
                               frames_in_input=np.asarray(-1 if reader.n_frames is None
