@@ -27,7 +27,8 @@ removes the frame-to-frame scatter of a per-frame IK.
 rotation vector is first unwrapped (the same rotation written with the angle nearest the
 previous frame's, so that no component jumps by 2 pi between frames), smoothed per component
 and wrapped back to angles <= pi; frames outside the span of weighted frames keep their own
-estimate (there the smoother would only extrapolate).
+estimate (there the smoother would only extrapolate), and a frame without an estimate stays
+without one.
 
 Pure JAX: :func:`rts_smooth` is one ``lax.scan`` forward and one backward, jit/vmap/grad-able
 (the smoothed mean is linear in ``y`` for fixed weights).
@@ -162,8 +163,9 @@ def smooth_poses(q: np.ndarray, weight: np.ndarray, fps: float,
     """Smoothed poses (T, n_dof) of the per-frame estimates ``q`` (T, n_dof) with weights
     ``weight`` (T,) (e.g. the valid flags: invalid frames are missing observations), the
     root rotation vector at ``rotvec`` unwrapped first and wrapped back (module docstring).
-    Frames before the first and after the last weighted frame keep their own estimate; with
-    fewer than two weighted frames ``q`` comes back unchanged."""
+    Frames before the first and after the last weighted frame keep their own estimate, frames
+    without one (non-finite rows) stay so; with fewer than two weighted frames ``q`` comes back
+    unchanged."""
     q = np.array(q, np.float64)
     if not fps > 0 or not 0 < cutoff_hz < fps / 2:
         raise ValueError(f"smooth_poses: cutoff_hz must be in (0, fps/2) = (0, {fps / 2:g}), "
@@ -180,5 +182,6 @@ def smooth_poses(q: np.ndarray, weight: np.ndarray, fps: float,
     out = np.array(rts_smooth(jnp.asarray(y), jnp.asarray(w[a:b]),
                                 process_ratio(cutoff_hz, fps)).mean, np.float64)
     out[:, rotvec] = wrap_rotvec(out[:, rotvec])
-    q[a:b] = out
+    has = np.isfinite(q[a:b]).all(axis=1)
+    q[a:b][has] = out[has]
     return q

@@ -125,6 +125,42 @@ def test_outputs(rig, capsys):
     assert "tracked 2 of 3 frames (3 readable)" in stdout
 
 
+def test_smooth(rig, monkeypatch, capsys):
+    """--smooth: the rejected frame (an outlier 5 m off) is a missing observation, bridged by
+    the constant-velocity model between its neighbours (x = 0 and 0.2: 0.1); the per-frame
+    estimates stay in poses.npz (q_raw) and the valid flags are unchanged. Bad settings are
+    refused in one line before any frame is read."""
+    root, inputs, tracker = rig
+
+    class Outlier(LinearTracker):
+        def step(self, frames):
+            res = super().step(frames)
+            if not res.valid:
+                res.q[0] = 5.0
+            return res
+
+    outlier = Outlier()
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: outlier)
+    out = root / "out"
+    cams = root / "cameras.json"
+    rc, _, err = run_cli(capsys, "track", "--cameras", cams, *inputs, "--out", out, "--quiet",
+                         "--fps", "10", "--smooth", "--formats", "npz,trc")
+    assert rc == 0 and err == [], err
+    with np.load(out / "poses.npz") as z:
+        np.testing.assert_array_equal(z["valid"], [True, False, True])
+        np.testing.assert_allclose(z["q"][:, 0], [0.0, 0.1, 0.2], atol=1e-3)
+        np.testing.assert_allclose(z["q"][:, 2], 0.9, atol=1e-6)
+        assert z["q_raw"][1, 0] == 5.0 and z["q_raw"][2, 0] == pytest.approx(0.2)
+    assert json.loads((out / "run.json").read_text())["smooth_hz"] == 4.0
+    common = ["track", "--cameras", cams, *inputs, "--quiet", "--fps", "10"]
+    assert_refused(capsys, "--smooth-hz 2 sets the smoother of --smooth", *common,
+                   "--smooth-hz", "2", "--out", root / "o1", leaves=[root / "o1"])
+    assert_refused(capsys, "--smooth-hz 6: must be below half the frame rate (10 fps", *common,
+                   "--smooth", "--smooth-hz", "6", "--out", root / "o2", leaves=[root / "o2"])
+    assert_refused(capsys, "--smooth-hz", *common, "--smooth", "--smooth-hz", "-1",
+                   "--out", root / "o3", leaves=[root / "o3"])
+
+
 def test_damaged_frame_is_reported_and_skipped(rig, capsys):
     root, inputs, tracker = rig
     (inputs[1] / "001.png").write_bytes(b"")  # an empty frame in camera 1

@@ -157,12 +157,15 @@ def test_smooth_poses_root_turning_through_180_degrees():
     q[:, 6:] = 0.2 * np.sin(np.arange(T) / 5.0)[:, None] + rng.normal(0, 0.03, (T, 2))
     valid = np.ones(T, bool)
     valid[[0, 1, 30, 31, T - 1]] = False
+    q[40] = np.nan  # no estimate: stays without one
     out = smooth_poses(q, valid, fps, 3.0)
     np.testing.assert_array_equal(out[[0, 1, T - 1]], q[[0, 1, T - 1]])  # outside the span
-    assert np.all(np.linalg.norm(out[:, 3:6], axis=1) <= np.pi + 1e-9)
-    err = [np.linalg.norm(rodrigues(out[t, 3:6]) - truth_R[t]) for t in range(2, T - 1)]
-    raw = [np.linalg.norm(rodrigues(q[t, 3:6]) - truth_R[t]) for t in range(2, T - 1)]
+    assert np.isnan(out[40]).all() and np.isfinite(np.delete(out, 40, axis=0)).all()
+    assert np.nanmax(np.linalg.norm(out[:, 3:6], axis=1)) <= np.pi + 1e-9
+    frames = [t for t in range(2, T - 1) if t != 40]
+    err = [np.linalg.norm(rodrigues(out[t, 3:6]) - truth_R[t]) for t in frames]
+    raw = [np.linalg.norm(rodrigues(q[t, 3:6]) - truth_R[t]) for t in frames]
     assert max(err) < 0.06 and np.mean(err) < 0.6 * np.mean(raw)
-    assert np.array_equal(smooth_poses(q, np.eye(T)[0], fps), q)  # one valid frame: as is
+    assert np.array_equal(smooth_poses(q, np.eye(T)[0], fps), q, equal_nan=True)  # as is
     with pytest.raises(ValueError, match="cutoff_hz"):
         smooth_poses(q, valid, fps, 15.0)

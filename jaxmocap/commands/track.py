@@ -44,6 +44,7 @@ from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.sync import SYNC_MODES, SyncReader
 from jaxmocap.io.video import VideoWriter, quiet_ffmpeg
+from jaxmocap.kalman import DEFAULT_CUTOFF_HZ, smooth_poses
 from jaxmocap.trackers.driver import (
     MAX_PARTICLES,
     VALIDITY,
@@ -276,6 +277,15 @@ def add_parser(sub) -> None:
                    "must start together) (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (as a whole set)")
+    p.add_argument("--smooth", action="store_true",
+                   help="write temporally smoothed poses: a forward-backward (RTS) smoother "
+                   "on a constant-velocity model per DOF over the whole run, invalid frames "
+                   "treated as missing observations (bridged by the model); valid flags "
+                   "unchanged, poses.npz keeps the per-frame estimates as q_raw")
+    p.add_argument("--smooth-hz", type=positive_float, metavar="HZ",
+                   help=f"with --smooth: the frequency at which the smoother halves a motion's "
+                   f"amplitude (response 1/(1+(f/HZ)^4); below half the frame rate) "
+                   f"(default: {DEFAULT_CUTOFF_HZ:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     from jaxmocap.commands._body import add_body_args
 
@@ -361,12 +371,26 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
            "method": args.method, "inputs": [str(i) for i in args.inputs],
            "sync": args.sync, "sync_report": reader.sync_report,
+           "smooth_hz": _cutoff(args) if args.smooth else None,
            "motion_offsets": reader.motion_offsets()}
     return json.dumps(doc, indent=2) + "\n"
 
 
+def _cutoff(args) -> float:
+    return DEFAULT_CUTOFF_HZ if args.smooth_hz is None else args.smooth_hz
+
+
+def _check_smooth(args, fps: float) -> None:
+    if args.smooth and not _cutoff(args) < fps / 2:
+        raise InputError(f"--smooth-hz {_cutoff(args):g}: must be below half the frame rate "
+                         f"({fps:g} fps: < {fps / 2:g} Hz)")
+
+
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
+    if args.smooth_hz is not None and not args.smooth:
+        raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
+                         "--smooth")
     if args.method == "pf" and args.validity != "paper":
         raise InputError(f"--validity {args.validity} is the shirt tracker's rule; the particle "
                          "filter (--method pf) has its own (stereo_pf.frame_validity)")
@@ -405,6 +429,7 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         if reader.sync_report:
             print(f"jaxmocap track: {reader.sync_report}")
         fps = args.fps or reader.fps or DEFAULT_FPS
+        _check_smooth(args, fps)
         tracker = _make_tracker(args, cams, names)
         with AtomicFiles(out) as files:
             files.replace_set(stale)
@@ -416,12 +441,17 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
             handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
             try:
                 names_d = tuple(tracker.diagnostic_names)
-                track = pose_track(tracker.body, tracked.q, tracked.valid, fps,
+                q, extra = tracked.q, {}
+                if args.smooth:  # the per-frame estimates stay in poses.npz
+                    q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
+                    extra["q_raw"] = tracked.q
+                track = pose_track(tracker.body, q, tracked.valid, fps,
                                    diagnostics_table(tracked.rows, names_d), names_d)
                 write_exports(files, out, tracker.body, track, formats,
                               complete=np.asarray(tracked.interrupted is None),
                               frames_in_input=np.asarray(-1 if reader.n_frames is None
-                                                         else reader.n_frames, np.int64))
+                                                         else reader.n_frames, np.int64),
+                              **extra)
                 files.path(out / "diagnostics.csv").write_text(
                     _diagnostics_csv(tracker.diagnostic_names, tracked.rows))
                 files.path(out / "run.json").write_text(
