@@ -5,9 +5,10 @@ Both files hold keypoint trajectories (:func:`jaxmocap.io.export.load_track`): o
 ``poses.npz`` / ``poses.csv`` and a synthetic dataset's ``groundtruth.npz`` (or the dataset
 folder). Keypoints are matched by name. Metrics (all in **centimetres**):
 
-* **MPJPE** — mean over the frames the tracker produced of ``||x_pred - x_gt||`` per joint,
-  and over all joints (frames it did not produce are counted separately, not averaged in);
-* **jitter** — mean ``||x_{t+1} - 2 x_t + x_{t-1}||`` over consecutive tracked triples (cm per
+* **MPJPE** — mean over the frames the tracker reported valid of ``||x_pred - x_gt||`` per
+  joint, and over all joints (the file's ``valid`` flag decides: an invalid frame's estimate,
+  which the file holds too, and a frame without one are counted separately, not averaged in);
+* **jitter** — mean ``||x_{t+1} - 2 x_t + x_{t-1}||`` over consecutive valid triples (cm per
   frame^2, the second difference), for the prediction and for the ground truth — tracking
   noise shows as prediction jitter well above the ground truth's.
 """
@@ -58,7 +59,7 @@ def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:
     ip = [pred.keypoint_names.index(n) for n in names]
     ig = [gt.keypoint_names.index(n) for n in names]
     xp, xg = pred.keypoints[:, ip] * 100.0, gt.keypoints[:, ig] * 100.0  # cm
-    ok = pred.valid & np.isfinite(xp).all(axis=(1, 2))
+    ok = pred.valid & np.isfinite(xp).all(axis=(1, 2))  # the valid flag, not finiteness
     if not ok.any():
         raise InputError(f"{pred_path}: no tracked frame to evaluate (all {pred.n_frames} "
                          "frames are missing)")

@@ -36,7 +36,7 @@ def test_known_offset(gt_track, tmp_path, capsys):
     valid = np.ones(T, bool)
     valid[3] = False
     kp = gt_track.keypoints + offset
-    kp[3] = np.nan
+    kp[3] += 1.0  # a rejected estimate, 1.7 m off: in the file, not scored
     pred = gt_track._replace(keypoints=kp, valid=valid)
     write_npz(tmp_path / "p.npz", pred)
     write_csv(tmp_path / "p.csv", pred)

@@ -4,6 +4,7 @@ frame rate by PyAV, diagnostics), damaged inputs tracked as far as readable, eve
 refused with one line and nothing written; and one end-to-end run of the real stereo particle
 filter on rendered frames."""
 
+import csv
 import json
 import os
 import warnings
@@ -78,17 +79,32 @@ def test_outputs(rig, capsys):
                                        "poses.c3d", "poses.csv", "poses.npz", "poses.trc",
                                        "run.json"]
     model = tracker.body
+    q1, q2 = np.zeros(model.n_dof), np.zeros(model.n_dof)
+    q1[0], q1[2] = 0.1, 0.9  # the rejected frame's estimate
+    q2[0], q2[2] = 0.2, 0.9
+    kp1 = np.asarray(keypoints(model, jnp.asarray(q1)))
     with np.load(out / "poses.npz") as z:
         np.testing.assert_array_equal(z["valid"], [True, False, True])
-        assert np.isnan(z["keypoints"][1]).all() and float(z["fps"]) == 10.0
-        q2 = np.zeros(model.n_dof)
-        q2[0], q2[2] = 0.2, 0.9
+        assert float(z["fps"]) == 10.0
+        # the rejected frame's pose is there, beside valid 0 and the tracker's signals
+        np.testing.assert_allclose(z["q"][1], q1, atol=1e-12)
+        np.testing.assert_allclose(z["keypoints"][1], kp1, atol=1e-6)
         np.testing.assert_allclose(z["keypoints"][2], np.asarray(keypoints(model, jnp.asarray(q2))),
                                    atol=1e-6)
+        assert list(z["diagnostic_names"]) == ["steps", "mean_red"]
+        np.testing.assert_array_equal(z["diagnostics"][:, 0], [1, 2, 3])
+    with open(out / "poses.csv", newline="") as f:  # the standard library's reader
+        rows_csv = list(csv.DictReader(f))
+    assert [r["valid"] for r in rows_csv] == ["1", "0", "1"]
+    assert float(rows_csv[1]["q_root_tx_m"]) == pytest.approx(0.1)
+    assert float(rows_csv[1]["head_z_m"]) == pytest.approx(kp1[3, 2], abs=1e-6)
+    assert float(rows_csv[1]["diag_steps"]) == 2.0
+    assert json.loads((out / "run.json").read_text())["frames_estimated"] == 3
     ref = Bvh((out / "poses.bvh").read_text())
     assert ref.nframes == T and ref.frame_time == pytest.approx(0.1)
     xs = [ref.frame_joint_channels(t, "pelvis", ["Xposition"])[0] for t in range(T)]
     assert xs[2] - xs[0] == pytest.approx(0.2, abs=1e-6)  # BVH x = our x (metres)
+    assert xs[1] - xs[0] == pytest.approx(0.1, abs=1e-6)  # every estimate, the rejected one too
     rows = (out / "diagnostics.csv").read_text().splitlines()
     assert rows[0] == "frame,read,valid,steps,mean_red" and rows[2].startswith("1,1,0,2,")
     red = cv2.imread(str(inputs[0] / "000.png"))[..., 2].mean()
@@ -109,6 +125,42 @@ def test_outputs(rig, capsys):
     assert "tracked 2 of 3 frames (3 readable)" in stdout
 
 
+def test_smooth(rig, monkeypatch, capsys):
+    """--smooth: the rejected frame (an outlier 5 m off) is a missing observation, bridged by
+    the constant-velocity model between its neighbours (x = 0 and 0.2: 0.1); the per-frame
+    estimates stay in poses.npz (q_raw) and the valid flags are unchanged. Bad settings are
+    refused in one line before any frame is read."""
+    root, inputs, tracker = rig
+
+    class Outlier(LinearTracker):
+        def step(self, frames):
+            res = super().step(frames)
+            if not res.valid:
+                res.q[0] = 5.0
+            return res
+
+    outlier = Outlier()
+    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: outlier)
+    out = root / "out"
+    cams = root / "cameras.json"
+    rc, _, err = run_cli(capsys, "track", "--cameras", cams, *inputs, "--out", out, "--quiet",
+                         "--fps", "10", "--smooth", "--formats", "npz,trc")
+    assert rc == 0 and err == [], err
+    with np.load(out / "poses.npz") as z:
+        np.testing.assert_array_equal(z["valid"], [True, False, True])
+        np.testing.assert_allclose(z["q"][:, 0], [0.0, 0.1, 0.2], atol=1e-3)
+        np.testing.assert_allclose(z["q"][:, 2], 0.9, atol=1e-6)
+        assert z["q_raw"][1, 0] == 5.0 and z["q_raw"][2, 0] == pytest.approx(0.2)
+    assert json.loads((out / "run.json").read_text())["smooth_hz"] == 4.0
+    common = ["track", "--cameras", cams, *inputs, "--quiet", "--fps", "10"]
+    assert_refused(capsys, "--smooth-hz 2 sets the smoother of --smooth", *common,
+                   "--smooth-hz", "2", "--out", root / "o1", leaves=[root / "o1"])
+    assert_refused(capsys, "--smooth-hz 6: must be below half the frame rate (10 fps", *common,
+                   "--smooth", "--smooth-hz", "6", "--out", root / "o2", leaves=[root / "o2"])
+    assert_refused(capsys, "--smooth-hz", *common, "--smooth", "--smooth-hz", "-1",
+                   "--out", root / "o3", leaves=[root / "o3"])
+
+
 def test_damaged_frame_is_reported_and_skipped(rig, capsys):
     root, inputs, tracker = rig
     (inputs[1] / "001.png").write_bytes(b"")  # an empty frame in camera 1
@@ -122,7 +174,8 @@ def test_damaged_frame_is_reported_and_skipped(rig, capsys):
     assert sorted(os.listdir(out)) == ["diagnostics.csv", "poses.csv", "poses.npz", "run.json"]
     with np.load(out / "poses.npz") as z:
         np.testing.assert_array_equal(z["valid"], [True, False, False])
-        assert np.isnan(z["q"][1:]).all() and np.isfinite(z["q"][0]).all()
+        # the unreadable frame has no estimate; frame 2 (the tracker's rejected 2nd step) has
+        assert np.isnan(z["q"][1]).all() and np.isfinite(z["q"][[0, 2]]).all()
     assert (out / "diagnostics.csv").read_text().splitlines()[2] == "1,0,0,,"
 
 

@@ -23,7 +23,7 @@ import pytest
 from jaxmocap.body import default_body, fk, load_urdf
 from jaxmocap.io.atomic import AtomicFiles
 from jaxmocap.io.bvh import body_bvh_layout, write_body_bvh
-from jaxmocap.io.export import fill_missing, pose_track, write_exports
+from jaxmocap.io.export import bvh_poses, pose_track, write_exports
 from jaxmocap.io.video import VideoWriter
 
 FPS = 30.0
@@ -37,7 +37,7 @@ def needs(module: str):
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     """A demo-like track of the bundled body (a turning, walking root, arms in motion, one
-    untracked frame) written by write_exports."""
+    invalid frame) written by write_exports."""
     model = default_body()
     rng = np.random.default_rng(3)
     n = 8
@@ -86,7 +86,7 @@ def test_blender_imports_bvh_with_joint_positions(exported):
     assert out["fps"] == pytest.approx(FPS)  # Blender took the frame time as the scene's rate
     assert len(out["heads"]) == track.n_frames
     lay = body_bvh_layout(model)
-    q = fill_missing(track.q, track.valid)  # BVH repeats the last tracked pose
+    q = bvh_poses(track)  # BVH holds every estimate, the invalid frame's too
     origins = np.asarray(jax.vmap(fk, in_axes=(None, 0))(model.chain, jnp.asarray(q)))
     origins = origins[:, list(lay.links)][..., :3, 3]
     got = np.array([[frame[name] for name in lay.names] for frame in out["heads"]])
@@ -96,8 +96,7 @@ def test_blender_imports_bvh_with_joint_positions(exported):
     for name in lay.names:
         if name in track.keypoint_names:
             k = track.keypoint_names.index(name)
-            ok = track.valid
-            np.testing.assert_allclose(got[ok, lay.names.index(name)], track.keypoints[ok, k],
+            np.testing.assert_allclose(got[:, lay.names.index(name)], track.keypoints[:, k],
                                        atol=1e-5)
 
 

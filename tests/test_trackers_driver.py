@@ -51,7 +51,8 @@ def test_frames_unreadable_instants_outputs_and_timing():
                        on_frame=lambda t, f, r: seen.append((t, r is None)))
     assert tr.started == 1 and tr.n == 5  # the unreadable instant is not stepped
     assert run.q.shape == (6, N_DOF) and run.valid.tolist() == [1, 0, 0, 1, 0, 1]
-    assert np.isnan(run.q[2]).all() and np.isnan(run.q[1]).all()  # unreadable / invalid
+    assert np.isnan(run.q[2]).all()  # unreadable: no estimate
+    np.testing.assert_array_equal(run.q[1], 1.0)  # invalid: its estimate is kept
     np.testing.assert_array_equal(run.q[3], 2.0)  # the third step answered q = 2
     assert [r[:3] for r in run.rows][:3] == [(0, True, True), (1, True, False), (2, False, False)]
     assert run.rows[2][3] == {} and run.rows[4][3] == {"step": 4.0}
@@ -97,9 +98,22 @@ def test_shirt_diagnostics_match_their_column_list():
                           added_reference=np.array([0, 1]), agreement=np.float32(0.75),
                           visible=np.ones(7, bool),
                           signals=SimpleNamespace(residual=np.array([0.01, 0.02]),
-                                                  recall=np.array([0.9, 0.8])))
+                                                  recall=np.array([0.9, 0.8]),
+                                                  coverage=np.array([0.7, 0.6]),
+                                                  blend_distance=np.float32(0.125),
+                                                  db_spread=np.float32(0.25),
+                                                  root_jump=np.float32(0.5)))
     W = np.stack([np.diag([1.0, 2.0, 3.0]), np.diag([4.0, 5.0, 6.0])])
     d = driver.shirt_diagnostics(out, W, names)
     assert tuple(d) == driver.shirt_diagnostic_names(names)
     assert d["W_right_gg"] == 5.0 and d["fraction_right"] == 0.25 and d["patches"] == 7.0
     assert d["recall_left"] == pytest.approx(0.9) and d["agreement"] == 0.75
+    assert d["coverage_right"] == pytest.approx(0.6) and d["root_jump"] == 0.5
+    assert (d["blend_distance"], d["db_spread"]) == (0.125, 0.25)
+
+
+def test_diagnostics_table():
+    run = driver.drive(Counting(), frames_with_gap(4, 1), progress=False)
+    table = driver.diagnostics_table(run.rows, ("step", "absent"))
+    assert table.shape == (4, 2) and np.isnan(table[:, 1]).all()
+    np.testing.assert_array_equal(table[:, 0], [1.0, np.nan, 2.0, 3.0])

@@ -125,11 +125,13 @@ def test_loss_and_reacquisition(setup):
     for k in (1, 2):
         state, out = shirt.step(p, state, setup["frames"])
         assert bool(out.valid) and int(state.tracked) == k
+        np.testing.assert_array_equal(np.asarray(out.q_frame), np.asarray(out.q))
     blank = np.full_like(setup["frames"], 128)
     held = np.asarray(state.q)
     state, lost = shirt.step(p, state, blank)
     assert not bool(lost.valid) and int(state.tracked) == 0
     np.testing.assert_array_equal(np.asarray(lost.q), held)
+    assert np.isnan(np.asarray(lost.q_frame)).all()  # nothing measured: no own estimate
     state, back = shirt.step(p, state, setup["frames"])
     assert bool(back.valid) and int(state.tracked) == 1
     assert np.linalg.norm(np.asarray(kp(back.q)) - truth, axis=-1).mean() < 0.08
@@ -280,6 +282,9 @@ def test_frame_signals_and_the_calibrated_validity_checks(setup):
         assert bool(out3.valid) == (not hold)
         same = np.array_equal(np.asarray(out3.q), np.asarray(st3.q))  # the held (initial) q
         assert same == hold
+        # the frame's own solution is output beside it either way (jaxmocap track writes
+        # it): the same IK result as the valid frame's, whatever the rule said
+        np.testing.assert_allclose(np.asarray(out3.q_frame), np.asarray(out.q), atol=1e-5)
     with pytest.raises(ValueError, match="max_residual"):
         shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
                           max_residual=2.0)

@@ -77,7 +77,8 @@ def run_sequence(folder: Path, poses: Path | None, every: int, opts: dict | None
     tracked = None
     if poses is not None:
         d = np.load(poses)
-        tracked = (d["q"], d["valid"])
+        # the valid frames' poses (poses.npz holds every frame's estimate beside its flag)
+        tracked = (np.where(d["valid"][:, None], d["q"], np.nan), d["valid"])
 
     def colour_of(patch):
         return jnp.where(patch > 0, pc[jnp.maximum(patch - 1, 0)], 0)

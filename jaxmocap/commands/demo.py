@@ -172,10 +172,12 @@ def run(args: argparse.Namespace) -> int:
     res, step_s = _track(params, W0, seq.cameras, seq.frames, progress)
 
     fps = float(config.fps)
-    track = pose_track(model, res.q, res.valid, fps)
+    track = pose_track(model, res.q_frame, res.valid, fps)  # every frame's own estimate
     names = list(model.keypoint_names)
     kp_true = np.asarray(seq.groundtruth["keypoints"], np.float64)
-    err = np.linalg.norm(track.keypoints - kp_true, axis=-1) * 100.0  # cm
+    # scored, drawn and plotted: the frames the tracker reports valid
+    kp_valid = np.where(track.valid[:, None, None], track.keypoints, np.nan)
+    err = np.linalg.norm(kp_valid - kp_true, axis=-1) * 100.0  # cm
     eval_idx = [names.index(j) for j in SHIRT_JOINTS]
     warm = step_s[1:] if step_s.size > 1 else step_s
     print(f"  tracked {len(step_s)} frames: first step {step_s[0]:.1f} s (compilation), then "
@@ -221,9 +223,9 @@ def run(args: argparse.Namespace) -> int:
         write_exports(files, out, model, track, stem="shirt")
         write_exports(files, out, model, pf_track, stem="pf")
         files.path(out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        _overlay(files, out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], track.keypoints,
+        _overlay(files, out / "overlay.mp4", seq.frames[:, 0], seq.cameras[0], kp_valid,
                  kp_true, res.window[:, 0], names, fps)
-        _plot(files, out / "traces.png", track.times, track.keypoints, kp_true, names)
+        _plot(files, out / "traces.png", track.times, kp_valid, kp_true, names)
     print(f"  wrote {out}/: shirt.* and pf.* (bvh trc c3d csv npz), overlay.mp4, traces.png, "
           "summary.json")
     return 0

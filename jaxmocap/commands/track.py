@@ -1,16 +1,19 @@
 """``jaxmocap track``: videos, frame folders or live cameras -> poses (BVH, TRC, C3D, CSV, NPZ),
 per-frame diagnostics and an optional overlay video (H.264 MP4 at the capture's frame rate).
 
-The command drives either tracker through the frame protocol of
-:mod:`jaxmocap.trackers.driver` (:class:`~jaxmocap.trackers.driver.ShirtFrameTracker`,
-:class:`~jaxmocap.trackers.driver.StereoPFFrameTracker`, :func:`~jaxmocap.trackers.driver.drive`).
-Frames that cannot be read are not stepped: their row is NaN (``valid`` 0) in every output
-and the command reports them in one line (exit code 1). All outputs are written to
-temporaries (outside ``--out``, :func:`jaxmocap.io.atomic.staging_dir`) and renamed into place
-only at the end, together, with ``run.json`` saying whether the run was complete. Everything
-that can be refused is refused before the first frame is read: outputs that would touch an
-input, an ``--out`` holding an earlier run's results (unless
-``--overwrite``: the earlier set is then replaced as a whole), cameras the tracker cannot use.
+The command drives either tracker through the frame protocol of :mod:`jaxmocap.trackers.driver`
+(:class:`~jaxmocap.trackers.driver.ShirtFrameTracker`,
+:class:`~jaxmocap.trackers.driver.StereoPFFrameTracker`,
+:func:`~jaxmocap.trackers.driver.drive`). Every stepped frame's estimate is written, valid or
+not, with its ``valid`` flag and the tracker's per-frame diagnostics beside it
+(:mod:`jaxmocap.io.export` says how each format marks an invalid frame). Frames that cannot be
+read are not stepped: their row is NaN (``valid`` 0) in every output and the command reports
+them in one line (exit code 1). All outputs are written to temporaries (outside ``--out``,
+:func:`jaxmocap.io.atomic.staging_dir`) and renamed into place only at the end, together, with
+``run.json`` saying whether the run was complete. Everything that can be refused is refused
+before the first frame is read: outputs that would touch an input, an ``--out`` holding an
+earlier run's results (unless ``--overwrite``: the earlier set is then replaced as a whole),
+cameras the tracker cannot use.
 
 **Interrupts.** Ctrl-C (or SIGTERM) while frames are being tracked ends the loop; the frames
 tracked so far are written as a complete result marked partial (``run.json`` ``complete``
@@ -41,6 +44,7 @@ from jaxmocap.io.export import FORMATS, pose_track, write_exports
 from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
 from jaxmocap.io.sync import SYNC_MODES, SyncReader
 from jaxmocap.io.video import VideoWriter, quiet_ffmpeg
+from jaxmocap.kalman import DEFAULT_CUTOFF_HZ, smooth_poses
 from jaxmocap.trackers.driver import (
     MAX_PARTICLES,
     VALIDITY,
@@ -49,6 +53,7 @@ from jaxmocap.trackers.driver import (
     ShirtFrameTracker,
     StereoPFFrameTracker,
     Tracked,
+    diagnostics_table,
     drive,
     shirt_params,
 )
@@ -80,7 +85,10 @@ EPILOG = """examples:
       --max-frames 300 --show
 
 outputs in --out: poses.bvh poses.trc poses.c3d poses.csv poses.npz (see --formats),
-diagnostics.csv, run.json, overlay.mp4 (--overlay: H.264 at the capture's frame rate). An
+diagnostics.csv, run.json, overlay.mp4 (--overlay: H.264 at the capture's frame rate).
+Every frame's estimate is written, valid or not: poses.npz/.csv hold it with its valid flag
+and diagnostics; TRC and C3D mark invalid frames as missing markers; BVH holds every
+estimate (its validity: diagnostics.csv). An
 --out holding an earlier run's results is refused unless --overwrite (the earlier set is then
 replaced as a whole). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
 2 bad input (nothing written), 130 interrupted (Ctrl-C or SIGTERM: the frames tracked so far,
@@ -269,6 +277,15 @@ def add_parser(sub) -> None:
                    "must start together) (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (as a whole set)")
+    p.add_argument("--smooth", action="store_true",
+                   help="write temporally smoothed poses: a forward-backward (RTS) smoother "
+                   "on a constant-velocity model per DOF over the whole run, invalid frames "
+                   "treated as missing observations (bridged by the model); valid flags "
+                   "unchanged, poses.npz keeps the per-frame estimates as q_raw")
+    p.add_argument("--smooth-hz", type=positive_float, metavar="HZ",
+                   help=f"with --smooth: the frequency at which the smoother halves a motion's "
+                   f"amplitude (response 1/(1+(f/HZ)^4); below half the frame rate) "
+                   f"(default: {DEFAULT_CUTOFF_HZ:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     from jaxmocap.commands._body import add_body_args
 
@@ -350,15 +367,30 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
     doc = {"format": "jaxmocap.track_run", "version": 1,
            "complete": tracked.interrupted is None, "interrupted_by": tracked.interrupted,
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
+           "frames_estimated": int(np.isfinite(tracked.q).all(axis=1).sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
            "method": args.method, "inputs": [str(i) for i in args.inputs],
            "sync": args.sync, "sync_report": reader.sync_report,
+           "smooth_hz": _cutoff(args) if args.smooth else None,
            "motion_offsets": reader.motion_offsets()}
     return json.dumps(doc, indent=2) + "\n"
 
 
+def _cutoff(args) -> float:
+    return DEFAULT_CUTOFF_HZ if args.smooth_hz is None else args.smooth_hz
+
+
+def _check_smooth(args, fps: float) -> None:
+    if args.smooth and not _cutoff(args) < fps / 2:
+        raise InputError(f"--smooth-hz {_cutoff(args):g}: must be below half the frame rate "
+                         f"({fps:g} fps: < {fps / 2:g} Hz)")
+
+
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
+    if args.smooth_hz is not None and not args.smooth:
+        raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
+                         "--smooth")
     if args.method == "pf" and args.validity != "paper":
         raise InputError(f"--validity {args.validity} is the shirt tracker's rule; the particle "
                          "filter (--method pf) has its own (stereo_pf.frame_validity)")
@@ -397,6 +429,7 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         if reader.sync_report:
             print(f"jaxmocap track: {reader.sync_report}")
         fps = args.fps or reader.fps or DEFAULT_FPS
+        _check_smooth(args, fps)
         tracker = _make_tracker(args, cams, names)
         with AtomicFiles(out) as files:
             files.replace_set(stale)
@@ -407,11 +440,18 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
             # a second Ctrl-C must not leave the set half renamed: the writing is short
             handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
             try:
-                track = pose_track(tracker.body, tracked.q, tracked.valid, fps)
+                names_d = tuple(tracker.diagnostic_names)
+                q, extra = tracked.q, {}
+                if args.smooth:  # the per-frame estimates stay in poses.npz
+                    q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
+                    extra["q_raw"] = tracked.q
+                track = pose_track(tracker.body, q, tracked.valid, fps,
+                                   diagnostics_table(tracked.rows, names_d), names_d)
                 write_exports(files, out, tracker.body, track, formats,
                               complete=np.asarray(tracked.interrupted is None),
                               frames_in_input=np.asarray(-1 if reader.n_frames is None
-                                                         else reader.n_frames, np.int64))
+                                                         else reader.n_frames, np.int64),
+                              **extra)
                 files.path(out / "diagnostics.csv").write_text(
                     _diagnostics_csv(tracker.diagnostic_names, tracked.rows))
                 files.path(out / "run.json").write_text(

@@ -1,35 +1,51 @@
 """Exports of a tracked pose sequence: BVH, TRC (OpenSim markers), C3D, CSV and NPZ — and
 reading our CSV / NPZ back (for ``jaxmocap eval``).
 
-A tracked sequence is a :class:`PoseTrack`: per frame the pose ``q`` (the body model's layout,
-see :mod:`jaxmocap.body`: root translation m, root rotation vector rad, 1-DOF joint angles
-rad), the world positions of the model's named keypoints (m, world Z up) and whether the
-tracker produced a pose for that frame (``valid``). Frames that were not tracked (an
-unreadable frame, a lost subject) are **NaN** in ``q`` and ``keypoints``.
+A tracked sequence is a :class:`PoseTrack`: per frame the pose ``q`` the tracker estimated
+(the body model's layout, see :mod:`jaxmocap.body`: root translation m, root rotation vector
+rad, 1-DOF joint angles rad), the world positions of the model's named keypoints (m, world Z
+up), whether the tracker's rule calls that estimate valid (``valid``) and, optionally, the
+per-frame ``diagnostics`` behind the flag (the tracker's signals, named by
+``diagnostic_names``). **Every frame's estimate is kept, valid or not**: research users
+decide what to trust. ``q`` and ``keypoints`` are **NaN** only where there is no estimate (an
+unreadable frame, a filter not started yet, a shirt found nowhere); such a frame is never
+valid. Readers that score accuracy use ``valid`` explicitly (:mod:`jaxmocap.metrics`).
 
-Formats (all written atomically, :mod:`jaxmocap.io.atomic`):
+Formats (all written atomically, :mod:`jaxmocap.io.atomic`); the interchange formats mark
+an invalid frame the way their tools expect a missing marker, so that an invalid estimate
+is never read as data there (it is in the NPZ / CSV):
 
 * **NPZ** — arrays ``q`` (T, n_dof), ``keypoints`` (T, n_kp, 3), ``valid`` (T,), ``times``
   (T,) s, ``fps`` (), ``dof_names`` (n_dof,), ``dof_units`` (n_dof,: ``m`` or ``rad``),
   ``keypoint_names`` (n_kp,) — the same key names as a synthetic dataset's
-  ``groundtruth.npz``, so ground truth and results compare directly.
+  ``groundtruth.npz``, so ground truth and results compare directly — and, when the track
+  has them, ``diagnostics`` (T, k) (NaN where a frame has no such value) and
+  ``diagnostic_names`` (k,).
 * **CSV** — one header row, one row per frame: ``frame, time_s, valid``, then
   ``<keypoint>_x_m/_y_m/_z_m`` (metres, world Z up) per keypoint, then one column per DOF
   named with its unit: ``q_root_tx_m .. q_root_tz_m`` (root translation),
   ``q_root_rotvec_x_rad .. _z_rad`` (root rotation vector, world frame) and
-  ``q_<joint>_rad`` (``_m`` for a prismatic joint); NaN written as an empty field.
+  ``q_<joint>_rad`` (``_m`` for a prismatic joint), then one ``diag_<name>`` column per
+  diagnostic; NaN written as an empty field.
 * **TRC** — OpenSim's marker-trajectory text format (tab separated, ``PathFileType 4``),
   one marker per keypoint, in **Y-up** coordinates as OpenSim expects
   (``v_trc = M^T v_world``, ``M = Y_UP_TO_Z_UP``: x forward stays x, our z is TRC's y, our y
-  is TRC's -z), units metres; an untracked frame has ``NaN`` in its marker fields (OpenSim's
-  missing marker: every data line keeps its ``2 + 3 * NumMarkers`` fields).
+  is TRC's -z), units metres. TRC has no validity flag: an invalid or untracked frame's
+  markers are missing, written ``NaN`` (what OpenSim's own TRC writer writes for a missing
+  marker, and what every reader that parses numbers reads; every data line keeps its
+  ``2 + 3 * NumMarkers`` fields). Newer OpenSim readers also take blank fields; older ones
+  parse every field as a number, so blank fields are not used.
 * **C3D** — the binary format of biomechanics labs (written with ezc3d, the library OpenSim's
   C3D reader is built on): one 3D point per keypoint in **millimetres**, world frame (Z up,
   ``POINT:X_SCREEN +X``, ``Y_SCREEN +Z``), ``POINT:RATE`` = the capture's frame rate,
-  residual 0 for tracked points and -1 (C3D's invalid point, coordinates 0) for untracked
-  frames; no analog channels.
-* **BVH** — :func:`jaxmocap.io.bvh.body_to_bvh` (Y up, degrees). BVH cannot hold missing
-  frames: an untracked frame repeats the last tracked pose (the rest pose before the first).
+  residual 0 for valid points and -1 (C3D's invalid point) for invalid or untracked frames;
+  ezc3d writes an invalid point's coordinates as 0 and reads them back as NaN, the `c3d`
+  package returns 0 with residual -1; no analog channels.
+* **BVH** — :func:`jaxmocap.io.bvh.body_to_bvh` (Y up, degrees). BVH has no validity flag
+  and no missing frames: it holds every frame's estimate, valid or not (an animation of what
+  the tracker computed; the flag is beside it in ``diagnostics.csv`` of ``jaxmocap track``
+  and in the NPZ / CSV), and a frame without an estimate repeats the last estimate (the rest
+  pose before the first).
 """
 
 from __future__ import annotations
@@ -56,6 +72,7 @@ __all__ = [
     "FORMATS",
     "PoseFileError",
     "PoseTrack",
+    "bvh_poses",
     "csv_header",
     "dof_units",
     "fill_missing",
@@ -80,7 +97,8 @@ class PoseFileError(InputError):
 
 
 class PoseTrack(NamedTuple):
-    """A tracked sequence (module docstring): NaN rows where ``valid`` is False."""
+    """A tracked sequence (module docstring): every frame's estimate, NaN rows where there is
+    none; ``valid`` says which estimates the tracker trusts."""
 
     q: np.ndarray  # (T, n_dof)
     keypoints: np.ndarray  # (T, n_kp, 3) metres, world Z up
@@ -89,6 +107,8 @@ class PoseTrack(NamedTuple):
     dof_names: tuple[str, ...]
     keypoint_names: tuple[str, ...]
     dof_units: tuple[str, ...] = ()  # per DOF "m" or "rad"; () = the chain layout's default
+    diagnostics: np.ndarray | None = None  # (T, k) per-frame signals, NaN where absent
+    diagnostic_names: tuple[str, ...] = ()  # (k,)
 
     @property
     def n_frames(self) -> int:
@@ -102,25 +122,39 @@ class PoseTrack(NamedTuple):
 _keypoints_batch = jax.jit(jax.vmap(body_keypoints, in_axes=(None, 0)))
 
 
-def pose_track(model: BodyModel, q: np.ndarray, valid: np.ndarray | None, fps: float) -> PoseTrack:
-    """A :class:`PoseTrack` of poses ``q`` (T, n_dof): keypoints by forward kinematics; rows
-    with ``valid`` False (default: rows with a non-finite entry) become NaN."""
+def pose_track(model: BodyModel, q: np.ndarray, valid: np.ndarray | None, fps: float,
+               diagnostics: np.ndarray | None = None,
+               diagnostic_names: tuple[str, ...] = ()) -> PoseTrack:
+    """A :class:`PoseTrack` of the estimates ``q`` (T, n_dof), valid or not: keypoints by
+    forward kinematics of every row that has an estimate; a row with a non-finite entry has
+    none (all NaN, never valid). ``valid`` default: every row with an estimate.
+    ``diagnostics`` (T, k) with their ``diagnostic_names`` are carried along."""
     q = np.array(q, dtype=np.float64)
     if q.ndim != 2 or q.shape[1] != model.n_dof:
         raise ValueError(f"pose_track: q must be (T, {model.n_dof}), got {q.shape}")
     finite = np.isfinite(q).all(axis=1)
     valid = finite if valid is None else np.asarray(valid, bool) & finite
+    if valid.shape != finite.shape:
+        raise ValueError(f"pose_track: valid must be ({q.shape[0]},), got {valid.shape}")
     if not fps > 0:
         raise ValueError(f"pose_track: fps must be > 0, got {fps}")
-    q[~valid] = np.nan
+    names = tuple(str(n) for n in diagnostic_names)
+    if diagnostics is not None:
+        diagnostics = np.array(diagnostics, np.float64)
+        if diagnostics.shape != (q.shape[0], len(names)):
+            raise ValueError(f"pose_track: diagnostics must be ({q.shape[0]}, {len(names)}) "
+                             f"for {len(names)} diagnostic_names, got {diagnostics.shape}")
+    elif names:
+        raise ValueError("pose_track: diagnostic_names given without diagnostics")
+    q[~finite] = np.nan
     if q.shape[0]:
-        filled = np.where(valid[:, None], q, 0.0)
+        filled = np.where(finite[:, None], q, 0.0)
         kp = np.array(_keypoints_batch(model, jnp.asarray(filled)), np.float64)
     else:
         kp = np.zeros((0, len(model.keypoint_names), 3))
-    kp[~valid] = np.nan
+    kp[~finite] = np.nan
     return PoseTrack(q, kp, valid, float(fps), tuple(model.chain.dof_names),
-                     tuple(model.keypoint_names), dof_units(model))
+                     tuple(model.keypoint_names), dof_units(model), diagnostics, names)
 
 
 def dof_units(model: BodyModel) -> tuple[str, ...]:
@@ -141,8 +175,8 @@ def _units(track: PoseTrack) -> tuple[str, ...]:
 
 
 def fill_missing(q: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``q`` with every untracked row replaced by the last tracked one (zeros = rest pose
-    before the first): what BVH, which cannot express a missing frame, stores."""
+    """``q`` with every row where ``valid`` is False replaced by the last row where it is True
+    (zeros = rest pose before the first)."""
     out = np.zeros_like(q)
     last = np.zeros(q.shape[1])
     for t in range(q.shape[0]):
@@ -159,6 +193,19 @@ def _num(x: float) -> str:
     return "" if not np.isfinite(x) else f"{x:.6f}"
 
 
+def _diag(x: float) -> str:
+    return "" if not np.isfinite(x) else f"{x:.6g}"
+
+
+DIAG_PREFIX = "diag_"  # CSV columns of the per-frame diagnostics
+
+
+def _diagnostics(track: PoseTrack) -> tuple[np.ndarray, tuple[str, ...]]:
+    if track.diagnostics is None:
+        return np.zeros((track.n_frames, 0)), ()
+    return track.diagnostics, track.diagnostic_names
+
+
 def csv_header(track: PoseTrack) -> list[str]:
     """The CSV's column names, each with its unit (module docstring)."""
     header = ["frame", "time_s", "valid"]
@@ -168,7 +215,14 @@ def csv_header(track: PoseTrack) -> list[str]:
             header.append(f"q_root_rotvec_{'xyz'[i - 3]}_rad")
         else:
             header.append(f"q_{name}_{unit}")
+    header += [f"{DIAG_PREFIX}{n}" for n in _diagnostics(track)[1]]
     return header
+
+
+def bvh_poses(track: PoseTrack) -> np.ndarray:
+    """The poses the BVH holds (module docstring): every frame's estimate, the last one
+    repeated where a frame has none."""
+    return fill_missing(track.q, np.isfinite(track.q).all(axis=1))
 
 
 def format_csv(track: PoseTrack) -> str:
@@ -176,10 +230,12 @@ def format_csv(track: PoseTrack) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(csv_header(track))
+    diag = _diagnostics(track)[0]
     for t in range(track.n_frames):
         row = [str(t), f"{t / track.fps:.6f}", str(int(track.valid[t]))]
         row += [_num(v) for v in track.keypoints[t].reshape(-1)]
         row += [_num(v) for v in track.q[t]]
+        row += [_diag(v) for v in diag[t]]
         w.writerow(row)
     return buf.getvalue()
 
@@ -197,7 +253,7 @@ def format_trc(track: PoseTrack, file_name: str = "poses.trc") -> str:
         "\t".join(["", ""] + [f"{a}{i + 1}" for i in range(k) for a in "XYZ"]),
         "",
     ]
-    yup = track.keypoints @ _M  # rows: v_yup = M^T v_world
+    yup = np.where(track.valid[:, None, None], track.keypoints, np.nan) @ _M  # v_yup = M^T v
     for t in range(n):
         vals = [f"{v:.6f}" if np.isfinite(v) else "NaN" for v in yup[t].reshape(-1)]
         lines.append("\t".join([str(t + 1), f"{t / track.fps:.6f}"] + vals))
@@ -219,7 +275,7 @@ def _save_c3d(path: Path, track: PoseTrack) -> None:
     import ezc3d
 
     t, k = track.n_frames, len(track.keypoint_names)
-    ok = np.isfinite(track.keypoints).all(axis=-1)  # (T, k)
+    ok = track.valid[:, None] & np.isfinite(track.keypoints).all(axis=-1)  # (T, k)
     pts = np.zeros((4, k, t))
     pts[:3] = np.where(ok[..., None], track.keypoints * 1000.0, 0.0).transpose(2, 1, 0)
     pts[3] = 1.0
@@ -246,6 +302,9 @@ def write_c3d(path: str | os.PathLike, track: PoseTrack) -> Path:
 
 
 def _save_npz(path: Path, track: PoseTrack, extra: dict[str, np.ndarray]) -> None:
+    if track.diagnostics is not None:
+        extra = {"diagnostics": track.diagnostics,
+                 "diagnostic_names": np.array(track.diagnostic_names, dtype=str), **extra}
     with open(path, "wb") as f:
         np.savez(f, q=track.q, keypoints=track.keypoints, valid=track.valid,
                  times=track.times, fps=np.float64(track.fps),
@@ -261,9 +320,8 @@ def write_npz(path: str | os.PathLike, track: PoseTrack, **extra: np.ndarray) ->
 
 
 def write_bvh(path: str | os.PathLike, model: BodyModel, track: PoseTrack) -> Path:
-    """Write the BVH atomically (untracked frames hold the last tracked pose)."""
-    return write_text(path, format_bvh(body_to_bvh(model, fill_missing(track.q, track.valid),
-                                                   track.fps)))
+    """Write the BVH atomically (every estimate; :func:`bvh_poses`)."""
+    return write_text(path, format_bvh(body_to_bvh(model, bvh_poses(track), track.fps)))
 
 
 def write_exports(files: AtomicFiles, folder: str | os.PathLike, model: BodyModel,
@@ -285,8 +343,7 @@ def write_exports(files: AtomicFiles, folder: str | os.PathLike, model: BodyMode
         elif fmt == "c3d":
             _save_c3d(tmp, track)
         elif fmt == "bvh":
-            tmp.write_text(format_bvh(body_to_bvh(model, fill_missing(track.q, track.valid),
-                                                  track.fps)))
+            tmp.write_text(format_bvh(body_to_bvh(model, bvh_poses(track), track.fps)))
         else:
             raise ValueError(f"write_exports: unknown format {fmt!r}; expected one of {FORMATS}")
         out.append(target)
@@ -326,8 +383,15 @@ def _load_npz(path: Path) -> PoseTrack:
     if units and len(units) != q.shape[1]:
         raise PoseFileError(f"{path}: field 'dof_units' has {len(units)} units for "
                             f"{q.shape[1]} DOFs")
+    diag, diag_names = None, ()
+    if "diagnostics" in data:
+        diag = np.asarray(data["diagnostics"], np.float64)
+        diag_names = tuple(str(n) for n in data.get("diagnostic_names", ()))
+        if diag.shape != (t, len(diag_names)):
+            raise PoseFileError(f"{path}: field 'diagnostics' has shape {diag.shape}, expected "
+                                f"({t}, {len(diag_names)}) for its 'diagnostic_names'")
     return PoseTrack(q, kp, valid & np.isfinite(kp).all(axis=(1, 2)), fps, dof_names, names,
-                     units)
+                     units, diag, diag_names)
 
 
 def _fps_from_times(path: Path, times, t: int) -> float:
@@ -350,14 +414,18 @@ def _load_csv(path: Path) -> PoseTrack:
         raise PoseFileError(f"{path}: line 1: expected the header 'frame,time_s,valid,...' "
                             "of a jaxmocap pose CSV")
     header = rows[0]
-    kp_cols = [c for c in header[3:] if not c.startswith("q_")]
+    n_diag = 0
+    while n_diag < len(header) - 3 and header[-1 - n_diag].startswith(DIAG_PREFIX):
+        n_diag += 1
+    diag_names = tuple(c[len(DIAG_PREFIX):] for c in header[len(header) - n_diag:])
+    kp_cols = [c for c in header[3:len(header) - n_diag] if not c.startswith("q_")]
     unit = "_m" if kp_cols and kp_cols[0].endswith("_m") else ""  # "" : files before units
     if len(kp_cols) % 3 or any(not c.endswith(f"_{'xyz'[i % 3]}{unit}")
                                for i, c in enumerate(kp_cols)):
         raise PoseFileError(f"{path}: line 1: keypoint columns must come as <name>_x_m, "
                             "<name>_y_m, <name>_z_m")
     names = tuple(c[:-2 - len(unit)] for c in kp_cols[::3])
-    dof_names, units = _dof_columns(header[3 + len(kp_cols):])
+    dof_names, units = _dof_columns(header[3 + len(kp_cols):len(header) - n_diag])
     values = np.full((len(rows) - 1, len(header)), np.nan)
     for i, row in enumerate(rows[1:]):
         if len(row) != len(header):
@@ -369,10 +437,11 @@ def _load_csv(path: Path) -> PoseTrack:
             raise PoseFileError(f"{path}: line {i + 2}: not a number ({e})") from None
     t, k = values.shape[0], len(names)
     kp = values[:, 3:3 + 3 * k].reshape(t, k, 3)
-    q = values[:, 3 + 3 * k:]
+    q = values[:, 3 + 3 * k:len(header) - n_diag]
     valid = (values[:, 2] == 1) & np.isfinite(kp).all(axis=(1, 2))
     fps = _fps_from_times(path, values[:, 1], t)
-    return PoseTrack(q, kp, valid, fps, dof_names, names, units)
+    diag = values[:, len(header) - n_diag:] if n_diag else None
+    return PoseTrack(q, kp, valid, fps, dof_names, names, units, diag, diag_names)
 
 
 def _dof_columns(cols: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:

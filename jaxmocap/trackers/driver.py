@@ -6,8 +6,10 @@ Any tracker is driven through a small **frame protocol** (:class:`FrameTracker`)
 * ``start(frames)`` — called once with the first readable frame (uint8 (n_cams, H, W, 3)
   RGB) before it is stepped: set up the state (white balance, particle set, ...);
 * ``step(frames) -> FrameResult`` — one frame: the pose ``q`` (n_dof,) of the body model
-  (:mod:`jaxmocap.body` layout), whether it is ``valid`` (the tracker found the subject), a
-  flat ``diagnostics`` dict of floats whose keys are fixed by ``diagnostic_names``, and the
+  (:mod:`jaxmocap.body` layout) the tracker estimated for this frame, valid or not (NaN only
+  where it has no estimate: e.g. a filter not started yet), whether it is ``valid`` (the
+  tracker's rule says the estimate can be trusted), a flat ``diagnostics`` dict of floats
+  whose keys are fixed by ``diagnostic_names`` (the signals behind the flag), and the
   tracker's own ``output`` (host arrays) for callers that want more;
 * ``draw(frames, result) -> frames`` — RGB images with what the tracker saw drawn over them.
 
@@ -15,7 +17,8 @@ Two adapters implement it: :class:`ShirtFrameTracker` (Wang et al. 2011,
 :mod:`jaxmocap.trackers.shirt`; its parameters from :func:`shirt_params`) and
 :class:`StereoPFFrameTracker` (Azad et al. 2007, :mod:`jaxmocap.trackers.stereo_pf`, live).
 :func:`drive` runs the frame loop over any iterable of ``(t, frames or None)`` (an unreadable
-instant is not stepped: its row is NaN) with a progress bar, per-frame timing and interrupt
+instant is not stepped: its row is NaN; every stepped frame keeps its estimate beside its
+validity flag) with a progress bar, per-frame timing and interrupt
 handling (an interrupt after the first tracked frame ends the loop and keeps what was tracked).
 :func:`stereo_offline` is the stereo filter's offline run (observations on the host, the
 filter as one scan), with its cold and warm timings.
@@ -25,7 +28,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import jax
@@ -102,9 +105,10 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
     :class:`~jaxmocap.trackers.shirt.ShirtOutput`): per camera ``c`` the classified fraction
     of step 1 ``fraction_c``, the diagonal of the white balance ``W_c_rr/gg/bb``,
     ``reference_used_c``, ``reference_added_c``, and how well the final pose explains the
-    crop, ``residual_c`` and ``recall_c`` (:class:`~jaxmocap.trackers.shirt.FrameSignals`);
-    and ``agreement`` (render vs step-1 classification) and ``patches`` (measured patch
-    centroids, all cameras)."""
+    crop, ``residual_c``, ``recall_c`` and ``coverage_c``
+    (:class:`~jaxmocap.trackers.shirt.FrameSignals`); ``agreement`` (render vs step-1
+    classification), ``patches`` (measured patch centroids, all cameras), and the frame's
+    ``blend_distance`` (rad), ``db_spread`` (rad) and ``root_jump`` (m) (FrameSignals)."""
     d = {}
     for c, n in enumerate(names):
         d[f"fraction_{n}"] = float(out.fraction[c])
@@ -114,8 +118,11 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
         d[f"reference_added_{n}"] = float(out.added_reference[c])
         d[f"residual_{n}"] = float(out.signals.residual[c])
         d[f"recall_{n}"] = float(out.signals.recall[c])
+        d[f"coverage_{n}"] = float(out.signals.coverage[c])
     d["agreement"] = float(out.agreement)
     d["patches"] = float(np.sum(out.visible))
+    for k in ("blend_distance", "db_spread", "root_jump"):
+        d[k] = float(getattr(out.signals, k))
     patch_colours = getattr(out, "relight_ok", None) is not None
     if patch_colours:
         for c, n in enumerate(names):
@@ -139,7 +146,8 @@ def shirt_diagnostic_names(names: list[str], patch_colours: bool = False) -> tup
         + [f"reference_used_{n}" for n in names]
         + [f"reference_added_{n}" for n in names]
         + [f"residual_{n}" for n in names] + [f"recall_{n}" for n in names]
-        + ["agreement", "patches"] + extra)
+        + [f"coverage_{n}" for n in names]
+        + ["agreement", "patches", "blend_distance", "db_spread", "root_jump"] + extra)
 
 
 def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=None,
@@ -170,7 +178,9 @@ def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=No
 class ShirtFrameTracker:
     """Wang et al. 2011 through the frame protocol (:mod:`jaxmocap.trackers.shirt`), over
     :func:`shirt.compile_step <jaxmocap.trackers.shirt.compile_step>` (the shipped program
-    where it applies). ``background``: an OpenCV MOG2 foreground mask per camera and frame
+    where it applies). A frame's ``q`` is its own IK solution (``ShirtOutput.q_frame``), also
+    where the tracker holds its last valid pose (``hold_invalid``) and reports it invalid.
+    ``background``: an OpenCV MOG2 foreground mask per camera and frame
     (:class:`jaxmocap.color.BackgroundSubtractor`). ``color`` / ``room``: the colour model
     and the room's colours, for :meth:`draw`'s classified pixels. Diagnostics:
     :func:`shirt_diagnostics`."""
@@ -215,7 +225,7 @@ class ShirtFrameTracker:
             masks = np.stack([s.apply(frames[i]) for i, s in enumerate(self._subs)])
             self.state, out = self._step(self.state, frames, masks)
         out, W = jax.device_get((out, self.state.W))
-        return FrameResult(np.asarray(out.q, np.float64), bool(out.valid),
+        return FrameResult(np.asarray(out.q_frame, np.float64), bool(out.valid),
                            shirt_diagnostics(out, W, self.names), out)
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
@@ -240,7 +250,8 @@ class ShirtFrameTracker:
 class StereoPFFrameTracker:
     """Azad et al. 2007 through the frame protocol (see :mod:`jaxmocap.trackers.stereo_pf`):
     the filter initialises on the first frame with a triangulated head (as the offline
-    ``track``; frames before it are invalid, ``waiting_for_head`` 1), then one step per frame.
+    ``track``; frames before it are invalid, ``waiting_for_head`` 1, and have no estimate:
+    NaN), then one step per frame (the filter's mean, valid or not).
 
     Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
     ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
@@ -390,7 +401,8 @@ def stereo_offline(params, key, frames: np.ndarray,
 
 
 class Tracked(NamedTuple):
-    """What :func:`drive` produced: q (T, n_dof) (NaN rows where not tracked), valid (T,), the
+    """What :func:`drive` produced: q (T, n_dof) every frame's estimate, valid or not (NaN
+    rows where none: an unreadable instant, a tracker without an estimate), valid (T,), the
     diagnostics rows ``(t, read, valid, diagnostics)``, the seconds each stepped frame took
     (T,; NaN where not stepped), the tracker's outputs (``keep_outputs``; else empty) and the
     interrupt that ended the loop early (None: it ran to the end of the input; else "SIGINT"
@@ -443,7 +455,7 @@ def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]]
                 t0 = time.perf_counter()
                 res = tracker.step(fr)
                 times.append(time.perf_counter() - t0)
-                qs.append(res.q if res.valid else np.full(n_dof, np.nan))
+                qs.append(np.asarray(res.q, np.float64))
                 valid.append(res.valid)
                 rows.append((t, True, res.valid, res.diagnostics))
                 if keep_outputs:
@@ -462,6 +474,17 @@ def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]]
                    np.asarray(times, np.float64), outputs, interrupted)
 
 
+def diagnostics_table(rows: list, names: Sequence[str]) -> np.ndarray:
+    """The diagnostics of :class:`Tracked` ``rows`` as a (T, len(names)) float array, NaN
+    where a frame has no such value (unreadable, or a tracker that skipped it)."""
+    out = np.full((len(rows), len(names)), np.nan)
+    for i, (_, _, _, d) in enumerate(rows):
+        for j, k in enumerate(names):
+            if k in d:
+                out[i, j] = d[k]
+    return out
+
+
 def sequence_frames(frames: np.ndarray):
     """``(t, frames[t])`` for an in-memory sequence (T, n_cams, H, W, 3): :func:`drive`'s input."""
     return ((t, frames[t]) for t in range(frames.shape[0]))
@@ -477,6 +500,7 @@ __all__ = [
     "StereoPFFrameTracker",
     "StereoRun",
     "Tracked",
+    "diagnostics_table",
     "drive",
     "sequence_frames",
     "shirt_diagnostic_names",

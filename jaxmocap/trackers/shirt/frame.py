@@ -506,14 +506,17 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     else:
         W_new, refs, added = white_balance_refit(params, state, ctx, hits, valid)
         new_state = ShirtState(W=W_new, refs=refs, q=q_star, valid=valid, tracked=tracked)
+    # this frame's estimate where there was something to fit (else it is unconstrained)
+    measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+    q_frame = jnp.where((measured | valid) & jnp.all(jnp.isfinite(q_sol)), q_sol, jnp.nan)
     if params.validity.hold_invalid:
         q_out, own = q_star, valid
-    else:  # this frame's estimate where there was something to fit (else it is unconstrained)
-        measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
+    else:
         own = measured & near_placement(ctx, q_sol)
         q_out = jnp.where(own, q_sol, state.q)
     out = ShirtOutput(
         q=q_out,
+        q_frame=q_frame.astype(dt),
         q_blend=q_g,
         valid=reported_validity(params, ctx, v_obs, signals, valid, own),
         window=views.windows,

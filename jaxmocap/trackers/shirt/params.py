@@ -233,12 +233,16 @@ class FrameSignals(NamedTuple):
 
 
 class ShirtOutput(eqx.Module):
-    """Per-frame results. ``q`` the final pose ``q*``, ``q_blend`` the globally placed blended
-    database pose; per camera: crop ``window`` (x0, y0, s, s) image pixels, the step-1
-    classified ``fraction``, whether a reference illumination was used / added, the measured
-    ``centroids`` (pixels) and their ``visible`` flags."""
+    """Per-frame results. ``q`` the final pose ``q*`` (on an invalid frame the held pose, see
+    ``ValidityRule.hold_invalid``), ``q_frame`` this frame's own IK solution whether valid or
+    not (NaN where there was nothing to fit: the shirt found in no camera or fewer than
+    ``MIN_VALID_PATCHES`` centroids measured, on a frame not valid), ``q_blend`` the globally
+    placed blended database pose; per camera: crop ``window`` (x0, y0, s, s) image pixels, the
+    step-1 classified ``fraction``, whether a reference illumination was used / added, the
+    measured ``centroids`` (pixels) and their ``visible`` flags."""
 
     q: Float[Array, " n_dof"]
+    q_frame: Float[Array, " n_dof"]
     q_blend: Float[Array, " n_dof"]
     valid: Bool[Array, ""]
     window: Float[Array, "n_cams 4"]
