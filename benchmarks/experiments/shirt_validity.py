@@ -113,18 +113,23 @@ def run(dataset: str, config: str, name: str, out: str, only=None, sets=()) -> N
         folder = str(seq_info.folder)
         seq = load_dataset(folder)
         rec = []
-        step0 = shirt.step
+        compile0 = shirt.compile_step
 
-        def step(params, state, frames, masks=None, _rec=rec, step0=step0):
-            new, o = step0(params, state, frames, masks)
-            _rec.append((params, state, o))
-            return new, o
+        def compile_step(params, *a, _rec=rec, compile0=compile0, **kw):
+            step0 = compile0(params, *a, **kw)  # the program the driver runs (shipped or jit)
 
-        shirt.step = step
+            def step(state, *args):
+                new, o = step0(state, *args)
+                _rec.append((params, state, o))
+                return new, o
+
+            return step
+
+        shirt.compile_step = compile_step
         try:
             res = cell._track_shirt(seq, cfg, 0, folder)
         finally:
-            shirt.step = step0
+            shirt.compile_step = compile0
         body = res["body"]
         g = seq.groundtruth
         joints = cfg["joints"]
