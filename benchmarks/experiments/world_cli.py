@@ -50,6 +50,7 @@ def main() -> int:
     from jaxmocap.experiment.cell import scribble_frames
     from jaxmocap.io.garment_file import load_garment
     from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.synth.world.render import sequence_body_file
     from jaxmocap.trackers.shirt import SCRIBBLE_EROSION, scribbles
 
     seq_dir, out = Path(args.sequence), Path(args.out)
@@ -57,7 +58,11 @@ def main() -> int:
         ap.error(f"{args.out}: inside the sequence {args.sequence}; write elsewhere")
     out.mkdir(parents=True, exist_ok=False)  # never over an earlier run
     seq = load_dataset(seq_dir)
-    body = load_body(seq_dir / "body.urdf")
+    body_file, body_kw = sequence_body_file(seq_dir)  # body.urdf, or a package's own file
+    body = load_body(body_file, **body_kw)
+    body_args = ["--body", body_file]
+    if body_kw:  # a URDF in other units / up axis, as its package loads it
+        body_args += ["--body-scale", body_kw["scale"], "--body-up", body_kw["up"]]
     garment = load_garment(seq_dir / "garment.json", body)
     cids = seq.groundtruth["colour_ids"]
     names = seq.camera_names
@@ -71,7 +76,7 @@ def main() -> int:
             cv2.imwrite(str(lab), scribbles(np.asarray(cids[t, c])).astype(np.uint8))
             images.append(img)
             masks.append(lab)
-    _cli("colors", "--images", *images, "--masks", *masks, "--body", seq_dir / "body.urdf",
+    _cli("colors", "--images", *images, "--masks", *masks, *body_args,
          "--garment", seq_dir / "garment.json", "--shading", *args.shading,
          "--out", out / "colors.json")
     wb_img, wb_lab = [], []
@@ -85,10 +90,10 @@ def main() -> int:
     _cli("colors", "--white-balance", "--colors", out / "colors.json", "--images", *wb_img,
          "--masks", *wb_lab, "--names", *names, "--room-label", ROOM_LABEL,
          "--out", out / "white_balance.json")
-    _cli("build-db", "--body", seq_dir / "body.urdf", "--garment", seq_dir / "garment.json",
+    _cli("build-db", *body_args, "--garment", seq_dir / "garment.json",
          "--size", args.db_size, "--out", out / "db.npz", "--quiet")
     _cli("track", "--cameras", seq_dir / "cameras.json",
-         *[seq_dir / f"{n}.mp4" for n in names], "--body", seq_dir / "body.urdf",
+         *[seq_dir / f"{n}.mp4" for n in names], *body_args,
          "--garment", seq_dir / "garment.json", "--colors", out / "colors.json",
          "--white-balance", out / "white_balance.json", "--db", out / "db.npz",
          "--validity", "footage", "--formats", "npz", "--out", out / "track", "--quiet")
