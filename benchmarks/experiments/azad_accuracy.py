@@ -47,7 +47,9 @@ def observations(clip: str, n_frames: int, ext: bool = True) -> sp.Observation:
     (``sp.BLOB_PARAMS``) with session 4's extensions, Azad's carry (``BlobParams()``) without."""
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     params = sp.make_params(
-        cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)), use_support=True
+        cams,
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
+        cues=sp.Cues(use_support=True),
     )
     blob = sp.BLOB_PARAMS if ext else bloblib.BlobParams()
     return sp.observe_sequence(params, load(clip, n_frames)["frames"], blob)
@@ -61,11 +63,13 @@ def evaluate(
     model = default_body()
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     params = sp.make_params(
-        cams, dofs=dofs, use_distance=use_distance,
-        segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)),
-        step_betas=LAYER_BETAS[layers], guided=guided,
-        edge_outside=cues.EDGE_OUTSIDE if ext else None, use_support=ext,
-        swivel_fraction=sp.SWIVEL_FRACTION if swivel else 0.0,
+        cams, dofs=dofs,
+        cues=sp.Cues(use_distance=use_distance, edge_outside=cues.EDGE_OUTSIDE if ext else None,
+                     use_support=ext),
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
+        motion=sp.Motion(step_betas=LAYER_BETAS[layers]),
+        proposals=sp.Proposals(guided=guided,
+                               swivel_fraction=sp.SWIVEL_FRACTION if swivel else 0.0),
     )  # fmt: skip
     obs = sp.observe_sequence(params, d["frames"]) if obs is None else obs
     t0 = time.perf_counter()
