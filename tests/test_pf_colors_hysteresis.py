@@ -1,5 +1,6 @@
 """Tests for the hysteresis skin map of the stereo particle filter
-(``jaxmocap.pf.colors.hysteresis_masks`` / ``grow_into``, ``make_params(images=Images(skin_grow=...))``).
+(``jaxmocap.pf.colors.hysteresis_masks`` / ``grow_into``,
+``make_params(images=Images(skin_grow=...))``).
 
 Scene (OpenCV drawing, the oracle): the scene of ``test_pf_colors`` plus a "hand" disc hanging
 from the torso whose lower half is shaded (the skin colour darkened: outside the capture's skin

@@ -93,6 +93,30 @@ def test_step_recovers_a_database_pose_without_recompiling(setup):
     assert not bool(jnp.any(out.added_reference))
 
 
+def test_settings_numbers_are_traced_and_switches_static(setup):
+    """The settings groups' numbers are array leaves of the parameters (a new value reuses a
+    compiled program: here the patch-colour learning threshold of :class:`shirt.Colours`) and
+    their switches are static (a new one is a new program)."""
+    import equinox as eqx
+
+    p = setup["params"]
+    traces = []
+
+    @eqx.filter_jit
+    def read(params):
+        traces.append(1)
+        return params.colours.learn_max_residual + params.validity.min_agreement
+
+    read(p)
+    other = shirt.make_params(p.color, p.body, p.garment, p.cams, p.anchors, p.cov, p.db,
+                              search=p.search, colours=shirt.Colours(learn_max_residual=0.1))
+    assert float(read(other)) == pytest.approx(0.1 + shirt.MIN_AGREEMENT)
+    assert len(traces) == 1  # same program, new value
+    follow = dataclasses.replace(other.colours, follow_light=True)
+    read(dataclasses.replace(other, colours=follow))
+    assert len(traces) == 2  # a switch is a new program
+
+
 def test_validity_thresholds_are_traced(setup):
     """A new threshold value reuses the compiled step and changes the flag as the rule says:
     the same frame is valid at the default patch count and invalid when more centroids are

@@ -155,6 +155,30 @@ def test_tracker_initialises_and_tracks(scene):
     del qs
 
 
+def test_settings_numbers_are_traced_and_switches_static(scene):
+    """A new number of the settings (the cues' edge widths and out-of-image edge value) runs
+    the compiled filter step as it is; a new switch (Azad's zero padding: no out-of-image
+    value) is a new program."""
+    _, cams, _, _, _, params, obs = scene
+    traces = []
+
+    @eqx.filter_jit
+    def step(p, state, o):
+        traces.append(1)
+        return sp.filter_step(p, state, o)
+
+    first = jax.tree.map(lambda a: a[0], obs)
+    state, _ = sp.init(params, jax.random.key(0), first)
+    kw = dict(dtype=jnp.float64, motion=sp.Motion(n_particles=200))
+    _, a = step(params, state, first)
+    other = sp.make_params(cams, cues=sp.Cues(sigma_g=0.3, edge_outside=0.1), **kw)
+    _, b = step(other, state, first)
+    assert len(traces) == 1  # same program, new values
+    assert not np.array_equal(np.asarray(a.best_loglik), np.asarray(b.best_loglik))
+    step(sp.make_params(cams, cues=sp.Cues(edge_outside=None), **kw), state, first)
+    assert len(traces) == 2  # a switch is a new program
+
+
 def test_determinism_and_scan_equals_loop(scene):
     _, _, frames, _, _, params, obs = scene
     first = jax.tree.map(lambda a: a[0], obs)

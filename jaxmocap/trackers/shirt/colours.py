@@ -1,7 +1,8 @@
-"""The colour-shirt tracker's per-patch colour states (``make_params(colours=Colours(patch_colours=True))``,
-issue 37): step 1 classified against every patch's state, and step 5's update of the states
-(:mod:`jaxmocap.appearance`), per camera under ``vmap``. Step 3's per-patch classification
-is :func:`jaxmocap.trackers.shirt.frame.pose_assisted_centroids` with :func:`patch_model`."""
+"""The colour-shirt tracker's per-patch colour states
+(``make_params(colours=Colours(patch_colours=True))``, issue 37): step 1 classified against
+every patch's state, and step 5's update of the states (:mod:`jaxmocap.appearance`), per
+camera under ``vmap``. Step 3's per-patch classification is
+:func:`jaxmocap.trackers.shirt.frame.pose_assisted_centroids` with :func:`patch_model`."""
 
 from __future__ import annotations
 
