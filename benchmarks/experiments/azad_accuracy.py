@@ -3,7 +3,7 @@
 320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on the first frame with a
 triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
 keypoints, for Azad's filter with and without the distance cue and for the distance-cue-guided
-proposal (``make_params(guided=True)``, the default), with and without session 4's out-of-image
+proposal (``Proposals(guided=True)``, the default), with and without session 4's out-of-image
 edge value and hand-support cue (``ext``), session 5's elbow-swivel jumps (``swivel``; all
 three the defaults) and the fixed-lag smoother (``smooth_lag``), over ``keys`` keys (14 DOF,
 one layer per frame). Writes

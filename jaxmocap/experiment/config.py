@@ -34,7 +34,7 @@ Relative paths are relative to the configuration file. Tracker options:
   :func:`jaxmocap.trackers.shirt.setup_for_sequence` from the dataset's first-frame colour ids),
   ``background`` (OpenCV MOG2 masks, as ``shirt.run(background=True)``) and
   ``scene_clusters`` (k > 0: Gaussians of the room from the scribble frames' non-shirt pixels,
-  ``make_params(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
+  ``Colours(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
   model is fitted for the shading-invariant distance);
 * ``pf``: every field of the settings groups of :func:`jaxmocap.trackers.stereo_pf.make_params`
   by name (:class:`~jaxmocap.trackers.stereo_pf.Motion`, ``Cues``, ``Proposals``,
