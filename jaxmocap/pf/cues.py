@@ -225,6 +225,10 @@ class Observation(eqx.Module):
     support: Float[Array, "*t n_cams h w"] | None = None
 
 
+def _optional_array(x):
+    return None if x is None else jnp.asarray(x)
+
+
 class StereoLikelihood(eqx.Module):
     """The fused likelihood p(z | s) of a configuration s (the filter's DOF subset ``dofs``;
     the other DOFs held at ``default_q``), as a log-likelihood (Azad §III-D):
@@ -259,7 +263,7 @@ class StereoLikelihood(eqx.Module):
     use_region: bool = eqx.field(static=True, default=False)
     use_support: bool = eqx.field(static=True, default=False)
     support_all: bool = eqx.field(static=True, default=False)
-    edge_outside: Float[Array, ""] | None = None
+    edge_outside: Float[Array, ""] | None = eqx.field(converter=_optional_array, default=None)
     # hands by nearest assignment (not in the paper): each particle's hands take the two
     # triangulated hands in the pairing of least squared distance, so a blob tracker that
     # swapped the hands' identities (40-47% of the measured hands on two dev sequences of the
