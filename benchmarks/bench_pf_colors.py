@@ -78,7 +78,7 @@ def _frame_rows(d, colors: pc.CaptureColors, n: int) -> list[Row]:
     """Whole live frame and live stream of the stereo filter with the capture's colours."""
     cams = make_cameras(config(CLIP, FRAMES), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
-    params = sp.make_params(cams, segment=seg, colors=colors)
+    params = sp.make_params(cams, images=sp.Images(segment=seg, colors=colors))
     rows = []
     frame = d["frames"][5]
     obs = sp.observe_sequence(params, d["frames"])

@@ -93,7 +93,9 @@ def particles(sizes, reps):
     clip, frames = bench_stereo_pf.CLIP, bench_stereo_pf.FRAMES
     d = load(clip, frames)
     cams = make_cameras(config(clip, frames), jnp.float32)
-    params = sp.make_params(cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(
+        cams, images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    )
     obs = sp.observe_sequence(params, d["frames"][:2])
     first = jax.tree.map(lambda a: a[0], obs)
     lik = params.likelihood

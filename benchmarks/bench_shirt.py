@@ -122,7 +122,7 @@ def numpy_pose_assisted(mean, cov, W, crop, prior, patch_colour, C, T):
 
 
 # The tracker's extensions beyond the paper's one-pass frame, switched off for the stage
-# breakdown (only those this version of make_params has).
+# breakdown (only those this version's shirt.Rounds has).
 PAPER_FRAME = {
     "view_anchors": False,
     "ik_passes": 1,
@@ -141,8 +141,9 @@ def paper_frame(params):
     import dataclasses
     import inspect
 
-    names = inspect.signature(shirt.make_params).parameters
-    return dataclasses.replace(params, **{k: v for k, v in PAPER_FRAME.items() if k in names})
+    rounds = {k: v for k, v in PAPER_FRAME.items()
+              if k in inspect.signature(shirt.Rounds).parameters}
+    return dataclasses.replace(params, rounds=dataclasses.replace(params.rounds, **rounds))
 
 
 def _cameras(width: int, height: int):
@@ -234,9 +235,11 @@ def stage_search(params, frames):
     dt = params.cams.K.dtype
     wins, s, found = [], [], []
     for i in range(params.n_cams):
-        r = histogram_search(frames[i], None, scales=params.scales)
+        r = histogram_search(frames[i], None, scales=params.search.scales)
         wins.append(
-            shirt.crop_window(r.x.astype(dt), r.y.astype(dt), r.s.astype(dt), params.crop_factor)
+            shirt.crop_window(
+                r.x.astype(dt), r.y.astype(dt), r.s.astype(dt), params.search.crop_factor
+            )
         )
         s.append(r.s.astype(dt)), found.append(r.found)
     return jnp.stack(wins), jnp.stack(s), jnp.stack(found)
@@ -246,9 +249,9 @@ def stage_search(params, frames):
 def stage_classify(params, state, frames, windows):
     """2: crops (n_cams, n, n, 3) and the step-1 classification (batched over cameras, the
     reference fallback under one ``cond``)."""
-    min_fraction = {} if params.adaptive_white_balance else {"min_fraction": 0.0}
+    min_fraction = {} if params.ablations.adaptive_white_balance else {"min_fraction": 0.0}
     crops = jnp.stack([
-        shirt.sample_bilinear(frames[i], shirt.crop_uv(windows[i], params.work_size))
+        shirt.sample_bilinear(frames[i], shirt.crop_uv(windows[i], params.search.work_size))
         for i in range(params.n_cams)
     ])  # fmt: skip
     cls = classify_views_with_references(
@@ -268,7 +271,7 @@ def stage_database(params, ids, windows, found):
         win_c = window_from_mask(ids_i > 0)
         q_db = estimate_pose(params.db, resample_ids(ids_i, win_c, TINY_SIZE))[0].astype(dt)
         hits, win_db = tiny_hits(params.body, params.garment, q_db, params.canon)
-        win_q = sampling.crop_to_image(win_c, window, params.work_size)
+        win_q = sampling.crop_to_image(win_c, window, params.search.work_size)
         return q_db, win_q, hits.patch, win_db, found_i & (jnp.sum(ids_i > 0) > 0)
 
     q_dbs, win_qs, tiny_patch, win_dbs, okq = jax.vmap(one)(ids, windows, found)
@@ -301,13 +304,13 @@ def stage_global(params, q_dbs, win_qs, tiny_patch, win_dbs, okq, q_b):
 def stage_pose_assisted(params, crops, windows, s_found, W, okq, q_g):
     """5: measured patch centroids (n_cams, P, 2), their validity and the frame's validity
     (one vmap over the cameras)."""
-    n, P, dt = params.work_size, params.garment.n_patches, q_g.dtype
+    n, P, dt = params.search.work_size, params.garment.n_patches, q_g.dtype
 
     def one(cam, crop, window, s_i, W_i):
         uv = shirt.crop_uv(window, n)
         rb = render_uv(params.render_body, params.garment, q_g, cam, uv).patch
         dist = patch_distance_maps(rb, P, dt)
-        if params.pose_prior:
+        if params.ablations.pose_prior:
             weight, T = PRIOR_SCALE / s_i * (window[2] / n), POSE_THRESHOLD
         else:
             weight, T = shirt.TIE_BREAK_WEIGHT, THRESHOLD
@@ -337,9 +340,10 @@ def stage_refit(params, state, crops, windows, W_cls, okq, valid, q_star):
     """7: ``W*`` per camera (one vmap) from ``r*`` and the updated reference illuminations."""
 
     def one(cam, refs_i, crop, window, W_i, ok_i):
-        uv = shirt.crop_uv(window, params.work_size)
+        uv = shirt.crop_uv(window, params.search.work_size)
         r_star = sampling.erode_ids(
-            render_uv(params.render_body, params.garment, q_star, cam, uv).colour)
+            render_uv(params.render_body, params.garment, q_star, cam, uv).colour
+        )
         W_star = white_balance_from_ids(
             params.color, crop, r_star, W_i, None, min_pixels=shirt.REFERENCE_PIXELS
         )
@@ -406,13 +410,13 @@ def _baseline_calls(params, state, frames, r, upto: int) -> dict:
     from benchmarks import bench_ik  # sets jax_enable_x64 at import: restored below
 
     jax.config.update("jax_enable_x64", x64)
-    n_cams, n = params.n_cams, params.work_size
+    n_cams, n = params.n_cams, params.search.work_size
     imgs = [np.asarray(frames[i]) for i in range(n_cams)]
     mean = np.asarray(params.color.mean, np.float64)
     cov = np.asarray(params.color.cov, np.float64)
     base = {
         0: ("NumPy cells (bench_color)",
-            lambda: [bench_color.np_search_cells(im, params.scales) for im in imgs]),
+            lambda: [bench_color.np_search_cells(im, params.search.scales) for im in imgs]),
     }  # fmt: skip
     if upto >= 2:
         wins = np.asarray(r["windows"], np.float64)

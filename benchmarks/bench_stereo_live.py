@@ -123,9 +123,11 @@ def main() -> None:
     d = load(CLIP, FRAMES)
     cams = make_cameras(config(CLIP, FRAMES), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
-    rows, notes = _rows("Azad's HSV line", sp.make_params(cams, segment=seg), d, passes, n)
+    hsv = sp.make_params(cams, images=sp.Images(segment=seg))
+    rows, notes = _rows("Azad's HSV line", hsv, d, passes, n)
     colors = pc.calibrate_from_frames(list(d["frames"][:, 0]))
-    r, s = _rows("capture colours", sp.make_params(cams, segment=seg, colors=colors), d, passes,
+    captured = sp.make_params(cams, images=sp.Images(segment=seg, colors=colors))
+    r, s = _rows("capture colours", captured, d, passes,
                  n)  # fmt: skip
     rows += r
     notes += s

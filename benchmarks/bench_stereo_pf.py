@@ -116,7 +116,7 @@ def main():
     d = load(CLIP, FRAMES)
     cams = make_cameras(config(CLIP, FRAMES), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
-    params = sp.make_params(cams, segment=seg)
+    params = sp.make_params(cams, images=sp.Images(segment=seg))
     obs = sp.observe_sequence(params, d["frames"])
     first = jax.tree.map(lambda a: a[0], obs)
     state, _ = sp.init(params, jax.random.key(0), first)
@@ -198,7 +198,7 @@ def main():
                     notes=f"compile {c3b / c3:.2f}x of the XLA-defaults row; "
                           f"max |q diff| {dq:.1e}"))
     # 4b. the same step without the guided proposal (Azad's filter), and the proposal alone
-    paper = sp.make_params(cams, segment=seg, **sp.AZAD_FILTER)
+    paper = sp.make_params(cams, images=sp.Images(segment=seg), **sp.AZAD_FILTER)
     c4 = time_compile(lambda: sp.filter_step(paper, state, first))
     med, mn = time_call(lambda: sp.filter_step(paper, state, first))
     rows.append(Row("filter step N=1000, Azad (no guided proposal, zero-padded edges, no "

@@ -96,8 +96,10 @@ def _pf(default: bool):
     seq = render_sequence(SceneConfig(clip="humanoid3d_punch", rig="stereo", garment="single",
                                       background="plain", n_frames=4, noise_sigma=0.01, seed=0),
                           progress=False)
-    params = sp.make_params(list(seq.cameras),
-                            segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(
+        list(seq.cameras),
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
+    )
     obs = sp.observe_sequence(params, seq.frames)
     first = jax.tree.map(lambda a: a[sp.anchor_frame(obs)], obs)
     state, _ = sp.init(params, jax.random.key(0), first)
@@ -115,9 +117,18 @@ def _shirt():
     from jaxmocap.trackers.shirt import export as demo
     from jaxmocap.trackers.shirt import sequence as shirt_sequence
 
-    seq = render_sequence(SceneConfig(clip=demo.DEMO_CLIP, n_frames=2, rig="webcams",
-                                      width=demo.DEMO_SIZE[0], height=demo.DEMO_SIZE[1],
-                                      noise_sigma=0.01, seed=0), progress=False)
+    seq = render_sequence(
+        SceneConfig(
+            clip=demo.DEMO_CLIP,
+            n_frames=2,
+            rig="webcams",
+            width=demo.DEMO_SIZE[0],
+            height=demo.DEMO_SIZE[1],
+            noise_sigma=0.01,
+            seed=0,
+        ),
+        progress=False,
+    )
     _, params, w0, q0 = demo.demo_setup(seq, False)
     state = shirt.init(params, w0, q0)
     frames = jnp.asarray(seq.frames[0])
@@ -127,8 +138,11 @@ def _shirt():
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("program", choices=["pf", "shirt"])
-    ap.add_argument("--default", action="store_true",
-                    help="pf: the plain filter_step, XLA's default compile options")
+    ap.add_argument(
+        "--default",
+        action="store_true",
+        help="pf: the plain filter_step, XLA's default compile options",
+    )
     ap.add_argument("--top", type=int, default=15, help="source functions listed")
     a = ap.parse_args()
     lower = _pf(a.default) if a.program == "pf" else _shirt()
@@ -141,11 +155,20 @@ def main() -> None:
     parts = attribute(inner.as_text())
     total_k = sum(k for k, _ in parts.values())
     total_i = sum(i for _, i in parts.values())
-    print(json.dumps({"program": a.program, "default": a.default,
-                      "trace_lower_s": round(t1 - t0, 2), "compile_s": round(t2 - t1, 2),
-                      "compile_cpu_s": round(c2 - c1, 2),
-                      "kernels": total_k, "fused_instructions": total_i}))
-    for name, (k, i) in list(parts.items())[:a.top]:
+    print(
+        json.dumps(
+            {
+                "program": a.program,
+                "default": a.default,
+                "trace_lower_s": round(t1 - t0, 2),
+                "compile_s": round(t2 - t1, 2),
+                "compile_cpu_s": round(c2 - c1, 2),
+                "kernels": total_k,
+                "fused_instructions": total_i,
+            }
+        )
+    )
+    for name, (k, i) in list(parts.items())[: a.top]:
         print(f"{k:6d} kernels {i:7d} instructions  {name}")
 
 

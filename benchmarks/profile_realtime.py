@@ -90,7 +90,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
     p, state0, frames = s["params"], s["state"], s["frames"]
     dt = state0.q.dtype
     res: dict = {"config": {k: getattr(p, k) for k in bench_shirt.PAPER_FRAME}}
-    res["config"].update(work_size=p.work_size, n_cams=p.n_cams, db_size=int(p.db.size),
+    res["config"].update(work_size=p.search.work_size, n_cams=p.n_cams, db_size=int(p.db.size),
                          image=list(frames.shape[1:3]), n_patches=p.garment.n_patches)  # fmt: skip
 
     # the three kinds of frame: reacquisition (state of init: first frame / after a loss:
@@ -102,7 +102,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
     res["step_compile_plus_first_call_s"] = round(time.perf_counter() - t0, 2)
     states = {"reacquisition": state0, "fresh": st}
     valid = [bool(out.valid)]
-    for _ in range(p.reacquire_frames):
+    for _ in range(p.rounds.reacquire_frames):
         st, out = S.step(p, st, frames)
         valid.append(bool(out.valid))
     states["steady"] = st
@@ -113,7 +113,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
     # primitive evaluated and selected per geom; the shipped default renders with static kinds)
     import dataclasses
 
-    pk = dataclasses.replace(p, static_kinds=False)
+    pk = dataclasses.replace(p, rounds=dataclasses.replace(p.rounds, static_kinds=False))
     t0 = time.perf_counter()
     jax.block_until_ready(S.step(pk, state0, frames)[1].q)
     res["traced_kinds_compile_plus_first_call_s"] = round(time.perf_counter() - t0, 2)
@@ -156,7 +156,8 @@ def shirt_profile(s: dict, reps: int) -> dict:
     stages["4a' render r^b, both crops, traced geom kinds"] = _t(
         lambda: render(pk, ctx_k, q_g), reps
     )
-    stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops"] = _t(lambda: edt(hits), reps)
+    ws = p.search.work_size
+    stages[f"4b EDT, {P} patches x {ws}^2, both crops"] = _t(lambda: edt(hits), reps)
     import cv2
 
     src = [
@@ -184,7 +185,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
     @eqx.filter_jit
     def ik(p, ctx, anchors, c_obs, v_obs, q):
         return solve_ik(p.body.chain, p.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov,
-                        q, robust=p.robust)  # fmt: skip
+                        q, robust=p.rounds.robust)  # fmt: skip
 
     stages["4e full IK (solve_ik, robust, one start)"] = _t(
         lambda: ik(p, ctx, anchors, c_obs, v_obs, q_g), reps
@@ -260,7 +261,7 @@ def shirt_profile(s: dict, reps: int) -> dict:
                 ctx.q_h,
                 ctx.cov,
                 q,
-                robust=p.robust,
+                robust=p.rounds.robust,
             )  # fmt: skip
         )(st3, qs)
     )
@@ -287,8 +288,8 @@ def shirt_profile(s: dict, reps: int) -> dict:
     res["floors_inputs"] = {
         "frame_pair_MB": round(frames.size / 1e6, 2),
         "db_codes_MB": round(np.asarray(p.db.codes).nbytes / 1e6, 2),
-        "rays_per_render_pair": int(p.n_cams * p.work_size**2),
-        "edt_row_pass_candidate_ops_per_crop": int(P * p.work_size**3),
+        "rays_per_render_pair": int(p.n_cams * p.search.work_size**2),
+        "edt_row_pass_candidate_ops_per_crop": int(P * p.search.work_size**3),
     }
     return res
 
@@ -311,7 +312,7 @@ def stereo_profile(reps: int) -> dict:
     d = load(clip, n_frames)
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
-    params = sp.make_params(cams, segment=seg)
+    params = sp.make_params(cams, images=sp.Images(segment=seg))
     obs = sp.observe_sequence(params, d["frames"])
     state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda a: a[0], obs))
     frame = d["frames"][5]
@@ -354,7 +355,7 @@ def edt_in_step(s: dict, reps: int) -> dict:
     res: dict = {"load_average_at_start": list(os.getloadavg())}
     st, _ = S.step(p, state0, frames)
     states = {"reacquisition": state0, "fresh": st}
-    for _ in range(p.reacquire_frames):
+    for _ in range(p.rounds.reacquire_frames):
         st, _ = S.step(p, st, frames)
     states["steady"] = st
     views = eqx.filter_jit(lambda p, st, fr: S.locate_and_classify(p, st, fr, None))(p, st, frames)
@@ -367,7 +368,7 @@ def edt_in_step(s: dict, reps: int) -> dict:
     for name, fn in (("session 8", new_edt), ("previous", previous_edt)):
         pose_assisted.edt = fn
         f = jax.jit(lambda ps, fn=fn: [patch_distance_maps(x, P, dt) for x in ps])
-        stages[f"4b EDT, {P} patches x {p.work_size}^2, both crops: {name}"] = _t(
+        stages[f"4b EDT, {P} patches x {p.search.work_size}^2, both crops: {name}"] = _t(
             lambda f=f: f(patches), reps * 2
         )
     src = [(np.asarray(x) != k).astype(np.uint8) for x in patches for k in range(1, P + 1)]
@@ -448,7 +449,7 @@ def compile_by_stage(s: dict) -> dict:
     c_obs, v_obs = meas.xy, meas.valid
     out["4e solve_ik (robust), one start"] = timed(
         lambda p, ctx, c, v, q: solve_ik(p.body.chain, p.cams, p.anchors, c, v, ctx.q_g, ctx.q_h,
-                                         ctx.cov, q, robust=p.robust),
+                                         ctx.cov, q, robust=p.rounds.robust),
         p, ctx, c_obs, v_obs, q_g,
     )  # fmt: skip
     out["4 ik_round"] = timed(lambda *a: S.ik_round(*a), p, ctx, q_g, hits)

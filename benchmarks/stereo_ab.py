@@ -43,7 +43,9 @@ def main() -> None:
     clip = "humanoid3d_punch"
     d = load(clip, 12)
     cams = make_cameras(config(clip, 12), jnp.float32)
-    params = sp.make_params(cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(
+        cams, images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    )
     obs = sp.observe_sequence(params, d["frames"])
     state, _ = sp.init(params, jax.random.key(0), jax.tree.map(lambda x: x[0], obs))
     frame = jax.tree.map(lambda x: x[5], obs)

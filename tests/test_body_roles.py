@@ -339,36 +339,58 @@ def test_swivel_arms_by_roles_and_refusal(foreign, tmp_path):
     cams = [camlib.look_at(jnp.array([2.5, y, 1.2]), jnp.array([0.0, 0.0, 1.0]), width=64,
                            height=48, fx=60.0) for y in (0.1, -0.1)]  # fmt: skip
     model = foreign["urdf"]
-    params = sp.make_params(cams, model=model, n_particles=8, swivel_fraction=0.1)
+    params = sp.make_params(cams, model=model, motion=sp.Motion(n_particles=8),
+                            proposals=sp.Proposals(swivel_fraction=0.1))
     arms = params.filter.proposal.arms
     names = model.chain.link_names
     assert [(names[p], names[c], h) for _, p, c, h in arms] == [
-        ("torso", "left_upper_arm", "l_hand"), ("torso", "right_upper_arm", "r_hand")]
+        ("torso", "left_upper_arm", "l_hand"),
+        ("torso", "right_upper_arm", "r_hand"),
+    ]
     # a body whose shoulders are one hinge each: one line instead of silently no jumps
     text = foreign["urdf_path"].read_text()
     for w, y in (("left", 1), ("right", -1)):
-        text = text.replace(f'<joint name="{w}_shoulder" type="spherical">',
-                            f'<joint name="{w}_shoulder" type="revolute">')
-        text = text.replace(f'<child link="{w}_upper_arm"/><origin xyz="0 {y * SHOULDER_Y} '
-                            f'{SHOULDER_Z}"/>', f'<child link="{w}_upper_arm"/><origin xyz="0 '
-                            f'{y * SHOULDER_Y} {SHOULDER_Z}"/><axis xyz="1 0 0"/><limit '
-                            'lower="-3" upper="3" effort="1" velocity="1"/>')
+        text = text.replace(
+            f'<joint name="{w}_shoulder" type="spherical">',
+            f'<joint name="{w}_shoulder" type="revolute">',
+        )
+        text = text.replace(
+            f'<child link="{w}_upper_arm"/><origin xyz="0 {y * SHOULDER_Y} {SHOULDER_Z}"/>',
+            f'<child link="{w}_upper_arm"/><origin xyz="0 '
+            f'{y * SHOULDER_Y} {SHOULDER_Z}"/><axis xyz="1 0 0"/><limit '
+            'lower="-3" upper="3" effort="1" velocity="1"/>',
+        )
     path = tmp_path / "hinged.urdf"
     path.write_text(text)
     hinged = body.load_body(path)
     assert hinged.roles.dofs("l_shoulder") == ("left_shoulder",)
     with pytest.raises(InputError) as e:
-        sp.make_params(cams, model=hinged, n_particles=8, swivel_fraction=0.1)
+        sp.make_params(
+            cams,
+            model=hinged,
+            motion=sp.Motion(n_particles=8),
+            proposals=sp.Proposals(swivel_fraction=0.1),
+        )
     assert "swivel_fraction" in one_line(e) and str(path) in str(e.value)
-    sp.make_params(cams, model=hinged, n_particles=8, swivel_fraction=0.0)
+    sp.make_params(
+        cams,
+        model=hinged,
+        motion=sp.Motion(n_particles=8),
+        proposals=sp.Proposals(swivel_fraction=0.0),
+    )
 
 
 # ------------------------------------------------------------------ garments
 def test_garment_from_model_takes_the_shirt_not_the_trousers(foreign):
     model = foreign["urdf"]
     g = garment_from_model(model)
-    assert set(g.patch_names) == {"torso_box", "left_upper_arm_box", "right_upper_arm_box",
-                                  "left_forearm_cyl", "right_forearm_cyl"}
+    assert set(g.patch_names) == {
+        "torso_box",
+        "left_upper_arm_box",
+        "right_upper_arm_box",
+        "left_forearm_cyl",
+        "right_forearm_cyl",
+    }
     assert g.n_colours == 3
     # "shirt = these colours of the model", ids in the user's colour order
     user = [("cuff", (0.10, 0.20, 0.80)), ("shirt", (0.80, 0.10, 0.10))]
@@ -400,8 +422,11 @@ def test_garment_json_round_trip_and_colour_order(foreign, tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # colour ids follow the user's colour model (ColorModel names), not the file's order
     names = [n for n, _ in SHIRT_COLOURS][::-1]
-    cm = ColorModel(mean=jnp.asarray(np.linspace(20, 230, 30).reshape(10, 3)),
-                    cov=jnp.tile(jnp.eye(3) * 20.0, (10, 1, 1)), names=tuple(names))
+    cm = ColorModel(
+        mean=jnp.asarray(np.linspace(20, 230, 30).reshape(10, 3)),
+        cov=jnp.tile(jnp.eye(3) * 20.0, (10, 1, 1)),
+        names=tuple(names),
+    )
     ordered = load_garment(path, model, colors=cm)
     assert ordered.colour_names == tuple(names)
     for i, p in enumerate(g.patch_names):
@@ -441,12 +466,18 @@ def test_garment_json_on_the_foreign_body(foreign, tmp_path):
     torso = model.geometry.names.index("torso_box")
     pts = jnp.asarray([[0.05, 0.0, 0.1], [-0.05, 0.1, 0.0]])
     np.testing.assert_array_equal(patch_at(g, jnp.array([torso, torso]), pts), [1, 2])
-    for bad, field in (({**spec, "patches": [{"name": "x", "geom": "tail", "colour": "red"}]},
-                        "unknown geom 'tail'"),
-                       ({**spec, "colours": ["chartreuse"]}, "has no 'rgb'"),
-                       ({**spec, "patches": [{"name": "x", "link": "torso", "colour": "blue"}]},
-                        "not in 'colours'"),
-                       ({**spec, "skin": ["tail"]}, "neither a geom nor a link")):
+    for bad, field in (
+        (
+            {**spec, "patches": [{"name": "x", "geom": "tail", "colour": "red"}]},
+            "unknown geom 'tail'",
+        ),
+        ({**spec, "colours": ["chartreuse"]}, "has no 'rgb'"),
+        (
+            {**spec, "patches": [{"name": "x", "link": "torso", "colour": "blue"}]},
+            "not in 'colours'",
+        ),
+        ({**spec, "skin": ["tail"]}, "neither a geom nor a link"),
+    ):
         path.write_text(json.dumps(bad))
         with pytest.raises(InputError, match=field) as e:
             load_garment(path, model)
@@ -459,11 +490,14 @@ def test_mjcf_sites_are_kept_as_keypoints(foreign, tmp_path, rng):
     import mujoco
 
     text = foreign["mjcf_path"].read_text()
-    text = text.replace('<body name="left_forearm" pos="0 0 -0.26">',
-                        '<body name="left_forearm" pos="0 0 -0.26">'
-                        '<site name="LELB" pos="0.03 0.01 -0.02"/>')
-    text = text.replace('<body name="head" pos="0 0 0.08">',
-                        '<body name="head" pos="0 0 0.08"><site name="head" pos="0 0 0.1"/>')
+    text = text.replace(
+        '<body name="left_forearm" pos="0 0 -0.26">',
+        '<body name="left_forearm" pos="0 0 -0.26"><site name="LELB" pos="0.03 0.01 -0.02"/>',
+    )
+    text = text.replace(
+        '<body name="head" pos="0 0 0.08">',
+        '<body name="head" pos="0 0 0.08"><site name="head" pos="0 0 0.1"/>',
+    )
     path = tmp_path / "markers.xml"
     path.write_text(text)
     model = body.load_body(path)
@@ -484,15 +518,16 @@ def test_mjcf_sites_are_kept_as_keypoints(foreign, tmp_path, rng):
                 a = rng.uniform(-1, 1, 3)
                 for ax, v in zip("xyz", a, strict=True):
                     q[model.chain.dof_names.index(f"{name}_{ax}")] = v
-                d.qpos[adr:adr + 4] = Rotation.from_euler("XYZ", a).as_quat()[[3, 0, 1, 2]]
+                d.qpos[adr : adr + 4] = Rotation.from_euler("XYZ", a).as_quat()[[3, 0, 1, 2]]
             else:
                 v = rng.uniform(*m.jnt_range[j]) if m.jnt_limited[j] else rng.uniform(-1, 1)
                 q[model.chain.dof_names.index(name)] = v
                 d.qpos[adr] = v
         mujoco.mj_kinematics(m, d)
         kp = np.asarray(body.keypoints(model, jnp.asarray(q)))[idx]
-        np.testing.assert_allclose(kp, d.site_xpos[[m.site("LELB").id, m.site("head").id]],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            kp, d.site_xpos[[m.site("LELB").id, m.site("head").id]], atol=1e-9
+        )
 
 
 def test_pose_database_for_the_foreign_body(foreign):
@@ -519,8 +554,9 @@ def test_third_party_deepmimic_humanoid():
 
     import pybullet_data
 
-    model = body.load_body(Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf",
-                           scale=0.25, up="y")
+    model = body.load_body(
+        Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf", scale=0.25, up="y"
+    )
     roles = model.roles
     assert dict(roles.links) == {
         "pelvis": "base", "chest": "chest", "head": "neck", "l_upper_arm": "left_shoulder",

@@ -309,7 +309,7 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
         return t.params, capsys.readouterr().err
 
     p, err = tracker("--colors", tmp_path / "plain.json", "--white-balance", tmp_path / "wb0.json")
-    assert p.shading is None and p.scene_colors is None and err == ""
+    assert p.colours.shading is None and p.colours.scene_colors is None and err == ""
     from jaxmocap.trackers import shirt
 
     rule = p.validity  # the thresholds are traced arrays of the parameters' dtype
@@ -318,9 +318,9 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
         (shirt.MIN_AGREEMENT, shirt.MIN_VALID_PATCHES, shirt.GATE_MIN_FRACTION))
     p, err = tracker("--colors", tmp_path / "shaded.json", "--white-balance",
                      tmp_path / "wb.json", "--validity", "footage")
-    assert p.shading == (0.5, 4.0)
-    np.testing.assert_allclose(np.asarray(p.scene_colors.mean), np.asarray(room.mean))
-    np.testing.assert_allclose(np.asarray(p.scene_colors.cov), np.asarray(room.cov))
+    assert p.colours.shading == (0.5, 4.0)
+    np.testing.assert_allclose(np.asarray(p.colours.scene_colors.mean), np.asarray(room.mean))
+    np.testing.assert_allclose(np.asarray(p.colours.scene_colors.cov), np.asarray(room.cov))
     import tomllib
     from pathlib import Path
 

@@ -272,3 +272,21 @@ def test_affinity_deals_configurations_to_workers_in_turn():
     assert affinity(specs, ["tcp://w2", "tcp://w1"]) == {"b": "tcp://w1", "a": "tcp://w2",
                                                          "c": "tcp://w1"}
     assert affinity(specs, []) == {}
+
+
+def test_flat_options_map_onto_the_settings_groups():
+    """A configuration's tracker options keep their flat names; each lands on its settings
+    group of make_params (over Azad's groups with ``azad``)."""
+    from jaxmocap.experiment.config import tracker_settings
+    from jaxmocap.trackers import shirt
+    from jaxmocap.trackers import stereo_pf as sp
+
+    kw = tracker_settings("shirt", {"pose_prior": False, "ik_passes": 3,
+                                    "shading": [0.5, 4.0], "min_agreement": 0.2})
+    assert kw["ablations"] == shirt.Ablations(pose_prior=False)
+    assert kw["rounds"].ik_passes == 3 and kw["colours"].shading == (0.5, 4.0)
+    assert float(kw["validity"].min_agreement) == pytest.approx(0.2)
+    kw = tracker_settings("pf", {"n_particles": 10, "use_support": True}, dict(sp.AZAD_FILTER))
+    assert kw["motion"].n_particles == 10
+    assert kw["cues"].use_support and kw["cues"].edge_outside is None
+    assert kw["proposals"] == sp.AZAD_FILTER["proposals"]

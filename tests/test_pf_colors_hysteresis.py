@@ -1,5 +1,6 @@
 """Tests for the hysteresis skin map of the stereo particle filter
-(``jaxmocap.pf.colors.hysteresis_masks`` / ``grow_into``, ``make_params(skin_grow=...)``).
+(``jaxmocap.pf.colors.hysteresis_masks`` / ``grow_into``,
+``make_params(images=Images(skin_grow=...))``).
 
 Scene (OpenCV drawing, the oracle): the scene of ``test_pf_colors`` plus a "hand" disc hanging
 from the torso whose lower half is shaded (the skin colour darkened: outside the capture's skin
@@ -79,8 +80,12 @@ def test_make_params_skin_grow_feeds_the_blob_line(rng, colors):
     cams = stereo_cams()
     img = np.zeros((240, 320, 3), np.uint8)
     img[:H, :W] = shaded_scene(rng)[0]
-    params = sp.make_params(cams, colors=colors, skin_grow=8, n_particles=10)
+    params = sp.make_params(
+        cams, images=sp.Images(colors=colors, skin_grow=8), motion=sp.Motion(n_particles=10)
+    )
     seg = sp_observation._segment(params, img)
     np.testing.assert_array_equal(seg.skin, PC.hysteresis_masks(colors, img, 8)[0])
     with pytest.raises(InputError, match="skin_grow"):
-        sp.make_params(cams, skin_grow=4, n_particles=10)  # no colour model
+        sp.make_params(
+            cams, images=sp.Images(skin_grow=4), motion=sp.Motion(n_particles=10)
+        )  # no colour model

@@ -57,7 +57,8 @@ def setup():
     W0 = shirt.initial_white_balance(color, frames, labels)
     anchors = anchors_from_garment(model, garment)
     cov = IKCovariances.isotropic(2.0, 0.3, 0.5, model.n_dof)
-    params = shirt.make_params(color, model, garment, cams, anchors, cov, db, work_size=96)
+    params = shirt.make_params(color, model, garment, cams, anchors, cov, db,
+                               search=shirt.Search(work_size=96))
     ids = np.stack([np.asarray(o[1].colour) for o in outs])
     return dict(model=model, params=params, frames=frames, q_true=q_true, W0=W0, ids=ids)
 
@@ -90,6 +91,30 @@ def test_step_recovers_a_database_pose_without_recompiling(setup):
     # the eroded scribbles leave out) and no reference is added
     np.testing.assert_allclose(np.asarray(state2.W), np.asarray(setup["W0"]), atol=0.25)
     assert not bool(jnp.any(out.added_reference))
+
+
+def test_settings_numbers_are_traced_and_switches_static(setup):
+    """The settings groups' numbers are array leaves of the parameters (a new value reuses a
+    compiled program: here the patch-colour learning threshold of :class:`shirt.Colours`) and
+    their switches are static (a new one is a new program)."""
+    import equinox as eqx
+
+    p = setup["params"]
+    traces = []
+
+    @eqx.filter_jit
+    def read(params):
+        traces.append(1)
+        return params.colours.learn_max_residual + params.validity.min_agreement
+
+    read(p)
+    other = shirt.make_params(p.color, p.body, p.garment, p.cams, p.anchors, p.cov, p.db,
+                              search=p.search, colours=shirt.Colours(learn_max_residual=0.1))
+    assert float(read(other)) == pytest.approx(0.1 + shirt.MIN_AGREEMENT)
+    assert len(traces) == 1  # same program, new value
+    follow = dataclasses.replace(other.colours, follow_light=True)
+    read(dataclasses.replace(other, colours=follow))
+    assert len(traces) == 2  # a switch is a new program
 
 
 def test_validity_thresholds_are_traced(setup):
@@ -197,13 +222,12 @@ def test_ablation_switches_change_the_program(setup):
         return count(jaxpr.jaxpr)
 
     full = n_eqns(p)
-    no_wb = n_eqns(dataclasses.replace(p, adaptive_white_balance=False))
-    no_prior = n_eqns(dataclasses.replace(p, pose_prior=False))
+    no_wb = n_eqns(dataclasses.replace(p, ablations=shirt.Ablations(adaptive_white_balance=False)))
+    no_prior = n_eqns(dataclasses.replace(p, ablations=shirt.Ablations(pose_prior=False)))
     assert no_wb < full  # no W* refit, no rendering of r*
     assert no_prior != full
-    paper_loss = dataclasses.replace(
-        p, reacquire_start=False, reacquire_passes=0, reacquire_frames=0
-    )
+    paper_loss = dataclasses.replace(p, rounds=dataclasses.replace(
+        p.rounds, reacquire_start=False, reacquire_passes=0, reacquire_frames=0))
     assert n_eqns(paper_loss) < full  # no lax.cond of extra rounds, no widened prior
 
 
@@ -216,7 +240,7 @@ def test_step_with_shading_and_scene_colours(setup):
     p, model = setup["params"], setup["model"]
     room = [shirt.scribbles((m == 0).astype(np.int32), 3) > 0 for m in setup["ids"]]
     scene = fit_scene_colors(list(setup["frames"]), room, list(np.asarray(setup["W0"])), 8)
-    q = dataclasses.replace(p, shading=(0.5, 4.0), scene_colors=scene)
+    q = dataclasses.replace(p, colours=shirt.Colours(shading=(0.5, 4.0), scene_colors=scene))
     state = shirt.init(q, setup["W0"], jnp.zeros(model.n_dof))
     state, out = shirt.step(q, state, setup["frames"])
     kp = jax.jit(lambda x: keypoints(model, x))
@@ -234,7 +258,7 @@ def test_step_with_shading_and_scene_colours(setup):
     assert err.mean() < 0.08, err
     with pytest.raises(ValueError, match="shading"):
         shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
-                          shading=(2.0, 4.0))
+                          colours=shirt.Colours(shading=(2.0, 4.0)))
 
 
 def test_frame_signals_and_the_calibrated_validity_checks(setup):
@@ -287,7 +311,7 @@ def test_frame_signals_and_the_calibrated_validity_checks(setup):
         np.testing.assert_allclose(np.asarray(out3.q_frame), np.asarray(out.q), atol=1e-5)
     with pytest.raises(ValueError, match="max_residual"):
         shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
-                          max_residual=2.0)
+                          validity=shirt.validity_rule(max_residual=2.0))
 
 
 def test_invalid_inputs(setup):
@@ -326,8 +350,9 @@ def test_step_renders_with_static_geom_kinds(setup):
     from jaxmocap.render._raycast import kind_groups
 
     p, model = setup["params"], setup["model"]
-    assert p.static_kinds  # the default
-    assert dataclasses.replace(p, static_kinds=False).render_body is p.body
+    assert p.rounds.static_kinds  # the default
+    traced_kinds = dataclasses.replace(p.rounds, static_kinds=False)
+    assert dataclasses.replace(p, rounds=traced_kinds).render_body is p.body
     assert p.geom_kinds == tuple(int(k) for k in np.asarray(model.geometry.kind))
     seen = {}
 
@@ -358,7 +383,8 @@ def test_patch_colours_follow_a_lamp_change(setup):
     (``follow_light``) every frame after the switch stayed invalid (measured: 1-3% of the
     crops classified)."""
     p, model = setup["params"], setup["model"]
-    q = dataclasses.replace(p, shading=(0.5, 4.0), patch_colours=True, follow_light=True)
+    q = dataclasses.replace(p, colours=shirt.Colours(shading=(0.5, 4.0), patch_colours=True,
+                                                     follow_light=True))
     kp = jax.jit(lambda x: keypoints(model, x))
     truth = np.asarray(kp(setup["q_true"]))
     state = shirt.init(q, setup["W0"], jnp.zeros(model.n_dof))

@@ -103,7 +103,8 @@ def test_fingerprint_sees_shapes_static_values_and_dtypes(small):
     base = shirt_export.fingerprint_inputs(params, state, (2, 48, 64, 3), np.uint8)
     assert base == shirt_export.fingerprint_inputs(params, state, (2, 48, 64, 3), np.uint8)
     assert base != shirt_export.fingerprint_inputs(params, state, (2, 48, 66, 3), np.uint8)
-    other = dataclasses.replace(params, work_size=params.work_size + 8)
+    other = dataclasses.replace(params, search=dataclasses.replace(
+        params.search, work_size=params.search.work_size + 8))
     assert base != shirt_export.fingerprint_inputs(other, state, (2, 48, 64, 3), np.uint8)
     st32 = dataclasses.replace(state, q=state.q.astype(jnp.float32))
     assert base != shirt_export.fingerprint_inputs(params, st32, (2, 48, 64, 3), np.uint8)

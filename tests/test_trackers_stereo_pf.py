@@ -99,7 +99,7 @@ def scene():
     qs[:, 1] += 0.01 * np.arange(n_frames)  # the body steps left
     frames = np.stack([[_draw(model, q, c) for c in cams] for q in qs])
     kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(jnp.asarray(qs)))
-    params = sp.make_params(cams, n_particles=200, dtype=jnp.float64)
+    params = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200))
     obs = sp.observe_sequence(params, frames)
     return model, cams, frames, qs, kp, params, obs
 
@@ -153,6 +153,30 @@ def test_tracker_initialises_and_tracks(scene):
     held = np.setdiff1d(np.arange(model.n_dof), params.dofs)
     np.testing.assert_array_equal(np.asarray(est.q)[:, held], 0.0)
     del qs
+
+
+def test_settings_numbers_are_traced_and_switches_static(scene):
+    """A new number of the settings (the cues' edge widths and out-of-image edge value) runs
+    the compiled filter step as it is; a new switch (Azad's zero padding: no out-of-image
+    value) is a new program."""
+    _, cams, _, _, _, params, obs = scene
+    traces = []
+
+    @eqx.filter_jit
+    def step(p, state, o):
+        traces.append(1)
+        return sp.filter_step(p, state, o)
+
+    first = jax.tree.map(lambda a: a[0], obs)
+    state, _ = sp.init(params, jax.random.key(0), first)
+    kw = dict(dtype=jnp.float64, motion=sp.Motion(n_particles=200))
+    _, a = step(params, state, first)
+    other = sp.make_params(cams, cues=sp.Cues(sigma_g=0.3, edge_outside=0.1), **kw)
+    _, b = step(other, state, first)
+    assert len(traces) == 1  # same program, new values
+    assert not np.array_equal(np.asarray(a.best_loglik), np.asarray(b.best_loglik))
+    step(sp.make_params(cams, cues=sp.Cues(edge_outside=None), **kw), state, first)
+    assert len(traces) == 2  # a switch is a new program
 
 
 def test_determinism_and_scan_equals_loop(scene):
@@ -216,7 +240,7 @@ def test_input_errors(scene):
     with pytest.raises(InputError, match="dofs"):
         sp.make_params(cams, dofs=[6, 7, 8])
     with pytest.raises(InputError, match="n_particles"):
-        sp.make_params(cams, n_particles=1)
+        sp.make_params(cams, motion=sp.Motion(n_particles=1))
 
 
 def _swivel(k, sh, el, ha, k_true):
@@ -241,8 +265,8 @@ def test_guided_proposal_lands_hands_keeps_elbow_swivel(scene):
     shoulder-hand line) -- keep most of their spread. A missing right hand leaves the right
     arm's DOFs exactly as predicted. jit(vmap) == a loop of single-particle eager calls."""
     model, cams, _, qs, kp, _, _ = scene
-    params = sp.make_params(cams, n_particles=200, guided=True, swivel_fraction=0.0,
-                            dtype=jnp.float64)
+    params = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200),
+                            proposals=sp.Proposals(guided=True, swivel_fraction=0.0))
     prop = params.filter.proposal
     dofs = params.dofs
     rng = np.random.default_rng(5)
@@ -302,7 +326,8 @@ def test_support_map_and_observation(scene):
     want = binary_dilation(skin | shirt, np.ones((5, 5), bool))
     np.testing.assert_array_equal(got, want.astype(np.float32))
     np.testing.assert_array_equal(sp.support_map(skin, shirt, 0), (skin | shirt))
-    params = sp.make_params(cams, n_particles=200, dtype=jnp.float64, use_support=True)
+    params = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200),
+                            cues=sp.Cues(use_support=True))
     obs, _ = sp.observe(params, frames[0], None, (np.zeros((3, 3)), np.zeros(3, bool)))
     assert obs.support is not None and obs.support.shape == (2, H, W)
     hands = keypoint_index(model, ("l_hand", "r_hand"))
@@ -344,7 +369,8 @@ def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, 
         from jaxmocap.body import load_body
 
         model = load_body(foreign_urdf(tmp_path / "foreign.urdf"))
-    params = sp.make_params(cams, model=model, swivel_fraction=0.1, dtype=jnp.float64)
+    params = sp.make_params(cams, model=model, dtype=jnp.float64,
+                            proposals=sp.Proposals(swivel_fraction=0.1))
     prop = params.filter.proposal
     assert isinstance(prop, sp.SwivelProposal) and len(prop.arms) == 2
     names = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand", "head")
@@ -378,7 +404,7 @@ def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, 
     changed = np.any(np.asarray(out) != np.asarray(x), axis=1)
     assert 1 <= changed.sum() <= 5
     with pytest.raises(InputError, match="swivel_fraction"):
-        sp.make_params(cams, swivel_fraction=1.5)
+        sp.make_params(cams, proposals=sp.Proposals(swivel_fraction=1.5))
 
 
 def test_frame_validity_against_the_true_pose(scene):
@@ -422,8 +448,8 @@ def test_capture_colours_give_the_blobs_of_the_drawn_scene(scene):
         mask = np.all(frames[0, c] == SHIRT, axis=-1)
         shirt.append(cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
     colors = fit_capture_colors(imgs, skin, shirt)
-    p2 = sp.make_params(cams, n_particles=200, dtype=jnp.float64, colors=colors,
-                        plausible_blobs=True)
+    p2 = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200),
+                        images=sp.Images(colors=colors, plausible_blobs=True))
     o2 = sp.observe_sequence(p2, frames)
     assert np.asarray(o2.valid).all()
     np.testing.assert_allclose(np.asarray(o2.points), kp[:, head], atol=0.06)
@@ -502,8 +528,9 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
 
     model, cams, frames, qs, kp, _, _ = scene
     colors = _scene_colors(scene)
-    kw = dict(n_particles=200, dtype=jnp.float64, colors=colors, plausible_blobs=True)
-    p_off = sp.make_params(cams, **kw)
+    kw = dict(motion=sp.Motion(n_particles=200), dtype=jnp.float64)
+    images = sp.Images(colors=colors, plausible_blobs=True)
+    p_off = sp.make_params(cams, images=images, **kw)
     assert p_off.adapt is None
     key = jax.random.key(0)
     obs = sp.observe_sequence(p_off, frames)
@@ -517,13 +544,14 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
     np.testing.assert_array_equal(run.estimate.q, ref.q)
     assert run.init_frame == sp.anchor_frame(obs) and set(run.timings) == {
         "observe_first", "observe", "filter_first", "filter"}
-    p_zero = sp.make_params(cams, adapt_colors=True, adapt_rate=0.0, adapt_shirt_rate=0.0, **kw)
+    p_zero = sp.make_params(cams, images=dataclasses.replace(
+        images, adapt_colors=True, adapt_rate=0.0, adapt_shirt_rate=0.0), **kw)
     o_zero, log = observe_adaptive(p_zero, key, frames)
     for a, b in zip(jax.tree.leaves(o_zero), jax.tree.leaves(obs), strict=True):
         np.testing.assert_array_equal(a, b)
     assert log["confident"].sum() >= 2  # the filter agrees with the triangulated head
     with pytest.raises(InputError, match="adapt_colors"):
-        sp.make_params(cams, adapt_colors=True)
+        sp.make_params(cams, images=sp.Images(adapt_colors=True))
 
     end = np.array([205.0, 125.0, 85.0])
     drifted = frames.copy()
@@ -534,8 +562,9 @@ def test_colour_adaptation_off_is_the_fixed_model_and_follows_a_skin_change(scen
             drifted[t, c][m] = np.round(rgb).astype(np.uint8)
     o_fixed = sp.observe_sequence(p_off, drifted)
     assert not np.asarray(o_fixed.valid)[-1, 0]  # the fixed model lost the head
-    p_on = sp.make_params(cams, adapt_colors=True, adapt_rate=0.5, adapt_shirt_rate=0.0,
-                         adapt_spread=2.0, **kw)  # fast: the drift spans 3 frames
+    p_on = sp.make_params(cams, images=dataclasses.replace(
+        images, adapt_colors=True, adapt_rate=0.5, adapt_shirt_rate=0.0, adapt_spread=2.0),
+        **kw)  # fast: the drift spans 3 frames
     o_on, log = observe_adaptive(p_on, key, drifted)
     assert np.asarray(o_on.valid)[:, 0].all(), log
     head = keypoint_index(model, ["head"])[0]

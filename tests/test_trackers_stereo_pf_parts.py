@@ -40,7 +40,7 @@ def _state(head, hand, shirt=SHIRT, sd=6.0):
 
 @pytest.fixture(scope="module")
 def params():
-    return sp.make_params(stereo_cams(), model=default_body(), n_particles=10)
+    return sp.make_params(stereo_cams(), model=default_body(), motion=sp.Motion(n_particles=10))
 
 
 def test_seeded_search_finds_a_hand_of_its_own_colour(params, rng):
@@ -125,7 +125,8 @@ def test_render_parts_labels_by_roles():
     pixels, the rest background."""
     model = default_body()
     scene = P.part_scene(model)
-    cams = sp.make_params(stereo_cams(), model=model, n_particles=10).likelihood.cams
+    cams = sp.make_params(stereo_cams(), model=model,
+                          motion=sp.Motion(n_particles=10)).likelihood.cams
     q = jnp.zeros(model.n_dof).at[2].set(0.9)
     lab = np.asarray(jax.jit(lambda q: P.render_parts(scene, cams, q))(q))
     assert lab.shape == (2, H, W)

@@ -52,7 +52,11 @@ def setup(rng):
     (su, sv) = _uv(cams[0], TORSO.mean(0))[0][0]
     shirt = (np.abs(xx - su) <= 10) & (np.abs(yy - sv) <= 10)
     colors = PC.fit_capture_colors([imgs[0]], [skin], [shirt])
-    params = sp.make_params(cams, colors=colors, plausible_blobs=True, n_particles=10)
+    params = sp.make_params(
+        cams,
+        images=sp.Images(colors=colors, plausible_blobs=True),
+        motion=sp.Motion(n_particles=10),
+    )
     return cams, imgs, params
 
 
@@ -85,11 +89,14 @@ def test_search_keeps_to_its_window_and_off_the_head(setup):
     assert not found[1:].any()  # the face is no hand
     # a lost head is searched around its prediction with the same colours
     head_only = SS.SearchParams(entities=(True, False, False))
-    out, found = SS.search_entities(params, imgs, on_head, np.zeros((3, 3)), np.zeros(3, bool),
-                                    head_only)
+    out, found = SS.search_entities(
+        params, imgs, on_head, np.zeros((3, 3)), np.zeros(3, bool), head_only
+    )
     assert found[0] and np.linalg.norm(out[0] - HEAD) < 0.06
     with pytest.raises(InputError, match="colours"):
-        SS.search_entities(sp.make_params(cams, n_particles=10), imgs, on_head, points, valid)
+        SS.search_entities(
+            sp.make_params(cams, motion=sp.Motion(n_particles=10)), imgs, on_head, points, valid
+        )
 
 
 def test_observe_search_without_entities_is_the_blob_line(setup):
@@ -100,8 +107,9 @@ def test_observe_search_without_entities_is_the_blob_line(setup):
     cams, imgs, params = setup
     frames = np.stack([imgs] * 3)
     base = sp.observe_sequence(params, frames)
-    off, log = SS.observe_search(params, jax.random.key(0), frames,
-                                 search=SS.SearchParams(entities=(False, False, False)))
+    off, log = SS.observe_search(
+        params, jax.random.key(0), frames, search=SS.SearchParams(entities=(False, False, False))
+    )
     np.testing.assert_array_equal(np.asarray(off.valid), np.asarray(base.valid))
     np.testing.assert_allclose(np.asarray(off.points), np.asarray(base.points))
     assert not log["found"].any()

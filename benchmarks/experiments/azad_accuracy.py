@@ -3,7 +3,7 @@
 320x240 pair, 11 cm baseline, N = 1000, automatic initialisation on the first frame with a
 triangulated head; mean per-joint error (cm) on shoulders, elbows and hands vs the ground-truth
 keypoints, for Azad's filter with and without the distance cue and for the distance-cue-guided
-proposal (``make_params(guided=True)``, the default), with and without session 4's out-of-image
+proposal (``Proposals(guided=True)``, the default), with and without session 4's out-of-image
 edge value and hand-support cue (``ext``), session 5's elbow-swivel jumps (``swivel``; all
 three the defaults) and the fixed-lag smoother (``smooth_lag``), over ``keys`` keys (14 DOF,
 one layer per frame). Writes
@@ -47,7 +47,9 @@ def observations(clip: str, n_frames: int, ext: bool = True) -> sp.Observation:
     (``sp.BLOB_PARAMS``) with session 4's extensions, Azad's carry (``BlobParams()``) without."""
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     params = sp.make_params(
-        cams, segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)), use_support=True
+        cams,
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
+        cues=sp.Cues(use_support=True),
     )
     blob = sp.BLOB_PARAMS if ext else bloblib.BlobParams()
     return sp.observe_sequence(params, load(clip, n_frames)["frames"], blob)
@@ -61,11 +63,13 @@ def evaluate(
     model = default_body()
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     params = sp.make_params(
-        cams, dofs=dofs, use_distance=use_distance,
-        segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)),
-        step_betas=LAYER_BETAS[layers], guided=guided,
-        edge_outside=cues.EDGE_OUTSIDE if ext else None, use_support=ext,
-        swivel_fraction=sp.SWIVEL_FRACTION if swivel else 0.0,
+        cams, dofs=dofs,
+        cues=sp.Cues(use_distance=use_distance, edge_outside=cues.EDGE_OUTSIDE if ext else None,
+                     use_support=ext),
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
+        motion=sp.Motion(step_betas=LAYER_BETAS[layers]),
+        proposals=sp.Proposals(guided=guided,
+                               swivel_fraction=sp.SWIVEL_FRACTION if swivel else 0.0),
     )  # fmt: skip
     obs = sp.observe_sequence(params, d["frames"]) if obs is None else obs
     t0 = time.perf_counter()

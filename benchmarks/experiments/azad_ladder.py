@@ -178,7 +178,7 @@ def ladder(
     model = default_body()
     cams = make_cameras(config(clip, n_frames), jnp.float32)
     seg = SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
-    make = make or (lambda c: sp.make_params(c, segment=seg))
+    make = make or (lambda c: sp.make_params(c, images=sp.Images(segment=seg)))
     params = make(cams)
     base = sp.observe_sequence(params, d["frames"])
     s_gt = fit_subset(model, params.dofs, d["q"], d["keypoints"])

@@ -45,7 +45,7 @@ def run_variant(clip, d, obs, kwargs, seed, model):
     kwargs = dict(kwargs)
     lag = kwargs.pop("_smooth", 0)  # run(smooth_lag=...)
     cams = make_cameras(config(clip, len(d["frames"])), jnp.float32)
-    params = sp.make_params(cams, segment=SEG, **kwargs)
+    params = sp.make_params(cams, images=sp.Images(segment=SEG), **kwargs)
     t0 = sp.anchor_frame(obs)
     state, _ = sp.init(params, jax.random.key(seed), jax.tree.map(lambda a: a[t0], obs))
     _, est = sp.run(params, state, obs, lag)
@@ -68,7 +68,8 @@ def main(argv):
             if tag not in cache:
                 # with the support map (read by the variants that use it)
                 cache[tag] = sp.observe_sequence(
-                    sp.make_params(cams, segment=SEG, use_support=True), d["frames"],
+                    sp.make_params(cams, images=sp.Images(segment=SEG),
+                                   cues=sp.Cues(use_support=True)), d["frames"],
                     dataclasses.replace(sp.BLOB_PARAMS, **bkw),
                 )  # fmt: skip
             obs = cache[tag]

@@ -34,8 +34,14 @@ def main() -> int:
 
     seq = load_dataset(a.folder)
     body = _body({"body": "sequence"}, a.folder)
-    params = sp.make_params(list(seq.cameras), model=body, colors=_scribbled_capture_colors(seq),
-                            plausible_blobs=True, hand_swap=True, part_colours=True)
+    params = sp.make_params(
+        list(seq.cameras),
+        model=body,
+        images=sp.Images(
+            colors=_scribbled_capture_colors(seq), plausible_blobs=True, part_colours=True
+        ),
+        cues=sp.Cues(hand_swap=True),
+    )
     cams = params.likelihood.cams
     scene = P.part_scene(body)
     render = jax.jit(lambda q: P.erode_labels(P.render_parts(scene, cams, q)))
@@ -59,8 +65,15 @@ def main() -> int:
         tic = time.perf_counter()
         images = np.stack([P.blurred(frames[t][v]) for v in range(2)])
         pred = np.asarray(kp_fn(est.q), np.float64)
-        P.seeded_search(params, colours, images, pred, np.asarray(obs.points),
-                        np.zeros(3, bool), params.part_colours)  # every part searched
+        P.seeded_search(
+            params,
+            colours,
+            images,
+            pred,
+            np.asarray(obs.points),
+            np.zeros(3, bool),
+            params.part_colours,
+        )  # every part searched
         rows["seeded_search"].append(time.perf_counter() - tic)
         tic = time.perf_counter()
         state, est = step(state, obs)
@@ -70,13 +83,16 @@ def main() -> int:
         labels = jax.block_until_ready(render(est.q))
         rows["render"].append(time.perf_counter() - tic)
         tic = time.perf_counter()
-        out = P.update_colours(colours, jnp.asarray(images), labels, jnp.ones(4, bool),
-                               jnp.asarray(True))
+        out = P.update_colours(
+            colours, jnp.asarray(images), labels, jnp.ones(4, bool), jnp.asarray(True)
+        )
         colours = jax.block_until_ready(out[0])
         rows["update"].append(time.perf_counter() - tic)
     warm = slice(5, None)  # the first frames compile
-    res = {k: {"median_ms": 1e3 * float(np.median(v[warm])), "min_ms": 1e3 * float(np.min(v[warm]))}
-           for k, v in rows.items()}
+    res = {
+        k: {"median_ms": 1e3 * float(np.median(v[warm])), "min_ms": 1e3 * float(np.min(v[warm]))}
+        for k, v in rows.items()
+    }
     for s in ("median_ms", "min_ms"):
         base = res["observe"][s] + res["filter_step"][s]
         extra = res["seeded_search"][s] + res["render"][s] + res["update"][s]

@@ -56,7 +56,7 @@ def _crop_stats(shirt, params, state, frames, colour_ids):
     views = shirt.locate_and_classify(params, state, jnp.asarray(frames), None)
     rows = []
     for i in range(params.n_cams):
-        uv = crop_uv(views.windows[i], params.work_size)
+        uv = crop_uv(views.windows[i], params.search.work_size)
         ij = jnp.round(uv).astype(jnp.int32)
         h, w = colour_ids[i].shape
         inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
@@ -73,14 +73,14 @@ def _crop_stats(shirt, params, state, frames, colour_ids):
             return right, wrong, room
 
         def cls(W, image=crop):
-            return classify(params.color, W, image, None, THRESHOLD, params.shading,
-                            params.scene_colors)[0]
+            return classify(params.color, W, image, None, THRESHOLD, params.colours.shading,
+                            params.colours.scene_colors)[0]
 
         W = views.cls.W[i]
         r = score(views.cls.ids[i])
         Wg = white_balance_from_ids(params.color, crop, gt, W)
         og = score(cls(Wg))
-        half = params.work_size // 2
+        half = params.search.work_size // 2
         ids_h = []
         for sl in (np.s_[:, :half], np.s_[:, half:]):
             Wh = white_balance_from_ids(params.color, crop[sl], gt[sl], W)

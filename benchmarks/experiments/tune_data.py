@@ -103,7 +103,8 @@ def stereo_clip(clip: str) -> None:
     )
     seq = render_sequence(config)
     params = sp.make_params(
-        list(seq.cameras), segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))
+        list(seq.cameras),
+        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
     )
     obs = sp.observe_sequence(params, seq.frames)
     np.savez_compressed(

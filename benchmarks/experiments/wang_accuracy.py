@@ -87,13 +87,13 @@ def _scene(clip: str, n_frames: int, n_cameras: int, nuisances: bool) -> SceneCo
     )  # fmt: skip
 
 
-def _setup(seq, model, garment, db, cov, color, **flags):
+def _setup(seq, model, garment, db, cov, color, **settings):
     cams = stack_cameras(seq.cameras)
     ids = seq.groundtruth["colour_ids"][0]
     labels = np.stack([shirt.scribbles(ids[i]) for i in range(ids.shape[0])])
     W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
     params = shirt.make_params(
-        color, model, garment, cams, anchors_from_garment(model, garment), cov, db, **flags
+        color, model, garment, cams, anchors_from_garment(model, garment), cov, db, **settings
     )
     return params, shirt.init(params, W0, jnp.zeros(model.n_dof, jnp.float32))
 
@@ -188,7 +188,8 @@ def main(scale: str = "small", write: bool = True) -> dict:
             sh = int(sh_all[np.argmax(seq.groundtruth["q"][:, sh_all].std(0))])
             variants = [
                 ("full", cov, {}),
-                ("ablated", cov, dict(pose_prior=False, adaptive_white_balance=False)),
+                ("ablated", cov, dict(ablations=shirt.Ablations(
+                    pose_prior=False, adaptive_white_balance=False))),
             ]
             if n_cams == 2:
                 variants.append(("full, isotropic cov", iso, {}))

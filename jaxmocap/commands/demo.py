@@ -84,8 +84,8 @@ def _track_pf(clip: str, n_frames: int, progress: bool):
     config = SceneConfig(clip=clip, rig="stereo", garment="single", background="plain",
                          n_frames=n_frames, noise_sigma=0.01, seed=0)
     seq = render_sequence(config, progress=progress)
-    params = sp.make_params(list(seq.cameras),
-                            segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV)))
+    params = sp.make_params(list(seq.cameras), images=sp.Images(
+        segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))))
     run = stereo_offline(params, jax.random.key(0), seq.frames)
     obs, est, cold = run.observations, run.estimate, run.timings["filter_first"]
     t0 = time.perf_counter()

@@ -236,9 +236,11 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             raise InputError(str(e)) from None
     else:
         db = load_or_build(model=body, garment=garment, progress=not args.quiet)
-    options = {} if args.work_size is None else {"work_size": args.work_size}
-    params = shirt_params(color, body, garment, cams, db, cov, args.validity,
-                          shading=color.shading, scene_colors=room, **options)
+    from jaxmocap.trackers.shirt import Colours, Search
+
+    search = Search() if args.work_size is None else Search(work_size=args.work_size)
+    params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
+                          colours=Colours(shading=color.shading, scene_colors=room))
     return ShirtFrameTracker(params, W0, cams, names, color, room)
 
 

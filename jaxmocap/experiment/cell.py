@@ -24,6 +24,7 @@ Every number except the timings is a deterministic function of the inputs and th
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import time
 from pathlib import Path
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxmocap.errors import InputError
+from jaxmocap.experiment.config import tracker_settings
 from jaxmocap.trackers.driver import PF_JOINTS, SHIRT_JOINTS
 
 ISOTROPIC_COV = (2.0, 0.3, 0.5)  # px, blend std, prior std (setup_for_sequence's default)
@@ -219,10 +221,13 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
         W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
     background = opts.pop("background", False)
+    settings = tracker_settings("shirt", opts)
     if scene_clusters:
-        opts["scene_colors"] = _scene_colors(seq, W0, scene_clusters)
+        settings["colours"] = dataclasses.replace(settings.get("colours", shirt.Colours()),
+                                                  scene_colors=_scene_colors(seq, W0,
+                                                                             scene_clusters))
     params = shirt_params(color, body, garment, list(seq.cameras), db, cov, announce=False,
-                          **opts)
+                          **settings)
     tracker = ShirtFrameTracker(params, W0, list(seq.cameras), names, background=background,
                                 announce=False)
     run = drive(tracker, sequence_frames(seq.frames), progress=False, keep_outputs=True)
@@ -246,7 +251,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
                          f"{len(seq.cameras)} cameras")
     opts = dict(cfg["options"])
     body = _body(cfg, folder)
-    kw = dict(sp.AZAD_FILTER) if opts.pop("azad", False) else {}
+    base = dict(sp.AZAD_FILTER) if opts.pop("azad", False) else {}
     if "particles" in opts:
         opts["n_particles"] = opts.pop("particles")
     skin = opts.pop("skin", "synth")
@@ -255,14 +260,11 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     lag = int(opts.pop("smooth_lag", 0))
     validity = opts.pop("validity", True)
     search = opts.pop("search", "off")
-    for k in ("step_betas", "init_betas"):
-        if k in opts:
-            opts[k] = tuple(opts[k])
     if "seed_replace" in opts:  # part_colours: which parts the seeded search may replace
         from jaxmocap.trackers.stereo_pf.params import SeedParams
 
         opts["seed_params"] = SeedParams(replace=tuple(bool(x) for x in opts.pop("seed_replace")))
-    kw.update(opts)
+    kw = tracker_settings("pf", opts, base)
     segment, colors = None, None
     if skin == "synth":
         segment = SegmentParams(skin=HSVInterval(*(jnp.asarray(v) for v in sp.SYNTH_SKIN_HSV)))
@@ -272,8 +274,8 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         from jaxmocap.pf.colors import calibrate_from_frames
 
         colors = calibrate_from_frames(seq.frames[:, 0])
-    params = sp.make_params(list(seq.cameras), model=body, segment=segment, colors=colors,
-                            **kw)
+    images = dataclasses.replace(kw.pop("images", sp.Images()), segment=segment, colors=colors)
+    params = sp.make_params(list(seq.cameras), model=body, images=images, **kw)
     key = jax.random.key(seed)
     if search != "off":  # ... with the prediction-guided search (the filter alongside)
         from jaxmocap.trackers.stereo_pf import search as pfs

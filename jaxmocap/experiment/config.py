@@ -20,8 +20,11 @@
 
 Relative paths are relative to the configuration file. Tracker options:
 
-* ``shirt``: every keyword of :func:`jaxmocap.trackers.shirt.make_params` (the paper's
-  ablations ``pose_prior``, ``adaptive_white_balance`` and the other switches), plus
+* ``shirt``: every field of the settings groups of :func:`jaxmocap.trackers.shirt.make_params`
+  by name (:class:`~jaxmocap.trackers.shirt.Search`, :class:`~jaxmocap.trackers.shirt.Rounds`,
+  :class:`~jaxmocap.trackers.shirt.Colours`, :class:`~jaxmocap.trackers.shirt.Ablations`,
+  and the keywords of :func:`~jaxmocap.trackers.shirt.validity_rule`; e.g. the paper's
+  ablations ``pose_prior``, ``adaptive_white_balance``, ``ik_passes``, ``min_agreement``), plus
   ``covariances`` (``"trained"`` the bundled ones (default), ``"isotropic"`` 2 px / 0.3 / 0.5,
   or an ``.npz`` of :meth:`jaxmocap.ik.IKCovariances.save`), ``db`` (a pose database ``.npz``)
   or ``db_size`` (the cached database of that many poses; default the 80,000 of the paper),
@@ -31,11 +34,13 @@ Relative paths are relative to the configuration file. Tracker options:
   :func:`jaxmocap.trackers.shirt.setup_for_sequence` from the dataset's first-frame colour ids),
   ``background`` (OpenCV MOG2 masks, as ``shirt.run(background=True)``) and
   ``scene_clusters`` (k > 0: Gaussians of the room from the scribble frames' non-shirt pixels,
-  ``make_params(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
+  ``Colours(scene_colors=)``; with ``colors = "scribbles"`` and ``shading`` the colour
   model is fitted for the shading-invariant distance);
-* ``pf``: every keyword of :func:`jaxmocap.trackers.stereo_pf.make_params` except the cameras,
-  body and DOFs (``n_particles`` or its alias ``particles``, ``swivel_fraction``, ``guided``,
-  ``use_distance``, ``sigma_g``, ...), plus ``azad`` (Azad's filter,
+* ``pf``: every field of the settings groups of :func:`jaxmocap.trackers.stereo_pf.make_params`
+  by name (:class:`~jaxmocap.trackers.stereo_pf.Motion`, ``Cues``, ``Proposals``,
+  ``Initialisation``, ``Images`` but its ``segment`` and ``colors``: ``n_particles`` or its
+  alias ``particles``, ``swivel_fraction``, ``guided``, ``use_distance``, ``sigma_g``, ...),
+  plus ``azad`` (Azad's filter,
   :data:`~jaxmocap.trackers.stereo_pf.AZAD_FILTER`, under the other options), ``skin``
   (``"synth"`` the renderer's skin interval (default), ``"default"`` Azad's HSV intervals,
   ``"scribbles"`` the capture's skin and shirt colours (:mod:`jaxmocap.pf.colors`) fitted
@@ -74,6 +79,7 @@ __all__ = [
     "Sequence",
     "TrackerConfig",
     "dataset_sequences",
+    "tracker_settings",
     "digest_folder",
     "load_config",
 ]
@@ -92,8 +98,8 @@ SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors":
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,), "validity": (bool,), "search": (str,)}
 PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
-SHIRT_RESERVED = {"color", "body", "garment", "cams", "anchors", "cov", "db", "scene_colors"}
-PF_RESERVED = {"cams", "model", "dofs", "default_q", "segment", "dtype", "colors"}
+SHIRT_RESERVED = {"scene_colors", "dtype"}  # set by the experiment (scene_clusters) / the cameras
+PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin)
 PF_SKINS = ("synth", "default", "scribbles", "auto")
 PATH_OPTIONS = ("covariances", "db", "colors", "white_balance")
 
@@ -142,19 +148,49 @@ def _file_digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
 
 
-def _option_table(method: str) -> tuple[dict[str, inspect.Parameter], dict]:
-    """The accepted options of ``method``: its make_params keywords and the extras."""
+def _groups(method: str) -> dict:
+    """The settings groups of ``method``'s ``make_params``: {keyword: constructor}."""
     if method == "shirt":
         from jaxmocap.trackers import shirt as mod
 
-        reserved, extra = SHIRT_RESERVED, SHIRT_EXTRA
-    else:
-        from jaxmocap.trackers import stereo_pf as mod
+        return {"search": mod.Search, "rounds": mod.Rounds, "colours": mod.Colours,
+                "ablations": mod.Ablations, "validity": mod.validity_rule}
+    from jaxmocap.trackers import stereo_pf as mod
 
-        reserved, extra = PF_RESERVED, PF_EXTRA
-    params = {k: p for k, p in inspect.signature(mod.make_params).parameters.items()
-              if k not in reserved}
-    return params, extra
+    return {"motion": mod.Motion, "cues": mod.Cues, "proposals": mod.Proposals,
+            "initialisation": mod.Initialisation, "images": mod.Images}
+
+
+def _option_table(method: str) -> tuple[dict[str, tuple[str, inspect.Parameter]], dict]:
+    """The accepted options of ``method``: every field of its settings groups by name
+    (unique across the groups), as ``{option: (group, parameter)}``, and the extras."""
+    reserved, extra = (SHIRT_RESERVED, SHIRT_EXTRA) if method == "shirt" else \
+        (PF_RESERVED, PF_EXTRA)
+    table = {}
+    for group, make in _groups(method).items():
+        for k, p in inspect.signature(make).parameters.items():
+            if k not in reserved:
+                assert k not in table, f"{method}: option {k!r} in two groups"
+                table[k] = (group, p)
+    return table, extra
+
+
+def tracker_settings(method: str, options: dict, base: dict | None = None) -> dict:
+    """``make_params`` keywords from a configuration's tracker options (without the extras):
+    each option set on its group (:func:`_option_table`), over ``base``'s group where it has
+    one (e.g. :data:`~jaxmocap.trackers.stereo_pf.AZAD_FILTER`); lists become tuples."""
+    import dataclasses
+
+    table, _ = _option_table(method)
+    makers = _groups(method)
+    fields: dict[str, dict] = {}
+    for k, v in options.items():
+        fields.setdefault(table[k][0], {})[k] = tuple(v) if isinstance(v, list) else v
+    out = dict(base or {})
+    for group, kw in fields.items():
+        out[group] = dataclasses.replace(out[group], **kw) if group in out and \
+            dataclasses.is_dataclass(out[group]) else makers[group](**kw)
+    return out
 
 
 def _type_ok(value, default) -> bool:
@@ -183,7 +219,7 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
                 raise ExperimentError(f"{where}.options.{k}: expected "
                                       f"{extra[k][0].__name__}, got {v!r}")
         elif k in params:
-            d = params[k].default
+            d = params[k][1].default
             if d is inspect.Parameter.empty or not _type_ok(v, d):
                 raise ExperimentError(f"{where}.options.{k}: expected a value like {d!r}, "
                                       f"got {v!r}")

@@ -108,7 +108,7 @@ SIGMA_R = 0.1  # region cue, same role as sigma_g
 SIGMA_S = 0.5
 SUPPORT_DILATE_PX = 5  # support map dilation (px): a hand's radius (4 cm at 2.3 m, f ~ 300 px)
 SUPPORT_NAMES = ("l_hand", "r_hand")  # the keypoints the support cue reads
-# Edge value of a contour sample outside the image (make_params(edge_outside=...); None = Azad:
+# Edge value of a contour sample outside the image (Cues(edge_outside=...); None = Azad:
 # zero padding). ~ the mean edge value of a fair fit: a limb that truly leaves the image keeps
 # about the score it had inside, a wrong limb gains little by escaping.
 EDGE_OUTSIDE = 0.5
@@ -225,6 +225,10 @@ class Observation(eqx.Module):
     support: Float[Array, "*t n_cams h w"] | None = None
 
 
+def _optional_array(x):
+    return None if x is None else jnp.asarray(x)
+
+
 class StereoLikelihood(eqx.Module):
     """The fused likelihood p(z | s) of a configuration s (the filter's DOF subset ``dofs``;
     the other DOFs held at ``default_q``), as a log-likelihood (Azad §III-D):
@@ -236,10 +240,11 @@ class StereoLikelihood(eqx.Module):
     ``use_edges``, ``use_region``, ``use_support`` switch the cues (static; the support cue
     needs ``Observation.support``; it reads the hands without a triangulated point only, or
     every hand with ``support_all``). sigmas are traced (no recompile).
-    ``edge_outside``: the edge value g_m given to a contour sample outside the image (static).
-    None (Azad) reads the zero-padded image, i.e. a limb leaving the image looks like a limb on
-    plain background and is pulled back in; a constant (e.g. :data:`EDGE_OUTSIDE`) neither
-    rewards nor punishes the part of a contour outside the image as much.
+    ``edge_outside``: the edge value g_m given to a contour sample outside the image (traced;
+    whether there is one is static). None (Azad) reads the zero-padded image, i.e. a limb
+    leaving the image looks like a limb on plain background and is pulled back in; a constant
+    (e.g. :data:`EDGE_OUTSIDE`) neither rewards nor punishes the part of a contour outside the
+    image as much.
     """
 
     model: BodyModel
@@ -258,7 +263,7 @@ class StereoLikelihood(eqx.Module):
     use_region: bool = eqx.field(static=True, default=False)
     use_support: bool = eqx.field(static=True, default=False)
     support_all: bool = eqx.field(static=True, default=False)
-    edge_outside: float | None = eqx.field(static=True, default=None)
+    edge_outside: Float[Array, ""] | None = eqx.field(converter=_optional_array, default=None)
     # hands by nearest assignment (not in the paper): each particle's hands take the two
     # triangulated hands in the pairing of least squared distance, so a blob tracker that
     # swapped the hands' identities (40-47% of the measured hands on two dev sequences of the

@@ -48,14 +48,14 @@ SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_
                 "neck", "chest")
 PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 
-# The shirt tracker's per-frame validity rule (``shirt.make_params``): the paper's (§5.2: the
-# agreement gate engages once step 1 classifies 20% of a crop), or the one calibrated on the
-# dev split of the independent test world (spot lamps, clutter; docs/results/shirt.md; =
-# config "validated" of benchmarks/experiments/world_shirt.toml): the tracker's own gate
-# (temporal prior, W re-fit) at agreement 0.2 always and 20 measured patch centroids, and the
-# reported flag 26 centroids, in every camera a centroid residual <= 5.3% of the crop side
-# and >= 31% of the final pose's rendered shirt pixels classified as their colour, judged on
-# the frame's own estimate (hold_invalid off: the one the signals describe).
+# The shirt tracker's per-frame validity rule (``shirt.validity_rule`` keywords): the paper's
+# (§5.2: the agreement gate engages once step 1 classifies 20% of a crop), or the one
+# calibrated on the dev split of the independent test world (spot lamps, clutter;
+# docs/results/shirt.md; = config "validated" of benchmarks/experiments/world_shirt.toml): the
+# tracker's own gate (temporal prior, W re-fit) at agreement 0.2 always and 20 measured patch
+# centroids, and the reported flag 26 centroids, in every camera a centroid residual <= 5.3%
+# of the crop side and >= 31% of the final pose's rendered shirt pixels classified as their
+# colour, judged on the frame's own estimate (hold_invalid off: the one the signals describe).
 VALIDITY = {
     "paper": {},
     "footage": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
@@ -151,12 +151,13 @@ def shirt_diagnostic_names(names: list[str], patch_colours: bool = False) -> tup
 
 
 def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=None,
-                 validity: str = "paper", announce: bool = True, **options):
+                 validity="paper", announce: bool = True, **settings):
     """The colour-shirt tracker's parameters for a capture (:func:`shirt.make_params
     <jaxmocap.trackers.shirt.make_params>`): the garment's patch anchors, the covariances
     (default: the bundled trained ones transferred by role to ``body``, said on stderr when
-    some DOFs have no counterpart) and the ``validity`` rule of :data:`VALIDITY`; ``options``
-    (e.g. ``shading``, ``scene_colors``, ``work_size``) go to ``make_params``."""
+    some DOFs have no counterpart) and ``validity``, a rule of :data:`VALIDITY` by name or a
+    :class:`~jaxmocap.trackers.shirt.ValidityRule`; ``settings`` (the groups ``search``,
+    ``rounds``, ``colours``, ``ablations``) go to ``make_params``."""
     from jaxmocap.ik import anchors_from_garment
     from jaxmocap.trackers import shirt
 
@@ -169,10 +170,11 @@ def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=No
             print(f"jaxmocap track: IK covariances transferred by role from the bundled "
                   f"body; {len(defaults)} DOFs without a counterpart use the defaults: "
                   f"{', '.join(defaults)} (train your own: --ik-cov)", file=sys.stderr)
-    kw = dict(VALIDITY[validity])
-    kw.update(options)
+    if isinstance(validity, str):
+        validity = shirt.validity_rule(**VALIDITY[validity])
     return shirt.make_params(color, body, garment, stack_cameras(cams),
-                             anchors_from_garment(body, garment), cov, db, **kw)
+                             anchors_from_garment(body, garment), cov, db, validity=validity,
+                             **settings)
 
 
 class ShirtFrameTracker:
@@ -194,7 +196,7 @@ class ShirtFrameTracker:
         self.body = params.body
         self.cams, self.names, self.color = cams, names, color
         self.W0 = np.stack([np.eye(3)] * len(cams)) if W0 is None else W0
-        self.diagnostic_names = shirt_diagnostic_names(names, params.patch_colours)
+        self.diagnostic_names = shirt_diagnostic_names(names, params.colours.patch_colours)
         self.background = background
         self.announce = announce
         self.state = None
@@ -291,9 +293,11 @@ class StereoPFFrameTracker:
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
         self._make = lambda colors: stereo_pf.make_params(
-            cams, model=body, n_particles=n_particles, segment=segment, colors=colors,
-            plausible_blobs=colors is not None, hand_swap=colors is not None,
-            skin_grow=skin_grow if colors is not None else 0)
+            cams, model=body, motion=stereo_pf.Motion(n_particles=n_particles),
+            cues=stereo_pf.Cues(hand_swap=colors is not None),
+            images=stereo_pf.Images(segment=segment, colors=colors,
+                                    plausible_blobs=colors is not None,
+                                    skin_grow=skin_grow if colors is not None else 0))
         self.params = self._make(colors)
         self._step = stereo_pf.compile_step(self.params)
         self.body = self.params.model

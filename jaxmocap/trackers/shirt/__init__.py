@@ -103,7 +103,11 @@ from jaxmocap.trackers.shirt.params import (
     ROBUST_SCALE,
     TIE_BREAK_WEIGHT,
     WORK_SIZE,
+    Ablations,
+    Colours,
     FrameSignals,
+    Rounds,
+    Search,
     ShirtOutput,
     ShirtParams,
     ShirtState,
@@ -131,7 +135,9 @@ from jaxmocap.trackers.shirt.session import (
 )
 
 __all__ = [
+    "Ablations",
     "CROP_FACTOR",
+    "Colours",
     "DatabasePose",
     "FrameSignals",
     "GATE_MIN_FRACTION",
@@ -144,9 +150,11 @@ __all__ = [
     "REFERENCE_PIXELS",
     "ROBUST_SCALE",
     "RoundContext",
+    "Rounds",
     "SCRIBBLE_EROSION",
     "SCRIBBLE_INTENSITIES",
     "SCRIBBLE_NOISE",
+    "Search",
     "ShirtOutput",
     "ShirtParams",
     "ShirtState",

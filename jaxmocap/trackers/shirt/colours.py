@@ -1,7 +1,8 @@
-"""The colour-shirt tracker's per-patch colour states (``make_params(patch_colours=True)``,
-issue 37): step 1 classified against every patch's state, and step 5's update of the states
-(:mod:`jaxmocap.appearance`), per camera under ``vmap``. Step 3's per-patch classification
-is :func:`jaxmocap.trackers.shirt.frame.pose_assisted_centroids` with :func:`patch_model`."""
+"""The colour-shirt tracker's per-patch colour states
+(``make_params(colours=Colours(patch_colours=True))``, issue 37): step 1 classified against
+every patch's state, and step 5's update of the states (:mod:`jaxmocap.appearance`), per
+camera under ``vmap``. Step 3's per-patch classification is
+:func:`jaxmocap.trackers.shirt.frame.pose_assisted_centroids` with :func:`patch_model`."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from jaxmocap.trackers.shirt.params import ShirtParams, ShirtState
 
 def patch_model(params: ShirtParams, look: appearance.PartColours) -> ColorModel:
     """One camera's patch colour states as a colour model whose "colours" are the patches."""
-    return ColorModel(look.mean, look.cov, shading=params.shading)
+    return ColorModel(look.mean, look.cov, shading=params.colours.shading)
 
 
 def in_look_space(crop, W):
@@ -43,7 +44,7 @@ def classify_by_patch(
         img = in_look_space(crop, W_look)
         eye = jnp.eye(3, dtype=W_look.dtype)
         patch, dist = classify(patch_model(params, look), eye, img, fg, THRESHOLD,
-                               params.shading, params.scene_colors)  # fmt: skip
+                               params.colours.shading, params.colours.scene_colors)  # fmt: skip
         ids = patch_colour_of(params, patch)
         return ReferenceClassification(ids, dist, W, classified_fraction(ids, fg), jnp.array(False))
 
@@ -55,8 +56,8 @@ def colour_update(params: ShirtParams, state: ShirtState, views, okq, patch, hel
                   learn):
     """Step 5 with ``patch_colours`` (:mod:`jaxmocap.appearance`), per camera that found the
     shirt. On a valid frame, in the cameras where ``learn`` (the final pose explains the crop:
-    :data:`~jaxmocap.trackers.shirt.params.COLOUR_MAX_RESIDUAL`,
-    :data:`~jaxmocap.trackers.shirt.params.COLOUR_MIN_RECALL`), each patch's colour state is
+    :class:`~jaxmocap.trackers.shirt.params.Colours` ``learn_max_residual``,
+    ``learn_min_recall``), each patch's colour state is
     relit and moved toward the pixels that the final pose's render ``patch`` (patch ids,
     stacked over cameras; eroded by one pixel) gives it, trimmed. With ``follow_light``, on the
     first invalid frame after a frame the camera learned from, only the light follows, from
@@ -65,14 +66,14 @@ def colour_update(params: ShirtParams, state: ShirtState, views, okq, patch, hel
     patches, relight applied, relight RMS)`` stacked over cameras."""
     v = views
     # follow only from a pose the camera learned from on the previous frame (a trusted one)
-    follow = ~valid & (jnp.min(state.look.age, axis=-1) == 0) & params.follow_light
+    follow = ~valid & (jnp.min(state.look.age, axis=-1) == 0) & params.colours.follow_light
 
     def one(look, W_look, patch, held_patch, crop, fg, ok_cam, follow_cam, learn_cam):
         img = in_look_space(crop, W_look)
-        stats = appearance.part_statistics(look, img, erode_ids(patch), shading=params.shading,
-                                           mask=fg)  # fmt: skip
+        stats = appearance.part_statistics(look, img, erode_ids(patch),
+                                           shading=params.colours.shading, mask=fg)  # fmt: skip
         new, used, fit = appearance.update_parts(look, stats, learn_cam & ok_cam)
-        if not params.follow_light:
+        if not params.colours.follow_light:
             return new, jnp.sum(used).astype(jnp.int32), fit.ok, fit.rms
         held_stats = appearance.part_statistics(look, img, erode_ids(erode_ids(held_patch)),
                                                 gate=jnp.inf, mask=fg)  # fmt: skip

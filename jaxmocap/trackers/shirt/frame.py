@@ -61,8 +61,6 @@ from jaxmocap.trackers.shirt.colours import (
     patch_model,
 )
 from jaxmocap.trackers.shirt.params import (
-    COLOUR_MAX_RESIDUAL,
-    COLOUR_MIN_RECALL,
     MAX_ROOT_OFFSET,
     MIN_VALID_PATCHES,
     REFERENCE_PIXELS,
@@ -148,25 +146,26 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
     """§4 + §5.2 step 1: histogram search and crop resampling per camera (unrolled: the
     search under vmap ran 9.3 -> 10.8 ms), then the classification of every crop with its
     reference illuminations in one ``vmap`` (:func:`classify_views_with_references`)."""
-    n, dt = params.work_size, state.q.dtype
+    n, dt = params.search.work_size, state.q.dtype
     crops, fgs, windows, s_found, found = [], [], [], [], []
     for i in range(params.n_cams):
         mask_i = None if masks is None else masks[i]
-        res = histogram_search(frames[i], mask_i, scales=params.scales)
-        win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt), params.crop_factor)
+        res = histogram_search(frames[i], mask_i, scales=params.search.scales)
+        win = crop_window(res.x.astype(dt), res.y.astype(dt), res.s.astype(dt),
+                          params.search.crop_factor)
         uv = crop_uv(win, n)
         crops.append(sample_bilinear_clamped(frames[i], uv))
         fgs.append(None if masks is None else sample_nearest(masks[i], uv))
         windows.append(win), s_found.append(res.s.astype(dt)), found.append(res.found)
     crops = jnp.stack(crops)
     fgs = None if masks is None else jnp.stack(fgs)
-    if params.patch_colours:
+    if params.colours.patch_colours:
         cls = classify_by_patch(params, state, crops, fgs)
         return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
     cls = classify_views_with_references(
         params.color, state.refs, state.W, crops, fgs, THRESHOLD,
-        min_fraction=MIN_CLASSIFIED_FRACTION if params.adaptive_white_balance else 0.0,
-        gain=params.shading, background=params.scene_colors,
+        min_fraction=MIN_CLASSIFIED_FRACTION if params.ablations.adaptive_white_balance else 0.0,
+        gain=params.colours.shading, background=params.colours.scene_colors,
     )  # fmt: skip
     return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
 
@@ -174,7 +173,7 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
 def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
     """§5.2 step 2: the database pose of every camera (one ``vmap``), joint angles averaged
     over the cameras that found the shirt."""
-    n = params.work_size
+    n = params.search.work_size
 
     def one(ids, window, found):
         win_c = window_from_mask(ids > 0)
@@ -215,14 +214,14 @@ def global_placement(params: ShirtParams, db: DatabasePose, dt) -> Array:
 def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g) -> RoundContext:
     """The shared inputs of steps 3–4; the temporal prior widened by Sigma_b for
     ``reacquire_frames`` frames after a loss (its ``q_h`` comes from a cold start)."""
-    uvs = jax.vmap(lambda w: crop_uv(w, params.work_size))(views.windows)
+    uvs = jax.vmap(lambda w: crop_uv(w, params.search.work_size))(views.windows)
     q_h = jnp.where(state.valid, state.q, q_g)
     cov = params.cov
-    if params.reacquire_frames:
-        fresh = state.tracked < params.reacquire_frames
+    if params.rounds.reacquire_frames:
+        fresh = state.tracked < params.rounds.reacquire_frames
         cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
     rays = jax.vmap(lambda cam, uv: (camera_center(cam), pixel_rays(cam, uv)[1]))(params.cams, uvs)
-    if params.patch_colours:
+    if params.colours.patch_colours:
         return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W)
     return RoundContext(views, okq, q_g, q_h, cov, uvs, rays)
 
@@ -243,13 +242,13 @@ def pose_assisted_centroids(
     ``patch_maps`` (n_cams, n, n), the pose-assisted classification (``C = 6/s'``, ``T = 5``;
     with ``plain`` the ablation's measurement: step-1 threshold, distance only a tie-break)
     and its patch centroids, stacked over cameras."""
-    n, P, dt = params.work_size, params.garment.n_patches, ctx.q_g.dtype
+    n, P, dt = params.search.work_size, params.garment.n_patches, ctx.q_g.dtype
     v = ctx.views
     patch_colour = params.garment.patch_colour
 
     def one(patch_map, W, crop, fg, s_found, window, look, W_look):
         dist = patch_distance_maps(patch_map, P, dt)
-        if params.pose_prior:
+        if params.ablations.pose_prior:
             weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
             weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
             thr = jnp.where(plain, jnp.asarray(THRESHOLD, dt), jnp.asarray(POSE_THRESHOLD, dt))
@@ -257,14 +256,14 @@ def pose_assisted_centroids(
             weight, thr = TIE_BREAK_WEIGHT, THRESHOLD
         if look is None:
             pa = pose_assisted_classify(
-                params.color, W, crop, dist, patch_colour, weight, fg, thr, params.shading,
-                params.scene_colors,
+                params.color, W, crop, dist, patch_colour, weight, fg, thr, params.colours.shading,
+                params.colours.scene_colors,
             )  # fmt: skip
         else:  # every patch its own colour state: the "colours" are the patches
             pa = pose_assisted_classify(
                 patch_model(params, look), jnp.eye(3, dtype=W_look.dtype),
                 in_look_space(crop, W_look), dist, jnp.arange(1, P + 1), weight, fg, thr,
-                params.shading, params.scene_colors,
+                params.colours.shading, params.colours.scene_colors,
             )  # fmt: skip
         return patch_centroids(pa.patch, P, window, dtype=dt)
 
@@ -284,13 +283,13 @@ def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False)
     meas = pose_assisted_centroids(params, ctx, hits.patch, plain)
     c_obs, v_obs = meas.xy, meas.valid
     chain = params.body.chain
-    if params.view_anchors:
+    if params.rounds.view_anchors:
         anchors = _view_anchors(chain, params.anchors, params.cams, q, hits.patch, hits.point,
                                 ctx.uvs)  # fmt: skip
     else:
         anchors = params.anchors
     sol = solve_ik(chain, params.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov, q,
-                   robust=params.robust)  # fmt: skip
+                   robust=params.rounds.robust)  # fmt: skip
     return sol.q, c_obs, v_obs
 
 
@@ -313,16 +312,16 @@ def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
     and ``reacquire_frames`` after, a third: the last valid pose measured without the pose
     prior. ``n`` (2 or 3) is traced; without ``temporal_start`` the blend alone."""
     q_g = ctx.q_g
-    if not params.temporal_start:
+    if not params.rounds.temporal_start:
         return q_g[None], jnp.zeros((1,), bool), jnp.asarray(1)
     reacquire = ~state.valid
     starts = [q_g, jnp.where(state.valid, state.q, q_g)]
-    plain = [jnp.array(False), reacquire & params.reacquire_start]
+    plain = [jnp.array(False), reacquire & params.rounds.reacquire_start]
     n = jnp.asarray(2)
-    if params.held_start:
+    if params.rounds.held_start:
         starts.append(state.q)
         plain.append(jnp.array(True))
-        fresh = reacquire | (state.tracked < params.reacquire_frames)
+        fresh = reacquire | (state.tracked < params.rounds.reacquire_frames)
         n = n + fresh.astype(n.dtype)
     return jnp.stack(starts), jnp.stack(plain), n
 
@@ -391,7 +390,7 @@ def frame_validity(params: ShirtParams, ctx: RoundContext, v_obs, agreement) -> 
     valid = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= rule.min_patches)
     frac = jnp.max(ctx.views.cls.fraction * ctx.okq)
     seen = frac >= rule.gate_min_fraction
-    if params.patch_colours:  # the light is followed by the colour states, not by a W refit
+    if params.colours.patch_colours:  # the light is followed by the colour states, not by a W refit
         seen = jnp.array(True)  # that needs the frame valid: the gate always applies
     return valid & ((agreement >= rule.min_agreement) | ~seen)
 
@@ -456,7 +455,7 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
     one pixel), joining the reference illuminations when new. Returns ``(W, refs, added)``
     stacked over cameras."""
     v = ctx.views
-    if not params.adaptive_white_balance:
+    if not params.ablations.adaptive_white_balance:
         return state.W, state.refs, jnp.zeros(params.n_cams, bool)
 
     def one(refs_i, colour, crop, W_i, fg, ok_cam):
@@ -483,18 +482,18 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     q_g = global_placement(params, db, dt)
     ctx = round_context(params, state, views, db.okq, q_g)
     # ik_passes - 1 more rounds, and reacquire_passes more after a loss
-    n_more = params.ik_passes - 1 + jnp.where(state.valid, 0, params.reacquire_passes)
+    n_more = params.rounds.ik_passes - 1 + jnp.where(state.valid, 0, params.rounds.reacquire_passes)
     q_sol, c_obs, v_obs, hits, agree = rounds(params, state, ctx, n_more)
     valid = frame_validity(params, ctx, v_obs, agree)
     q_star = jnp.where(valid, q_sol, state.q)
     tracked = jnp.where(valid, state.tracked + 1, 0).astype(jnp.int32)
     signals = frame_signals(params, state, ctx, db, q_sol, c_obs, v_obs, hits)
     colour_out = {}
-    if params.patch_colours:
-        learn = valid & (signals.residual <= COLOUR_MAX_RESIDUAL) & (
-            signals.recall >= COLOUR_MIN_RECALL)
+    if params.colours.patch_colours:
+        learn = valid & (signals.residual <= params.colours.learn_max_residual) & (
+            signals.recall >= params.colours.learn_min_recall)
         held = hits.patch
-        if params.follow_light:  # the held pose rendered only on an invalid frame
+        if params.colours.follow_light:  # the held pose rendered only on an invalid frame
             held = jax.lax.cond(valid, lambda: hits.patch,
                                 lambda: render_views(params, ctx, state.q).patch)  # fmt: skip
         look, n_upd, r_ok, r_rms = colour_update(params, state, views, db.okq, hits.patch,
@@ -537,11 +536,12 @@ def model_centroids(
     params: ShirtParams, q: Float[Array, " n_dof"], windows: Float[Array, "n_cams 4"]
 ) -> PatchCentroids:
     """The model's patch centroids at pose ``q`` as the tracker sees them: ``q`` rendered on
-    each camera's ``params.work_size`` crop grid of ``windows`` (e.g. ``ShirtOutput.window``),
-    centroids in image pixels, batched over cameras. With ``q`` the ground truth these are
-    what per-view anchors predict there, the model term of covariance training
+    each camera's ``params.search.work_size`` crop grid of ``windows`` (e.g.
+    ``ShirtOutput.window``), centroids in image pixels, batched over cameras. With ``q`` the
+    ground truth these are what per-view anchors predict there, the model term of covariance
+    training
     (:func:`jaxmocap.ik.estimate_covariances` ``predicted=``)."""
-    n, P = params.work_size, params.garment.n_patches
+    n, P = params.search.work_size, params.garment.n_patches
 
     def one(cam, win):
         ids = render_uv(params.render_body, params.garment, q, cam, crop_uv(win, n)).patch

@@ -4,14 +4,14 @@ constants and the extensions' defaults, :class:`ShirtParams`, :class:`ShirtState
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxmocap.appearance import LOST_FRAMES, PartColours, init_parts
 from jaxmocap.body import BodyModel
@@ -77,12 +77,143 @@ def scales_for_width(width: int, stride: int = 6) -> tuple[int, ...]:
     return tuple(out)
 
 
+class Search(eqx.Module):
+    """Where the shirt is and the crop the later steps work on (Wang §4).
+
+    * ``work_size`` (static: every later shape): side of the resampled square crop, working
+      pixels (not in the paper, whose steps run on the full frame);
+    * ``scales`` (static: the search's programme): the histogram search's six window sizes,
+      pixels; ``()``: :func:`scales_for_width` of the cameras' width (the 640-pixel defaults of
+      :data:`jaxmocap.color.DEFAULT_SCALES` scaled);
+    * ``crop_factor`` (static): the crop's side over the search's scale ``s'`` (the shirt's
+      extent is about 2 ``s'`` with the arms out; not in the paper); a constant of the program
+      because a traced factor changed the demo's poses in the last bits (XLA folds it into
+      the crop's arithmetic).
+    """
+
+    work_size: int = eqx.field(static=True, default=WORK_SIZE)
+    scales: tuple[int, ...] = eqx.field(static=True, default=())
+    crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
+
+
+class Rounds(eqx.Module):
+    """Steps 3–4 (§5.2): the rounds of (render, pose-assisted classification, IK) per frame,
+    their starts, and the reacquisition after a loss. None of it is in the paper, which
+    renders ``r^b`` once at ``q_b`` and solves the IK once from it. The counts are static
+    (they shape the rounds' loop and the prior's widening), as are the switches.
+
+    * ``ik_passes`` (static, >= 1): rounds per frame, each with the model re-rendered at the
+      previous round's pose;
+    * ``robust`` (static; ``None``: the paper's plain least squares): Cauchy scale of the IK's
+      centroid terms, standard deviations of Sigma_c (:func:`jaxmocap.ik.solve_ik`, which also
+      takes it traced); a constant of the program because a traced scale changed the demo's
+      poses in the last bits (XLA folds the constant's ``c^2`` into the residual);
+    * ``view_anchors`` (static): predict each patch's centroid from the model's render in the
+      camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
+      centroid;
+    * ``temporal_start`` (static): the first round runs from two starts, the placed blend
+      ``q_b`` and the previous frame's pose, under ``jax.vmap``, keeping the result whose
+      render agrees best with the step-1 classification (the paper starts from ``q_b`` only;
+      a bad database match then leaves the IK in a wrong basin although the previous frame
+      was right);
+    * after a loss (the first frame, or any frame after an invalid one) there is no previous
+      pose to start from: with ``reacquire_start`` (static; and ``temporal_start``) the second
+      start is then the placed blend measured *without* the pose prior (step-1
+      classification, each pixel given to the nearer patch of its colour), which a blend in a
+      wrong basin cannot mislead; ``reacquire_passes`` (static) extra rounds run on such
+      frames (the loop runs longer: no cost on tracked frames); for ``reacquire_frames``
+      (static) frames after a loss the temporal term's covariance is ``Sigma_p + Sigma_b``:
+      its ``q_h`` comes from a cold start, whose error is of the blend's order, not the
+      tracked steady state that ``Sigma_p`` was trained on. All three off
+      (``reacquire_start=False, reacquire_passes=0, reacquire_frames=0``): no reacquisition;
+    * ``held_start`` (static) adds a third start on those frames (reacquisition and the
+      ``reacquire_frames`` after it): the last valid pose measured without the pose prior (a
+      subject re-entering fast is far from it, and a prior rendered there misleads the
+      pose-assisted classification); on other frames it repeats the blend start;
+    * ``static_kinds`` (static): the renders inside the step use the body's geom kinds as
+      constants, so that the ray caster tests each geom against its own primitive only; with
+      traced kinds it evaluates every primitive kind for every geom and selects (2x slower
+      per crop pair). The two paths round differently on a few silhouette pixels; paired over
+      8 held-out sequences with the 80,000-pose database the mean error is 4.85 cm static vs
+      4.90 traced, within the rounding noise of the tracker
+      (docs/results/realtime_profile.md). False: the traced-kinds path.
+    """
+
+    ik_passes: int = eqx.field(static=True, default=IK_PASSES)
+    robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
+    view_anchors: bool = eqx.field(static=True, default=True)
+    temporal_start: bool = eqx.field(static=True, default=True)
+    reacquire_start: bool = eqx.field(static=True, default=True)
+    reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
+    reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
+    held_start: bool = eqx.field(static=True, default=True)
+    static_kinds: bool = eqx.field(static=True, default=True)
+
+
+class Colours(eqx.Module):
+    """How pixels are compared with the shirt's colours beyond the paper's Gaussian distance
+    under one white balance per camera (all off by default).
+
+    Footage under spot lamps (issue 17):
+
+    * ``shading`` (static: it goes with the colour model, which should be fitted with the same
+      ``gain``, :func:`jaxmocap.color.fit_color_model`): ``(lo, hi)`` compares every pixel to
+      every colour at its best brightness in ``[lo, hi]`` (steps 1 and 3;
+      :func:`jaxmocap.color.classify` ``gain``); ``None``: the paper's Gaussian distance;
+    * ``scene_colors`` (arrays): Gaussians of the room's colours
+      (:func:`jaxmocap.color.fit_scene_colors`); a pixel nearer one of them than every shirt
+      colour is background in steps 1 and 3.
+
+    Colour states per patch (issue 37):
+
+    * ``patch_colours`` (static): a colour state per patch and camera
+      (:mod:`jaxmocap.appearance`) starts from the colour model (each patch its colour's
+      Gaussian, in the colour space of the initial white balance ``W0``), classifies steps 1
+      and 3 per patch (a pixel's colour is its patch's) and is relit by a two-illuminant
+      mixture and updated from the final pose's render in step 5 (valid frames only); the
+      per-camera ``W`` and reference illuminations are then not used;
+    * a camera's states learn from a valid frame only where the final pose explains its crop:
+      centroid residual <= ``learn_max_residual`` crop sides and >= ``learn_min_recall`` of
+      the rendered shirt pixels classified as their colour in step 1 (traced; the reported
+      validity calibrated on the dev split's ground truth, world_shirt.toml "validated").
+      States that learn from a wrong pose learn the wrong patches and lead the next frames
+      there;
+    * ``follow_light`` (static): on the first invalid frame after one a camera learned from,
+      relight its states from the held pose's render (:func:`jaxmocap.appearance.follow_light`):
+      it keeps a lamp switched on over half the image followed (tests), but on the dev split
+      it took the occluder's colours into the states (shirt_03: 7.1 -> 20.1 cm over all
+      frames; shirt_00's lamp switched off: 12.6 -> 14.0; shirt_06: 18.6 -> 16.5;
+      docs/results/appearance.md).
+    """
+
+    shading: tuple[float, float] | None = eqx.field(static=True, default=None)
+    scene_colors: ColorModel | None = None
+    patch_colours: bool = eqx.field(static=True, default=False)
+    follow_light: bool = eqx.field(static=True, default=False)
+    learn_max_residual: Float[ArrayLike, ""] = COLOUR_MAX_RESIDUAL
+    learn_min_recall: Float[ArrayLike, ""] = COLOUR_MIN_RECALL
+
+
+class Ablations(eqx.Module):
+    """The paper's own ablations (Wang Fig. 9–10; static switches, both on by default):
+    ``pose_prior=False`` skips step 3's prior -- centroids come from the step-1
+    classification (``T = 3``), each pixel given to the nearer of the two patches of its
+    colour in ``r^b`` (that tie-break only, no cost); ``adaptive_white_balance=False`` keeps
+    ``W = W0`` and no reference illuminations. Both off is the WP09-like baseline."""
+
+    pose_prior: bool = eqx.field(static=True, default=True)
+    adaptive_white_balance: bool = eqx.field(static=True, default=True)
+
+
 class ValidityRule(eqx.Module):
     """When a frame counts as valid (:func:`~jaxmocap.trackers.shirt.frame.frame_validity`)
     and what the output reports (:func:`~jaxmocap.trackers.shirt.frame.reported_validity`).
 
-    The thresholds are traced arrays (in the parameters' float dtype), so a new value runs the
-    compiled step as it is; which checks apply is static (it changes the program).
+    The thresholds are traced arrays (:func:`make_params` casts them to the parameters' float
+    dtype), so a new value runs the compiled step as it is; which checks apply is static (it
+    changes the program). ``ValidityRule()`` is the tracker's own rule with the defaults
+    below; :func:`validity_rule` builds one from plain numbers with the checks switched on by
+    the thresholds given.
 
     * the tracker's own rule: ``min_patches`` patch centroids measured (all cameras) and, where
       step 1 classified at least ``gate_min_fraction`` of a crop, the render of the result
@@ -94,29 +225,31 @@ class ValidityRule(eqx.Module):
     * ``hold_invalid``: an invalid frame's output ``q`` is the last valid pose.
     """
 
-    min_agreement: Float[Array, ""]
-    gate_min_fraction: Float[Array, ""]
-    min_patches: Int[Array, ""]
-    report_patches: Int[Array, ""]
-    max_residual: Float[Array, ""]
-    min_recall: Float[Array, ""]
+    min_agreement: Float[ArrayLike, ""] = MIN_AGREEMENT
+    gate_min_fraction: Float[ArrayLike, ""] = GATE_MIN_FRACTION
+    min_patches: Int[ArrayLike, ""] = MIN_VALID_PATCHES
+    report_patches: Int[ArrayLike, ""] = MIN_VALID_PATCHES
+    max_residual: Float[ArrayLike, ""] = 1.0
+    min_recall: Float[ArrayLike, ""] = 0.0
     report: bool = eqx.field(static=True, default=False)
     check_residual: bool = eqx.field(static=True, default=False)
     check_recall: bool = eqx.field(static=True, default=False)
     hold_invalid: bool = eqx.field(static=True, default=True)
 
 
-def validity_rule(dtype, min_agreement: float = MIN_AGREEMENT,
+def validity_rule(dtype=None, min_agreement: float = MIN_AGREEMENT,
                   gate_min_fraction: float = GATE_MIN_FRACTION,
                   min_patches: int = MIN_VALID_PATCHES, report_patches: int | None = None,
                   max_residual: float | None = None, min_recall: float | None = None,
                   hold_invalid: bool = True) -> ValidityRule:
-    """A :class:`ValidityRule` from plain numbers (``None``: that check is off)."""
+    """A :class:`ValidityRule` from plain numbers (``None``: that check is off); its arrays in
+    ``dtype`` (default: jax's default float; :func:`make_params` casts them to the cameras')."""
     for name, v in (("max_residual", max_residual), ("min_recall", min_recall)):
         if v is not None and not 0 <= v <= 1:
-            raise ValueError(f"make_params: {name} must be None or in [0, 1], got {v}")
+            raise ValueError(f"validity_rule: {name} must be None or in [0, 1], got {v}")
     if report_patches is not None and report_patches < 0:
-        raise ValueError(f"make_params: report_patches must be None or >= 0, got {report_patches}")
+        raise ValueError(
+            f"validity_rule: report_patches must be None or >= 0, got {report_patches}")
     report = report_patches is not None or max_residual is not None or min_recall is not None
     return ValidityRule(
         min_agreement=jnp.asarray(min_agreement, dtype),
@@ -131,10 +264,12 @@ def validity_rule(dtype, min_agreement: float = MIN_AGREEMENT,
 
 
 class ShirtParams(eqx.Module):
-    """Everything the tracker needs that does not change over a sequence.
+    """Everything the tracker needs that does not change over a sequence (:func:`make_params`).
 
     ``cams`` is a stacked :class:`~jaxmocap.camera.Camera` (leading axis = cameras); ``db`` a
-    :class:`jaxmocap.PoseDB`. Static switches select the ablations (:mod:`jaxmocap.trackers.shirt`).
+    :class:`jaxmocap.PoseDB`; the settings are grouped in :class:`Search`, :class:`Rounds`,
+    :class:`Colours`, :class:`ValidityRule` and :class:`Ablations`, their numbers traced
+    arrays (a new value runs the compiled step as it is), their switches static.
     """
 
     color: ColorModel
@@ -145,41 +280,12 @@ class ShirtParams(eqx.Module):
     cov: IKCovariances
     db: PoseDB
     canon: Camera  # the database's canonical camera
-    scene_colors: ColorModel | None = None  # Gaussians of the room (jaxmocap.color.scene_colors)
-    pose_prior: bool = eqx.field(static=True, default=True)
-    adaptive_white_balance: bool = eqx.field(static=True, default=True)
-    work_size: int = eqx.field(static=True, default=WORK_SIZE)
-    scales: tuple[int, ...] = eqx.field(static=True, default=())
-    crop_factor: float = eqx.field(static=True, default=CROP_FACTOR)
-    view_anchors: bool = eqx.field(static=True, default=True)
-    ik_passes: int = eqx.field(static=True, default=IK_PASSES)
-    robust: float | None = eqx.field(static=True, default=ROBUST_SCALE)
-    temporal_start: bool = eqx.field(static=True, default=True)
-    reacquire_start: bool = eqx.field(static=True, default=True)
-    reacquire_passes: int = eqx.field(static=True, default=REACQUIRE_PASSES)
-    reacquire_frames: int = eqx.field(static=True, default=REACQUIRE_FRAMES)
-    held_start: bool = eqx.field(static=True, default=True)
-    # ``static_kinds``: the renders inside the step use the body's geom kinds as constants
-    # (``geom_kinds``), so that the ray caster tests each geom against its own primitive only;
-    # with traced kinds it evaluates every primitive kind for every geom and selects (2x slower
-    # per crop pair: 19.4 vs 9.8 ms). The two paths round differently on a few silhouette
-    # pixels; paired over 8 held-out sequences with the 80,000-pose database the mean error is
-    # 4.85 cm static vs 4.90 traced, within the rounding noise of the tracker
-    # (docs/results/realtime_profile.md). False: the traced-kinds path.
-    static_kinds: bool = eqx.field(static=True, default=True)
-    geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())
-    # ``shading``: (lo, hi) brightness range of the shading-invariant colour distance
-    # (jaxmocap.color.classify ``gain``); None: the paper's Gaussian distance.
-    shading: tuple[float, float] | None = eqx.field(static=True, default=None)
-    # when a frame is valid and what the output reports (thresholds traced)
-    validity: ValidityRule | None = None
-    # ``patch_colours``: steps 1 and 3 compare every pixel with a colour state *per patch and
-    # camera* (jaxmocap.appearance), relit and updated from the final pose's render in step 5,
-    # instead of the colour model under one white balance per camera (issue 37)
-    patch_colours: bool = eqx.field(static=True, default=False)
-    # ``follow_light`` (with ``patch_colours``): on the first invalid frame after one a camera
-    # learned from, relight its states from the held pose's render (appearance.follow_light)
-    follow_light: bool = eqx.field(static=True, default=False)
+    search: Search
+    rounds: Rounds
+    colours: Colours
+    validity: ValidityRule
+    ablations: Ablations
+    geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())  # body's, for renders
 
     @property
     def n_cams(self) -> int:
@@ -189,7 +295,7 @@ class ShirtParams(eqx.Module):
     def render_body(self) -> BodyModel:
         """``body`` with its geom kinds as constants (``geom_kinds``) for the ray caster's
         per-kind tests inside the jitted step (the same body; traced kinds otherwise)."""
-        if not self.static_kinds or len(self.geom_kinds) != self.body.geometry.kind.shape[0]:
+        if not self.rounds.static_kinds or len(self.geom_kinds) != self.body.geometry.kind.shape[0]:
             return self.body
         kinds = np.asarray(self.geom_kinds, self.body.geometry.kind.dtype)
         return eqx.tree_at(lambda b: b.geometry.kind, self.body, kinds)
@@ -269,101 +375,25 @@ def make_params(
     cov: IKCovariances,
     db: PoseDB,
     *,
-    pose_prior: bool = True,
-    adaptive_white_balance: bool = True,
-    work_size: int = WORK_SIZE,
-    scales: Sequence[int] | None = None,
-    crop_factor: float = CROP_FACTOR,
-    view_anchors: bool = True,
-    ik_passes: int = IK_PASSES,
-    robust: float | None = ROBUST_SCALE,
-    temporal_start: bool = True,
-    min_agreement: float = MIN_AGREEMENT,
-    reacquire_start: bool = True,
-    reacquire_passes: int = REACQUIRE_PASSES,
-    reacquire_frames: int = REACQUIRE_FRAMES,
-    held_start: bool = True,
-    static_kinds: bool = True,
-    shading: Sequence[float] | None = None,
-    scene_colors: ColorModel | None = None,
-    hold_invalid: bool = True,
-    min_patches: int = MIN_VALID_PATCHES,
-    gate_min_fraction: float = GATE_MIN_FRACTION,
-    report_patches: int | None = None,
-    max_residual: float | None = None,
-    min_recall: float | None = None,
-    patch_colours: bool = False,
-    follow_light: bool = False,
+    search: Search | None = None,
+    rounds: Rounds | None = None,
+    colours: Colours | None = None,
+    validity: ValidityRule | None = None,
+    ablations: Ablations | None = None,
 ) -> ShirtParams:
-    """Validated :class:`ShirtParams`; ``scales`` default :func:`scales_for_width`.
-
-    ``view_anchors`` (default on) predicts each patch's centroid from the model's render in
-    the camera's crop (:func:`jaxmocap.ik.view_anchors`) instead of the whole patch's fixed 3D
-    centroid; ``ik_passes`` rounds of pose-assisted classification + IK per frame, each with
-    the model re-rendered at the last round's pose; ``robust`` the Cauchy scale of the IK's
-    centroid terms (None: plain least squares, as the paper); ``temporal_start`` runs the
-    rounds from two starts, the placed blend ``q_b`` and the previous frame's pose, under
-    ``jax.vmap``, keeping the result whose render agrees best with the step-1 colour
-    classification (the paper starts from ``q_b`` only; a bad database match then leaves
-    the IK in a wrong basin although the previous frame was right); a frame is valid only if
-    that render agrees with the step-1 classification on ``min_agreement`` of its pixels.
-
-    After a loss (the first frame, or any frame after an invalid one) there is no previous
-    pose to start from: with ``reacquire_start`` (and ``temporal_start``) the second start
-    is then the placed blend measured *without* the pose prior (step-1 classification, each
-    pixel given to the nearer patch of its colour), which a blend in a wrong basin cannot
-    mislead; ``reacquire_passes`` extra rounds run on such frames (the loop of the extra
-    rounds runs longer: no cost on tracked frames). For the ``reacquire_frames`` frames after
-    a loss the temporal term's covariance is ``Sigma_p + Sigma_b``: its ``q_h`` comes from a
-    cold start, whose error is of the blend's order, not the tracked steady state that
-    ``Sigma_p`` was trained on. All three off (``reacquire_start=False, reacquire_passes=0,
-    reacquire_frames=0``): the session-2 behaviour. ``held_start`` adds a third start on
-    those frames (reacquisition and the ``reacquire_frames`` after it): the last valid pose
-    measured without the pose prior (a subject re-entering fast is far from it, and a prior
-    rendered there misleads the pose-assisted classification); on other frames it repeats
-    the blend start.
-    ``static_kinds`` (default) renders with the body's geom kinds as constants inside the step
-    (each geom runs its own primitive's ray test; ``False``: every primitive evaluated and
-    selected per geom, 2x slower renders, rounding differs; see :class:`ShirtParams`).
-
-    Footage under spot lamps (not in the paper; both off by default): ``shading = (lo, hi)``
-    compares every pixel to every colour at its best brightness in ``[lo, hi]`` (steps 1 and 3;
-    the colour model should then be fitted with the same ``gain``,
-    :func:`jaxmocap.color.fit_color_model`); ``scene_colors`` (Gaussians of the room's colours,
-    :func:`jaxmocap.color.fit_scene_colors`) makes a pixel nearer one of them than every shirt
-    colour background in steps 1 and 3.
-
-    A reported validity of its own (not in the paper; off by default): with any of
-    ``report_patches``, ``max_residual``, ``min_recall`` the output's ``valid`` is that
-    ``report_patches`` (default ``min_patches``) centroids were measured and, in every camera
-    that found the shirt, the measured centroids' mean distance from the final pose's
-    rendered ones is at most ``max_residual`` crop sides and at least ``min_recall`` of its
-    rendered shirt pixels carry the rendered colour in step 1 (:class:`FrameSignals`). The
-    state (temporal prior, W re-fit) still follows the tracker's own rule: gating it with the
-    stricter rule lost shirt_03 of the dev split (9.4 -> 22.6 cm, docs/results/shirt.md).
-
-    ``patch_colours`` (not in the paper; off by default): a colour state per patch and camera
-    (:mod:`jaxmocap.appearance`) starts from the colour model (each patch its colour's
-    Gaussian, in the colour space of the initial white balance ``W0``), classifies steps 1
-    and 3 per patch (a pixel's colour is its patch's) and is relit by a two-illuminant
-    mixture and updated from the final pose's render in step 5 (valid frames only); the
-    per-camera ``W`` and reference illuminations are then not used. A camera's states learn
-    only where the final pose explains its crop (:data:`COLOUR_MAX_RESIDUAL`,
-    :data:`COLOUR_MIN_RECALL`). ``follow_light`` (off by default) relights them on the first
-    invalid frame after a learned one from the held pose's render: it keeps a lamp switched
-    on over half the image followed (tests), but on the dev split it took the occluder's
-    colours into the states (shirt_03: 7.1 -> 20.1 cm over all frames; shirt_00's lamp
-    switched off: 12.6 -> 14.0; shirt_06: 18.6 -> 16.5; docs/results/appearance.md).
-
-    The validity thresholds are traced (:class:`ValidityRule`): replacing
-    ``params.validity`` with another :func:`validity_rule` of the same checks reuses the
-    compiled step."""
-    if ik_passes < 1:
-        raise ValueError(f"make_params: ik_passes must be >= 1, got {ik_passes}")
-    if reacquire_frames < 0:
-        raise ValueError(f"make_params: reacquire_frames must be >= 0, got {reacquire_frames}")
-    if reacquire_passes < 0:
-        raise ValueError(f"make_params: reacquire_passes must be >= 0, got {reacquire_passes}")
+    """Validated :class:`ShirtParams`: the capture (colour model, body, garment, stacked
+    cameras, patch anchors, IK covariances, pose database) and the settings, each group's
+    defaults the paper's constants and the extensions' measured choices (:class:`Search`,
+    :class:`Rounds`, :class:`Colours`, :class:`ValidityRule`, :class:`Ablations`). Every
+    number is cast to an array (floats in the cameras' dtype, counts int32), so that
+    replacing one (``dataclasses.replace(params, rounds=...)``, or another
+    ``make_params``) reuses the compiled step; a switch changes the program."""
+    dt = cams.K.dtype
+    search = Search() if search is None else search
+    rounds = Rounds() if rounds is None else rounds
+    colours = Colours() if colours is None else colours
+    validity = ValidityRule() if validity is None else validity
+    ablations = Ablations() if ablations is None else ablations
     if cams.K.ndim != 3:
         raise ValueError("make_params: cams must be stacked (jaxmocap.camera.stack_cameras)")
     if anchors.n_patches != garment.n_patches:
@@ -375,24 +405,39 @@ def make_params(
         raise ValueError(
             f"make_params: colour model has {color.n_colors} colours, garment {garment.n_colours}"
         )
-    if work_size < 16:
-        raise ValueError(f"make_params: work_size must be >= 16, got {work_size}")
-    sc = tuple(int(s) for s in scales) if scales is not None else scales_for_width(cams.width)
+    for name, v, lo in (("ik_passes", rounds.ik_passes, 1),
+                        ("reacquire_passes", rounds.reacquire_passes, 0),
+                        ("reacquire_frames", rounds.reacquire_frames, 0)):
+        if int(v) != v or int(v) < lo:
+            raise ValueError(f"make_params: rounds.{name} must be an integer >= {lo}, got {v}")
+    if search.work_size < 16:
+        raise ValueError(f"make_params: search.work_size must be >= 16, got {search.work_size}")
+    sc = tuple(int(s) for s in search.scales) or scales_for_width(cams.width)
+    shading = colours.shading
     if shading is not None:
         problem = shading_problem(shading)
         if problem:
-            raise ValueError(f"make_params: shading: {problem}")
+            raise ValueError(f"make_params: colours.shading: {problem}")
         shading = tuple(float(g) for g in shading)
-    rule = validity_rule(cams.K.dtype, min_agreement, gate_min_fraction, min_patches,
-                         report_patches, max_residual, min_recall, hold_invalid)
+    ints = lambda x: jnp.asarray(x, jnp.int32)  # noqa: E731
+    floats = lambda x: jnp.asarray(x, dt)  # noqa: E731
+    search = Search(int(search.work_size), sc, float(search.crop_factor))
+    rounds = dataclasses.replace(
+        rounds, ik_passes=int(rounds.ik_passes),
+        robust=None if rounds.robust is None else float(rounds.robust),
+        reacquire_passes=int(rounds.reacquire_passes),
+        reacquire_frames=int(rounds.reacquire_frames))
+    colours = dataclasses.replace(
+        colours, shading=shading, learn_max_residual=floats(colours.learn_max_residual),
+        learn_min_recall=floats(colours.learn_min_recall))
+    validity = dataclasses.replace(
+        validity, min_agreement=floats(validity.min_agreement),
+        gate_min_fraction=floats(validity.gate_min_fraction),
+        min_patches=ints(validity.min_patches), report_patches=ints(validity.report_patches),
+        max_residual=floats(validity.max_residual), min_recall=floats(validity.min_recall))
     return ShirtParams(
-        color, body, garment, cams, anchors, cov, db, canonical_camera(cams.K.dtype),
-        scene_colors, pose_prior, adaptive_white_balance, int(work_size), sc, float(crop_factor),
-        bool(view_anchors), int(ik_passes), None if robust is None else float(robust),
-        bool(temporal_start), bool(reacquire_start),
-        int(reacquire_passes), int(reacquire_frames), bool(held_start), bool(static_kinds),
-        tuple(int(k) for k in np.asarray(body.geometry.kind)), shading, rule, bool(patch_colours),
-        bool(follow_light),
+        color, body, garment, cams, anchors, cov, db, canonical_camera(dt), search, rounds,
+        colours, validity, ablations, tuple(int(k) for k in np.asarray(body.geometry.kind)),
     )  # fmt: skip
 
 
@@ -407,7 +452,7 @@ def init(
         raise ValueError(f"init: W0 must be ({params.n_cams}, 3, 3), got {W0.shape}")
     refs = jax.vmap(init_references)(W0)
     look = look_W = None
-    if params.patch_colours:
+    if params.colours.patch_colours:
         k = jnp.asarray(params.garment.patch_colour) - 1
         one = init_parts(params.color.mean[k], params.color.cov[k])
         # no frame learned from yet: nothing to follow the light from (frame.colour_update)

@@ -21,7 +21,7 @@ from jaxmocap.ik import (
     IKCovariances,
 )
 from jaxmocap.posedb._search import PoseDB
-from jaxmocap.trackers.shirt.params import WORK_SIZE, ShirtParams, make_params
+from jaxmocap.trackers.shirt.params import WORK_SIZE, Search, ShirtParams, make_params
 
 SCRIBBLE_EROSION = 2  # pixels removed from every colour region to make "scribbles"
 
@@ -136,6 +136,6 @@ def setup_for_sequence(
         anchors_from_garment(body, garment),
         cov,
         db,
-        work_size=work_size,
+        search=Search(work_size=work_size),
     )
     return params, W0, color

@@ -29,7 +29,7 @@ in +-``INIT_YAW`` and small tilts, arm joints uniform in their limits -- and ref
 one Condensation step per frame (Azad §II), or ``len(step_betas)`` annealing layers per frame
 when ``step_betas`` has several entries (better search, one likelihood pass per layer).
 
-**Guided proposal** (an extension beyond the paper, ``make_params(guided=True)``, the
+**Guided proposal** (an extension beyond the paper, :class:`Proposals` ``guided=True``, the
 default; ``guided=False`` is Azad's filter): after the prediction, half of the particles take
 two damped minimum-norm Gauss-Newton steps on the distance cue's residuals f_i(s) - c_i
 (missing points masked) toward the triangulated head and hands
@@ -97,6 +97,11 @@ from jaxmocap.trackers.stereo_pf.params import (
     SIGMA_MIN,
     SWIVEL_FRACTION,
     SYNTH_SKIN_HSV,
+    Cues,
+    Images,
+    Initialisation,
+    Motion,
+    Proposals,
     SeedParams,
     StereoEstimate,
     StereoPFParams,
@@ -115,8 +120,13 @@ __all__ = [
     "AZAD_FILTER",
     "BLOB_PARAMS",
     "COMPILER_OPTIONS",
+    "Cues",
+    "Images",
+    "Initialisation",
+    "Motion",
     "N_PARTICLES",
     "Observation",
+    "Proposals",
     "REACH_MARGIN",
     "SIGMA_MAX",
     "SIGMA_MIN",

@@ -82,7 +82,7 @@ def observe_adaptive(
     after the frame's update."""
     if params.adapt is None or params.colors is None:
         raise InputError("stereo_pf.adapt.observe_adaptive: params without adapt_colors "
-                            "(make_params(colors=..., adapt_colors=True))")
+                            "(make_params(images=Images(colors=..., adapt_colors=True)))")
     skin_rate, shirt_rate, spread = params.adapt
     model = params.model
     head_i = keypoint_index(model, "head")[0]

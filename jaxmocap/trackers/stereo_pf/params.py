@@ -26,7 +26,7 @@ from jaxmocap.body import (
 from jaxmocap.body.chain import ROOT_DOFS, so3_exp
 from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
-from jaxmocap.pf import cues
+from jaxmocap.pf import cues as cuelib
 from jaxmocap.pf import guided as pf_guided
 from jaxmocap.pf.colors import ADAPT_MAX_SPREAD, ADAPT_RATE, CaptureColors
 from jaxmocap.pf.cues import StereoLikelihood
@@ -63,8 +63,6 @@ GUIDED_INIT = False  # the proposal also in the initialisation's annealing (see 
 # Hand-support cue (ours, jaxmocap.pf.cues.support_loglik): a hand without a triangulated point
 # is hidden (behind the shirt or in a skin blob) or outside the image, not on plain background.
 USE_SUPPORT = True
-# make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
-AZAD_FILTER = dict(guided=False, swivel_fraction=0.0, edge_outside=None, use_support=False)
 # Elbow-swivel jumps (SwivelProposal; not in the paper): the fraction of the particles whose
 # arms are turned about their shoulder-hand lines each frame. 3 clips x 4 keys (stereo_pf.md):
 # dance_b 10.6 -> 7.8 cm, punch 11.4 -> 10.8, turn 3.1 -> 3.1 (0.05 and 0.2 tried as well).
@@ -117,8 +115,8 @@ class SwivelProposal(eqx.Module):
 
     def _swivel(self, s: Float[Array, " d"], phi: Float[Array, " a"]) -> Float[Array, " d"]:
         q = self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
-        tr = cues.pose_transforms(self.model, q)
-        hands = cues.distance_points(self.model, tr, tuple(arm[3] for arm in self.arms))
+        tr = cuelib.pose_transforms(self.model, q)
+        hands = cuelib.distance_points(self.model, tr, tuple(arm[3] for arm in self.arms))
         for a, (cols, parent, link, _) in enumerate(self.arms):
             u = hands[a] - tr[link, :3, 3]
             u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
@@ -201,6 +199,141 @@ class SeedParams:
     relight: bool = False
 
 
+class Motion(eqx.Module):
+    """The particle set and its motion model (Azad §II, §V).
+
+    * ``n_particles`` (static: the set's shape): particles, 1000 in Azad §V;
+    * ``damping`` (traced): first-order motion model ``s_t = s_{t-1} + damping (s_{t-1} -
+      s_{t-2}) + noise``;
+    * ``error_scale`` (traced): the energy ``e = -max log p`` (both edge cues + distance cue)
+      at which the adaptive noise is 63% of the way from its minimum to its maximum (Azad give
+      none): a good fit of a 320x240 pair has a mean edge value ~0.6 per camera, i.e. e ~ 2 x
+      0.4 / (2 sigma_g^2) = 10 with sigma_g = 0.2;
+    * ``step_betas`` (traced; their number static): annealing layers per tracked frame
+      (Deutscher et al. 2000, Azad's ref. [4]): ``(1.0,)`` is the plain Condensation step of
+      Azad §II; more layers search the 14-D space better at a cost of one likelihood
+      evaluation of the N particles per layer (docs/results/stereo_pf.md).
+    """
+
+    n_particles: int = eqx.field(static=True, default=N_PARTICLES)
+    damping: float = DAMPING
+    error_scale: float = ERROR_SCALE
+    step_betas: tuple[float, ...] = STEP_BETAS
+
+
+class Cues(eqx.Module):
+    """The likelihood's cues (Azad §III; :class:`~jaxmocap.pf.cues.StereoLikelihood`).
+
+    * ``use_distance``, ``use_region`` (static): the distance cue to the triangulated head and
+      hands (on) and the region cue (off, as Azad's final filter);
+    * ``edge_form`` (static): ``"sad"`` (p_g', the paper's final choice) or ``"ssd"`` (p_g);
+    * ``sigma_g``, ``sigma_d``, ``sigma_r``, ``sigma_s`` (traced): the widths of the edge,
+      distance, region and hand-support cues (:mod:`jaxmocap.pf.cues`);
+    * ``points_per_line`` (static: a shape): samples per projected contour line;
+    * ``edge_outside`` (traced; ``None``, static: Azad's zero padding, which pulls a limb that
+      leaves the image back in): the edge value of contour samples outside the image;
+    * ``use_support`` (static; not in the paper): the hand-support cue
+      (:func:`jaxmocap.pf.cues.support_loglik`): a hand without a triangulated point is hidden
+      (behind the shirt or in a skin blob) or outside the image, not on plain background; on
+      every hand with ``support_all``; :func:`observe` then adds the support map to the
+      observation;
+    * ``hand_swap`` (static; not in the paper): each particle pairs its hands with the
+      triangulated ones in the nearer pairing, robust to swapped blob identities.
+    """
+
+    use_distance: bool = eqx.field(static=True, default=True)
+    use_region: bool = eqx.field(static=True, default=False)
+    edge_form: str = eqx.field(static=True, default="sad")
+    sigma_g: float = cuelib.SIGMA_G
+    sigma_d: float = cuelib.SIGMA_D
+    sigma_r: float = cuelib.SIGMA_R
+    sigma_s: float = cuelib.SIGMA_S
+    points_per_line: int = eqx.field(static=True, default=cuelib.POINTS_PER_LINE)
+    edge_outside: float | None = cuelib.EDGE_OUTSIDE
+    use_support: bool = eqx.field(static=True, default=USE_SUPPORT)
+    support_all: bool = eqx.field(static=True, default=False)
+    hand_swap: bool = eqx.field(static=True, default=False)
+
+
+class Proposals(eqx.Module):
+    """Where the particles go besides the motion model (extensions beyond Azad's paper;
+    ``Proposals(guided=False, swivel_fraction=0.0)`` is Azad's filter).
+
+    * ``guided`` (static): the distance-cue-guided proposal (:mod:`jaxmocap.pf.guided`): after
+      the prediction ``guided_fraction`` (static: a count of particles) of the particles take
+      ``guided_steps`` (static) damped minimum-norm Gauss-Newton steps (Levenberg damping
+      ``guided_damping``, m^2, traced) toward the triangulated head / hands; the metric's unit
+      per DOF is the noise maximum;
+    * ``guided_init`` (static): the guided proposal also in the initialisation's annealing;
+    * ``swivel_fraction`` (static: a count of particles): the fraction of the particles whose
+      elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`; 0
+      disables). 3 clips x 4 keys (stereo_pf.md): dance_b 10.6 -> 7.8 cm, punch 11.4 -> 10.8,
+      turn 3.1 -> 3.1 (0.05 and 0.2 tried as well).
+    """
+
+    guided: bool = eqx.field(static=True, default=GUIDED)
+    guided_fraction: float = eqx.field(static=True, default=pf_guided.GUIDED_FRACTION)
+    guided_steps: int = eqx.field(static=True, default=pf_guided.GUIDED_STEPS)
+    guided_damping: float = pf_guided.GUIDED_DAMPING
+    guided_init: bool = eqx.field(static=True, default=GUIDED_INIT)
+    swivel_fraction: float = eqx.field(static=True, default=SWIVEL_FRACTION)
+
+
+class Initialisation(eqx.Module):
+    """The automatic initialisation's prior and annealing (Azad give none; :func:`init`).
+
+    * ``init_betas`` (traced; their number static): the annealing layers, 12 from 0.02 to 1;
+    * ``init_yaw`` (traced): the turn about the vertical, uniform in +-``init_yaw`` rad (the
+      subject roughly faces the cameras; pi: any facing). The lean's std :data:`INIT_TILT`, the
+      root's :data:`INIT_ROOT_STD` around the head-derived position.
+    """
+
+    init_betas: tuple[float, ...] = INIT_BETAS
+    init_yaw: float = INIT_YAW
+
+
+class Images(eqx.Module):
+    """The host image line: skin and shirt segmentation, blobs, colour models (Azad §IV and
+    this library's options; all host-side, outside the jitted step).
+
+    * ``segment``: Azad's HSV intervals (:class:`~jaxmocap.segment.SegmentParams`; ``None``:
+      the defaults; :data:`SYNTH_SKIN_HSV` for :mod:`jaxmocap.synth`'s scenes);
+    * ``colors``: the capture's skin and shirt colour model (:mod:`jaxmocap.pf.colors`) used
+      for the skin map and the foreground instead of ``segment``'s intervals;
+    * ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
+      (:func:`hand_reach`, by keypoint roles) before they reach the distance cue;
+    * ``skin_grow`` (px, needs ``colors``): the skin map grown into a relaxed skin map by up to
+      this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`);
+    * ``adapt_colors`` (needs ``colors``): re-fit the skin and shirt classes on line from the
+      tracked head and body on the frames where the filter agrees with the triangulated head
+      (:mod:`jaxmocap.trackers.stereo_pf.adapt`; one frame weighs ``adapt_rate`` /
+      ``adapt_shirt_rate``, 0 leaves that class fixed; a class's spread stays within
+      ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames with the
+      filter alongside;
+    * ``part_colours`` (needs ``colors``): a colour state per part (head, each hand, shirt)
+      updated from the estimate's render, and each skin part searched near its prediction with
+      its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
+      :class:`SeedParams`). Off by default: on the dev split of the test world it found no
+      more hands within 8 cm and cost ~8x per frame (the module's docstring).
+    """
+
+    segment: SegmentParams | None = None
+    colors: CaptureColors | None = None
+    plausible_blobs: bool = eqx.field(static=True, default=False)
+    skin_grow: int = eqx.field(static=True, default=0)
+    adapt_colors: bool = eqx.field(static=True, default=False)
+    adapt_rate: float = eqx.field(static=True, default=ADAPT_RATE)
+    adapt_shirt_rate: float = eqx.field(static=True, default=ADAPT_RATE)
+    adapt_spread: float = eqx.field(static=True, default=ADAPT_MAX_SPREAD)
+    part_colours: bool = eqx.field(static=True, default=False)
+    seed_params: SeedParams | None = eqx.field(static=True, default=None)
+
+
+# make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
+AZAD_FILTER = dict(cues=Cues(edge_outside=None, use_support=False),
+                   proposals=Proposals(guided=False, swivel_fraction=0.0))
+
+
 class StereoPFParams(eqx.Module):
     """Everything fixed over a sequence: the likelihood (body, cameras, cues), the particle
     filter's box and noise, the image pipeline's parameters and the initialisation prior."""
@@ -251,82 +384,37 @@ def make_params(
     cams: Sequence[Camera] | Camera,
     model: BodyModel | None = None,
     dofs: Sequence[int] | np.ndarray | None = None,
-    n_particles: int = N_PARTICLES,
-    use_distance: bool = True,
-    use_region: bool = False,
-    edge_form: str = "sad",
-    edge_outside: float | None = cues.EDGE_OUTSIDE,
-    use_support: bool = USE_SUPPORT,
-    support_all: bool = False,
-    sigma_s: float = cues.SIGMA_S,
-    sigma_g: float = cues.SIGMA_G,
-    sigma_d: float = cues.SIGMA_D,
-    sigma_r: float = cues.SIGMA_R,
-    points_per_line: int = cues.POINTS_PER_LINE,
+    *,
+    motion: Motion | None = None,
+    cues: Cues | None = None,
+    proposals: Proposals | None = None,
+    initialisation: Initialisation | None = None,
+    images: Images | None = None,
     default_q: ArrayLike | None = None,
-    segment: SegmentParams | None = None,
-    init_betas: Sequence[float] = INIT_BETAS,
-    step_betas: Sequence[float] = STEP_BETAS,
-    error_scale: float = ERROR_SCALE,
-    damping: float = DAMPING,
-    guided: bool = GUIDED,
-    guided_fraction: float = pf_guided.GUIDED_FRACTION,
-    guided_steps: int = pf_guided.GUIDED_STEPS,
-    guided_damping: float = pf_guided.GUIDED_DAMPING,
-    guided_init: bool = GUIDED_INIT,
-    swivel_fraction: float = SWIVEL_FRACTION,
-    colors: CaptureColors | None = None,
-    plausible_blobs: bool = False,
-    hand_swap: bool = False,
-    init_yaw: float = INIT_YAW,
-    adapt_colors: bool = False,
-    adapt_rate: float = ADAPT_RATE,
-    adapt_shirt_rate: float = ADAPT_RATE,
-    adapt_spread: float = ADAPT_MAX_SPREAD,
-    skin_grow: int = 0,
-    part_colours: bool = False,
-    seed_params=None,
     dtype=jnp.float32,
 ) -> StereoPFParams:
     """Tracker parameters for a calibrated stereo pair ``cams`` (left, right).
 
     ``dofs``: indices of the filtered DOFs (default the 14 of :func:`stereo_dofs`; the six root
-    DOFs must be among them); the others stay at ``default_q`` (default the rest pose).
-    ``guided``: the distance-cue-guided proposal (not in Azad's paper;
-    :mod:`jaxmocap.trackers.stereo_pf`):
-    ``guided_fraction`` of the particles take ``guided_steps`` minimum-norm Gauss-Newton steps
-    (Levenberg damping ``guided_damping``, m^2) toward the triangulated head / hands after the
-    prediction, in the filter step and in the initialisation. ``guided=False`` is Azad's filter.
-    ``edge_outside``: the edge value of contour samples outside the image (default
-    :data:`jaxmocap.pf.cues.EDGE_OUTSIDE`; None: Azad's zero padding, which pulls a limb that
-    leaves the image back in). ``use_support``: the hand-support cue (default on; not in the
-    paper; :func:`jaxmocap.pf.cues.support_loglik`, width ``sigma_s``, on the hands without a
-    triangulated point, or on every hand with ``support_all``; :func:`observe` then adds the
-    support map to the observation). ``swivel_fraction``: the fraction of the particles
-    whose elbows jump about their shoulder-hand lines each frame (:class:`SwivelProposal`;
-    default :data:`SWIVEL_FRACTION`; 0 disables). Azad's filter: ``**AZAD_FILTER``.
-    ``colors``: the capture's skin and shirt colour model (:mod:`jaxmocap.pf.colors`) used for
-    the skin map and the foreground instead of ``segment``'s HSV intervals.
-    ``plausible_blobs``: drop hand candidates farther from the head than the arms reach
-    (:func:`hand_reach`, by keypoint roles) before they reach the distance cue.
-    ``hand_swap``: each particle pairs its hands with the triangulated ones in the nearer
-    pairing (:class:`~jaxmocap.pf.cues.StereoLikelihood`), robust to swapped blob identities.
-    ``init_yaw``: the initial prior's turn about the vertical, uniform in +-``init_yaw`` rad
-    (default :data:`INIT_YAW`, a subject facing the cameras; pi: any facing).
-    ``adapt_colors``: re-fit ``colors``' skin and shirt classes on line from the tracked head
-    and body on the frames where the filter agrees with the triangulated head
-    (:mod:`jaxmocap.trackers.stereo_pf.adapt`; one frame weighs ``adapt_rate`` /
-    ``adapt_shirt_rate``, 0 leaves that class fixed; a class's spread stays within
-    ``adapt_spread`` x the fitted one's); :func:`track` then observes the frames
-    with the filter alongside. ``skin_grow`` (px, needs ``colors``): the skin map grown into
-    a relaxed skin map by up to this many pixels (:func:`jaxmocap.pf.colors.hysteresis_masks`).
-    ``part_colours`` (needs ``colors``): a colour state per part (head, each hand, shirt)
-    updated from the estimate's render, and each skin part searched near its prediction with
-    its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
-    :class:`SeedParams`); :func:`track` then observes the
-    frames with the filter alongside. Off by default: on the dev split of the test world it
-    found no more hands within 8 cm and cost ~8x per frame (the module's docstring).
+    DOFs must be among them); the others stay at ``default_q`` (default the rest pose). The
+    settings come in groups, ``None`` the group's defaults (the paper's constants and this
+    library's measured extensions): :class:`Motion`, :class:`Cues`, :class:`Proposals`,
+    :class:`Initialisation`, :class:`Images`. Azad's filter: ``**AZAD_FILTER``. The numbers
+    the jitted step reads become arrays of ``dtype`` (a new value runs the compiled
+    :func:`filter_step` as it is); switches and shapes are static.
     """
+    motion = Motion() if motion is None else motion
+    cues = Cues() if cues is None else cues
+    proposals = Proposals() if proposals is None else proposals
+    initialisation = Initialisation() if initialisation is None else initialisation
+    images = Images() if images is None else images
+    n_particles = motion.n_particles
+    colors, skin_grow = images.colors, images.skin_grow
+    part_colours, adapt_colors = images.part_colours, images.adapt_colors
+    adapt_rate, adapt_shirt_rate = images.adapt_rate, images.adapt_shirt_rate
+    adapt_spread = images.adapt_spread
+    guided_fraction, guided_steps = proposals.guided_fraction, proposals.guided_steps
+    guided_damping, swivel_fraction = proposals.guided_damping, proposals.swivel_fraction
     model = default_body() if model is None else model
     cams = stack_cameras(list(cams)) if isinstance(cams, (list, tuple)) else cams
     if cams.K.ndim != 3:
@@ -341,16 +429,16 @@ def make_params(
         )
     if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
         raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
-                         f"capture's colours (colors=...), got {skin_grow!r}")
+                         f"capture's colours (Images(colors=...)), got {skin_grow!r}")
     if part_colours and colors is None:
         raise InputError("stereo_pf.make_params: part_colours: needs the capture's colour model "
-                         "(colors=...) for the parts' calibrated start")
+                         "(Images(colors=...)) for the parts' calibrated start")
     if part_colours and adapt_colors:
         raise InputError("stereo_pf.make_params: part_colours and adapt_colors both adapt the "
                          "colours; give one")
     if adapt_colors and colors is None:
         raise InputError("stereo_pf.make_params: adapt_colors: needs the capture's colour model "
-                         "(colors=...); the HSV intervals are not adapted")
+                         "(Images(colors=...)); the HSV intervals are not adapted")
     if not (0.0 <= adapt_rate <= 1.0 and 0.0 <= adapt_shirt_rate <= 1.0 and adapt_spread > 0):
         raise InputError("stereo_pf.make_params: adapt_rate / adapt_shirt_rate / adapt_spread: "
                          f"expected in [0, 1] / [0, 1] / > 0, got {adapt_rate} / "
@@ -366,13 +454,14 @@ def make_params(
             f"{default_q.shape}"
         )
     lik = StereoLikelihood(
-        model=model, limbs=cues.limb_model(model), cams=cams, default_q=default_q,
-        sigma_g=jnp.asarray(sigma_g, dtype), sigma_d=jnp.asarray(sigma_d, dtype),
-        sigma_r=jnp.asarray(sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
-        points_per_line=points_per_line, edge_form=edge_form, use_distance=use_distance,
-        use_region=use_region, sigma_s=jnp.asarray(sigma_s, dtype), use_support=use_support,
-        support_all=support_all, hand_swap=hand_swap,
-        edge_outside=None if edge_outside is None else float(edge_outside),
+        model=model, limbs=cuelib.limb_model(model), cams=cams, default_q=default_q,
+        sigma_g=jnp.asarray(cues.sigma_g, dtype), sigma_d=jnp.asarray(cues.sigma_d, dtype),
+        sigma_r=jnp.asarray(cues.sigma_r, dtype), dofs=tuple(int(i) for i in dofs),
+        points_per_line=cues.points_per_line, edge_form=cues.edge_form,
+        use_distance=cues.use_distance, use_region=cues.use_region,
+        sigma_s=jnp.asarray(cues.sigma_s, dtype), use_support=cues.use_support,
+        support_all=cues.support_all, hand_swap=cues.hand_swap,
+        edge_outside=None if cues.edge_outside is None else jnp.asarray(cues.edge_outside, dtype),
     )  # fmt: skip
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
     upper = np.asarray(model.chain.upper, np.float64)[dofs]
@@ -387,7 +476,7 @@ def make_params(
             f"{guided_steps} / {guided_damping}"
         )
     proposal = None
-    if guided:
+    if proposals.guided:
         proposal = pf.GuidedProposal(
             residual=lik.distance_residual,
             linearize=lik.distance_linearize,
@@ -412,8 +501,8 @@ def make_params(
         upper=jnp.asarray(upper, dtype),
         sigma_min=jnp.asarray(np.asarray(SIGMA_MIN)[kind], dtype),
         sigma_max=jnp.asarray(np.asarray(SIGMA_MAX)[kind], dtype),
-        damping=jnp.asarray(damping, dtype),
-        error_scale=jnp.asarray(error_scale, dtype),
+        damping=jnp.asarray(motion.damping, dtype),
+        error_scale=jnp.asarray(motion.error_scale, dtype),
         boundary="reflect",
         proposal=proposal,
     )
@@ -422,24 +511,24 @@ def make_params(
     return StereoPFParams(
         likelihood=lik,
         filter=filt,
-        segment=SegmentParams() if segment is None else segment,
+        segment=SegmentParams() if images.segment is None else images.segment,
         prior_lower=jnp.asarray(np.where(np.isfinite(lower), lower, 0.0), dtype),
         prior_upper=jnp.asarray(np.where(np.isfinite(upper), upper, 0.0), dtype),
-        init_betas=jnp.asarray(init_betas, dtype),
-        step_betas=jnp.asarray(step_betas, dtype),
+        init_betas=jnp.asarray(initialisation.init_betas, dtype),
+        step_betas=jnp.asarray(motion.step_betas, dtype),
         head_rest=head_rest.astype(dtype),
-        init_yaw=jnp.asarray(init_yaw, dtype),
+        init_yaw=jnp.asarray(initialisation.init_yaw, dtype),
         init_tilt=jnp.asarray(INIT_TILT, dtype),
         init_root_std=jnp.asarray(INIT_ROOT_STD, dtype),
         fallback_root=jnp.asarray(FALLBACK_ROOT, dtype),
         n_particles=int(n_particles),
-        guided_init=bool(guided and guided_init),
+        guided_init=bool(proposals.guided and proposals.guided_init),
         colors=colors,
-        reach=hand_reach(model) if plausible_blobs else None,
+        reach=hand_reach(model) if images.plausible_blobs else None,
         adapt=(float(adapt_rate), float(adapt_shirt_rate), float(adapt_spread)) if adapt_colors
         else None,
         skin_grow=int(skin_grow),
-        part_colours=_seed_params(seed_params) if part_colours else None,
+        part_colours=_seed_params(images.seed_params) if part_colours else None,
     )
 
 

@@ -31,8 +31,9 @@ the grey-world chromaticity of :mod:`jaxmocap.pf.colors` is not one). The calibr
 capture's classes on the first frame with a triangulated head (:func:`calibrate_parts`): the
 pixels of its skin map (all three skin parts start from it) and of its shirt map.
 
-**Measured: not an improvement; opt-in** (``make_params(part_colours=True)``, experiment
-option ``part_colours``; ``docs/results/world_pf_parts.md``). Dev split, seed 0, against the
+**Measured: not an improvement; opt-in**
+(``make_params(images=Images(colors=..., part_colours=True))``, experiment option
+``part_colours``; ``docs/results/world_pf_parts.md``). Dev split, seed 0, against the
 same filter without it: each hand within 8 cm of the truth on 40 / 9 / 20 / 6% (left) and
 51 / 0 / 22 / 2% (right) of its visible frames, against 46 / 0 / 24 / 6% and 55 / 0 / 26 / 0%;
 mean joint error 14.4 / 44.7 / 37.1 / 44.9 cm against 13.9 / 42.4 / 34.5 / 41.6 (pf_00, 03, 06,
@@ -274,7 +275,7 @@ def observe_parts(params, key, frames, blob_params: bloblib.BlobParams | None = 
     seed = params.part_colours
     if seed is None or params.colors is None:
         raise InputError("stereo_pf.parts.observe_parts: params without part colours "
-                         "(make_params(colors=..., part_colours=True))")
+                         "(make_params(images=Images(colors=..., part_colours=True)))")
     model = params.model
     idx = np.asarray([keypoint_index(model, k)[0] for k in bloblib.ENTITY_NAMES])
     kp_fn = jax.jit(lambda q: keypoints(model, q)[idx])

@@ -159,7 +159,7 @@ def search_entities(
     ``skin_maps``: :func:`relaxed_skin` of both images if already computed."""
     if params.colors is None:
         raise InputError("stereo_pf.search: the guided search needs the capture's colours "
-                         "(make_params(colors=...))")
+                         "(make_params(images=Images(colors=...)))")
     cams = params.likelihood.cams
     points = np.array(points, np.float64)
     valid = np.array(valid, bool)
@@ -224,7 +224,7 @@ def observe_search(
     search added."""
     if params.colors is None:
         raise InputError("stereo_pf.search.observe_search: the guided search needs the "
-                         "capture's colours (make_params(colors=...))")
+                         "capture's colours (make_params(images=Images(colors=...)))")
     model = params.model
     idx = np.asarray([keypoint_index(model, k)[0] for k in ENTITIES])
     kp_fn = jax.jit(lambda q: keypoints(model, q)[idx])
