@@ -232,6 +232,19 @@ def test_tracker_input_refusals(tmp_path, capsys):
     assert_refused(capsys, "--method pf needs exactly 2 cameras", *base, "--method", "pf",
                    leaves=[out])
     assert_refused(capsys, "--method shirt needs --colors", *base, leaves=[out])
+    two = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-.1, .1)]
+    save_cameras(tmp_path / "two.json", two)
+    from jaxmocap.body.packages import package_body_file
+
+    cmu, _ = package_body_file("cmu")  # a clavicle + humerus shoulder: no swivel jumps
+    d1 = tmp_path / "cam1"
+    d1.mkdir()
+    cv2.imwrite(str(d1 / "0.png"), np.zeros((H, W, 3), np.uint8))
+    pf = ["track", "--method", "pf", "--cameras", tmp_path / "two.json", d, d1, "--out", out,
+          "--quiet", "--body", cmu]
+    assert_refused(capsys, "--pf-swivel 0", *pf, leaves=[out])
+    assert_refused(capsys, "--pf-swivel: must be a fraction in [0, 1]", *pf, "--pf-swivel",
+                   "1.5", leaves=[out])
     (tmp_path / "colors.json").write_text('{"format": "jaxmocap.colors", "version": 2}')
     assert_refused(capsys, "colors.json: version: expected 1, got 2", *base, "--colors",
                    tmp_path / "colors.json", leaves=[out])

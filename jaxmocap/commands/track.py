@@ -41,7 +41,13 @@ from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
-from jaxmocap.io.preflight import check_outputs, check_stale, int_range, positive_float
+from jaxmocap.io.preflight import (
+    check_outputs,
+    check_stale,
+    int_range,
+    positive_float,
+    unit_fraction,
+)
 from jaxmocap.io.sync import SYNC_MODES, SyncReader
 from jaxmocap.io.video import VideoWriter, quiet_ffmpeg
 from jaxmocap.kalman import DEFAULT_CUTOFF_HZ, smooth_poses
@@ -192,7 +198,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             raise InputError("--pf-skin-grow grows the skin map of the capture's colours; it "
                              "needs --pf-colors")
         return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin, body,
-                                    args.pf_colors, args.pf_skin_grow)
+                                    args.pf_colors, args.pf_skin_grow, args.pf_swivel)
     from jaxmocap.color import load_color_model
 
     if not args.colors:
@@ -333,6 +339,10 @@ def add_parser(sub) -> None:
                    "skin map (hysteresis: the shaded rim of small hands; 4 px: better on the "
                    "dev split, not on the test split, docs/results/stereo_pf.md; default: "
                    "%(default)s, off)")
+    g.add_argument("--pf-swivel", metavar="FRACTION", type=unit_fraction,
+                   help="share of the particles whose arms are turned about their shoulder-hand "
+                   "lines each frame (elbow-swivel jumps, beyond Azad; default 0.1); 0 for a "
+                   "body whose shoulder is not three x, y, z hinges (e.g. a clavicle + humerus)")
     p.set_defaults(func=run)
 
 

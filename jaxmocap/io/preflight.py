@@ -236,6 +236,17 @@ def int_range(lo: int, hi: int | None = None, why: str = "") -> Callable[[str], 
     return parse
 
 
+def unit_fraction(text: str) -> float:
+    """An argparse ``type``: a finite number in [0, 1]."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= v <= 1.0:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"must be a fraction in [0, 1], got {text}")
+    return v
+
+
 def positive_float(text: str) -> float:
     """An argparse ``type``: a finite number > 0."""
     try:

@@ -269,7 +269,7 @@ class StereoPFFrameTracker:
 
     def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
                  body: BodyModel | None = None, pf_colors: str | None = None,
-                 skin_grow: int = 0):
+                 skin_grow: int = 0, swivel: float | None = None):
         from jaxmocap import blobs
         from jaxmocap.segment import HSVInterval, SegmentParams
         from jaxmocap.trackers import stereo_pf
@@ -292,9 +292,11 @@ class StereoPFFrameTracker:
         elif skin == "synth":
             lo, hi = stereo_pf.SYNTH_SKIN_HSV
             segment = SegmentParams(skin=HSVInterval(jnp.asarray(lo), jnp.asarray(hi)))
+        proposals = (stereo_pf.Proposals() if swivel is None
+                     else stereo_pf.Proposals(swivel_fraction=swivel))
         self._make = lambda colors: stereo_pf.make_params(
             cams, model=body, motion=stereo_pf.Motion(n_particles=n_particles),
-            cues=stereo_pf.Cues(hand_swap=colors is not None),
+            cues=stereo_pf.Cues(hand_swap=colors is not None), proposals=proposals,
             images=stereo_pf.Images(segment=segment, colors=colors,
                                     plausible_blobs=colors is not None,
                                     skin_grow=skin_grow if colors is not None else 0))

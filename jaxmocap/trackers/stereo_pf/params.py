@@ -168,7 +168,8 @@ def _swivel_arms(model: BodyModel, dofs: np.ndarray):
             raise InputError(
                 f"stereo_pf.make_params: swivel_fraction > 0 needs the {joint} joint "
                 f"{names} of {roles.source} to be three filtered x, y, z revolute links with "
-                "identity origin rotations; give swivel_fraction=0 for this body"
+                "identity origin rotations; give Proposals(swivel_fraction=0) for this body "
+                "(jaxmocap track --pf-swivel 0)"
             )
         out.append((tuple(pos[i] for i in idx), topo[links[0]][0], links[2], hand))
     return tuple(out)
