@@ -253,7 +253,8 @@ def test_tracker_input_refusals(tmp_path, capsys):
 def test_stereo_pf_end_to_end(tmp_path, capsys):
     """The real particle filter through the command on two rendered frames of the body
     (tiny images, 20 particles: this checks the wiring, not the accuracy). The 64x48 views hold
-    no triangulable head, so the online filter waits (as the offline one does): the frames are
+    no triangulable head and two frames are within the wait for one, so the online filter waits
+    (as the offline one does): the frames are
     written invalid (NaN) and say why; tests/test_trackers_stereo_pf.py steps the frame tracker
     through its initialisation on a drawn scene."""
     from jaxmocap.garment import default_garment
@@ -286,8 +287,9 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
     assert (out / "poses.c3d").stat().st_size > 0
     rows = (out / "diagnostics.csv").read_text().splitlines()
     assert rows[0] == ("frame,read,valid,ess,best_loglik,degenerate,spread_root_m,blobs,"
-                       "waiting_for_head,head_residual_m,calibrating")
+                       "waiting_for_head,head_residual_m,calibrating,start_anchor")
     assert [r.split(",")[8] for r in rows[1:]] == ["1", "1"]  # waiting for a head
+    assert [r.split(",")[-1] for r in rows[1:]] == ["0", "0"]  # not started
 
 
 def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):

@@ -244,7 +244,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     from jaxmocap import blobs as bloblib
     from jaxmocap.segment import HSVInterval, SegmentParams
     from jaxmocap.trackers import stereo_pf as sp
-    from jaxmocap.trackers.driver import stereo_offline
+    from jaxmocap.trackers.driver import START_ANCHOR_CODES, stereo_offline
 
     if len(seq.cameras) != 2:
         raise InputError(f"method 'pf' needs a stereo pair; the sequence has "
@@ -260,6 +260,7 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     lag = int(opts.pop("smooth_lag", 0))
     validity = opts.pop("validity", True)
     search = opts.pop("search", "off")
+    heads = opts.pop("start_from_head", True)
     if "seed_replace" in opts:  # part_colours: which parts the seeded search may replace
         from jaxmocap.trackers.stereo_pf.params import SeedParams
 
@@ -298,7 +299,8 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
 
         def observe():
             return observe_adaptive(params, key, seq.frames, blob)[0]
-    run = stereo_offline(params, key, seq.frames, observe, lag, repeat=True)
+    run = stereo_offline(params, key, seq.frames, observe, lag, repeat=True,
+                         start_from_head=heads)
     obs, t_init, tm = run.observations, run.init_frame, run.timings
     observe_first, observe_s = tm["observe_first"], tm["observe"]
     first, warm = tm["filter_first"], tm["filter"]
@@ -309,12 +311,14 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
     ov = np.asarray(obs.valid)
     valid = sp.frame_validity(params, q, np.asarray(obs.points), ov) if validity \
         else np.isfinite(q).all(axis=1)
+    code = float(START_ANCHOR_CODES[run.anchor])  # offline every frame runs from the start
     rows = [{"ess": float(est.ess[t]), "best_loglik": float(est.best_loglik[t]),
-             "degenerate": float(est.degenerate[t]), "blobs": float(ov[t].sum())}
-            for t in range(n)]
+             "degenerate": float(est.degenerate[t]), "blobs": float(ov[t].sum()),
+             "start_anchor": code} for t in range(n)]
     per_frame = (observe_s + warm) / n
     return {"q": q, "valid": valid, "times": np.full(n, per_frame), "diagnostics": rows,
             "body": body, "first_run_s": observe_first + first, "init_frame": t_init,
+            "start_anchor": run.anchor,
             "blobs": (np.asarray(obs.points), ov)}  # the skin points fed into the filter
 
 

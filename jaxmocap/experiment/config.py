@@ -48,8 +48,11 @@ Relative paths are relative to the configuration file. Tracker options:
   the face around the projected head keypoint -- or ``"auto"`` calibrated from the first
   frames without labels, :func:`jaxmocap.pf.colors.calibrate_from_frames`), ``blob_params``
   (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``),
-  ``smooth_lag`` and ``validity`` (default true: frames flagged by
-  :func:`~jaxmocap.trackers.stereo_pf.frame_validity`; false: every finite frame is valid).
+  ``smooth_lag``, ``validity`` (default true: frames flagged by
+  :func:`~jaxmocap.trackers.stereo_pf.frame_validity`; false: every finite frame is valid)
+  and ``start_from_head`` (default true; false: the filter never starts from the triangulated
+  head but from the shirt silhouette or the hands, :mod:`jaxmocap.trackers.stereo_pf.start`,
+  to measure that start where the head is found).
 
 **Dataset**: a folder written by ``jaxmocap synth`` (``scene.json``, ``cameras.json``,
 ``groundtruth.npz``, videos / PNG folders), or a folder whose sub-folders are such folders.
@@ -96,7 +99,8 @@ CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
                "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
-            "smooth_lag": (int,), "validity": (bool,), "search": (str,)}
+            "smooth_lag": (int,), "validity": (bool,), "search": (str,),
+            "start_from_head": (bool,)}
 PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
 SHIRT_RESERVED = {"scene_colors", "dtype"}  # set by the experiment (scene_clusters) / the cameras
 PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin)

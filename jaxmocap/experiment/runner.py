@@ -125,7 +125,8 @@ def write_cell(out: Path, spec: dict, result: dict, exp: ExperimentConfig, bodie
         doc = {k: spec[k] for k in ("cell", "sequence", "seed", "config_hash",
                                     "dataset_digest")}
         doc.update(config=cfg["name"], method=cfg["method"], metrics=metrics,
-                   init_frame=result.get("init_frame"))
+                   init_frame=result.get("init_frame"),
+                   start_anchor=result.get("start_anchor"))
         (tmp / RESULT).write_text(json.dumps(doc, indent=1) + "\n")
         os.chmod(tmp, 0o777 & ~_umask())
         if target.exists():

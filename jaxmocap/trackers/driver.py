@@ -251,25 +251,29 @@ class ShirtFrameTracker:
 
 class StereoPFFrameTracker:
     """Azad et al. 2007 through the frame protocol (see :mod:`jaxmocap.trackers.stereo_pf`):
-    the filter initialises on the first frame with a triangulated head (as the offline
-    ``track``; frames before it are invalid, ``waiting_for_head`` 1, and have no estimate:
-    NaN), then one step per frame (the filter's mean, valid or not).
+    the filter initialises on the first frame with a triangulated head, or, when none is
+    triangulated within :data:`~jaxmocap.trackers.stereo_pf.start.START_WAIT` frames, on the
+    first frame with a shirt silhouette in both views (else with a hand blob;
+    :mod:`jaxmocap.trackers.stereo_pf.start`, as the offline ``track``). Frames before it are
+    invalid, ``waiting_for_head`` 1, and have no estimate: NaN; then one step per frame (the
+    filter's mean, valid or not). The start is announced once (``announce``).
 
     Diagnostics: ``ess`` (effective sample size), ``best_loglik``, ``degenerate``,
     ``spread_root_m`` (particle spread of the root position, metres, sqrt of the trace of its
-    covariance), ``blobs`` (head/hands triangulated this frame, 0..3), ``waiting_for_head``,
-    ``head_residual_m`` (model head to the triangulated head; empty when not triangulated),
-    ``calibrating`` (``pf_colors="auto"``: the first
+    covariance), ``blobs`` (head/hands triangulated this frame, 0..3), ``waiting_for_head``
+    (not started yet), ``head_residual_m`` (model head to the triangulated head; empty when not
+    triangulated), ``calibrating`` (``pf_colors="auto"``: the first
     :data:`jaxmocap.pf.colors.AUTO_FRAMES` frames calibrate the capture's colours and are not
-    tracked). A frame is valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says
-    so."""
+    tracked), ``start_anchor`` (what the running filter was started from: 1 the head, 2 the
+    shirt silhouette, 3 hand blobs; 0 not started; :data:`START_ANCHOR_CODES`). A frame is
+    valid when :func:`jaxmocap.trackers.stereo_pf.frame_validity` says so."""
 
     diagnostic_names = ("ess", "best_loglik", "degenerate", "spread_root_m", "blobs",
-                        "waiting_for_head", "head_residual_m", "calibrating")
+                        "waiting_for_head", "head_residual_m", "calibrating", "start_anchor")
 
     def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
                  body: BodyModel | None = None, pf_colors: str | None = None,
-                 skin_grow: int = 0, swivel: float | None = None):
+                 skin_grow: int = 0, swivel: float | None = None, announce: bool = True):
         from jaxmocap import blobs
         from jaxmocap.segment import HSVInterval, SegmentParams
         from jaxmocap.trackers import stereo_pf
@@ -306,28 +310,43 @@ class StereoPFFrameTracker:
         self.cams = cams
         self.key = jax.random.PRNGKey(seed)
         self.state = None
+        self.announce = announce
+        self.anchor: str | None = None  # what the running filter started from
 
     def start(self, frames: np.ndarray) -> None:
+        from jaxmocap.trackers.stereo_pf.start import Starter
+
         self.blob_state = self._blobs.init(self._pf.BLOB_PARAMS)
-        self.state = None
+        self.state, self.anchor = None, None
+        self._starter = Starter(self.params)
+        self._t = -1
 
     def step(self, frames: np.ndarray) -> FrameResult:
+        self._t += 1
         if self._calibration is not None:
             from jaxmocap.pf.colors import AUTO_FRAMES, calibrate_from_frames
 
             self._calibration.append(np.asarray(frames[0]))
             if len(self._calibration) < AUTO_FRAMES:
-                return FrameResult(np.full(self.body.n_dof, np.nan), False, {"calibrating": 1.0})
+                return FrameResult(np.full(self.body.n_dof, np.nan), False,
+                                   {"calibrating": 1.0, "start_anchor": 0.0})
             self.params = self._make(calibrate_from_frames(self._calibration))
             self._step = self._pf.compile_step(self.params)
             self._calibration = None
+            self._starter.params = self.params
         obs, self.blob_state = self._pf.observe(self.params, frames, self.blob_state)
         valid_blobs = np.asarray(obs.valid)
         if self.state is None:
-            if not valid_blobs[0]:  # no triangulated head yet: nothing to anchor on
+            got = self._starter(obs)
+            if got is None:  # no head yet (and, after the wait, no shirt nor hand either)
                 return FrameResult(np.full(self.body.n_dof, np.nan), False,
-                                   {"waiting_for_head": 1.0, "blobs": float(valid_blobs.sum())})
-            self.state, est = self._pf.init_top_level(self.params, self.key, obs)
+                                   {"waiting_for_head": 1.0, "blobs": float(valid_blobs.sum()),
+                                    "start_anchor": 0.0})
+            self.anchor, start = got
+            self.state, est = self._pf.init_top_level(self.params, self.key, obs, start)
+            if self.announce:
+                print(f"jaxmocap track: the stereo filter started on frame {self._t} from "
+                      f"{START_ANCHOR_WORDS[self.anchor]}")
         else:
             self.state, est = self._step(self.state, obs)
         est, parts = jax.device_get((est, self.state.particles.particles))
@@ -342,11 +361,23 @@ class StereoPFFrameTracker:
              "degenerate": float(est.degenerate),
              "spread_root_m": float(np.sqrt(np.trace(np.cov(root.T)))),
              "blobs": float(np.sum(valid_blobs)), "waiting_for_head": 0.0,
-             "head_residual_m": float(res), "calibrating": 0.0}
+             "head_residual_m": float(res), "calibrating": 0.0,
+             "start_anchor": float(START_ANCHOR_CODES[self.anchor])}
         return FrameResult(q, ok, d, est)
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
         return _skeleton_views(self.body, self.cams, frames, result)
+
+
+# The stereo filter's start anchors (jaxmocap.trackers.stereo_pf.start.ANCHORS) as the
+# ``start_anchor`` diagnostics column codes them (0: not started) and as the run says them.
+START_ANCHOR_CODES = {"head": 1, "shirt": 2, "hands": 3, "none": 4}
+START_ANCHOR_WORDS = {
+    "head": "the triangulated head",
+    "shirt": "the shirt silhouette (no head triangulated in its first frames)",
+    "hands": "the hand blobs (no head triangulated in its first frames, no shirt region)",
+    "none": "no anchor (nothing seen: the fallback root)",
+}
 
 
 class StereoRun(NamedTuple):
@@ -354,25 +385,31 @@ class StereoRun(NamedTuple):
     filter, the frame it initialised on, the filter's state after the initialisation, and
     timings (s): ``observe_first`` / ``observe``
     (the host line, cold and warm), ``filter_first`` / ``filter`` (initialisation + scan,
-    cold (compile) and warm; warm ones only with ``repeat``)."""
+    cold (compile) and warm; warm ones only with ``repeat``); ``anchor``: what the
+    initialisation started from (:mod:`jaxmocap.trackers.stereo_pf.start`: ``"head"``,
+    ``"shirt"``, ``"hands"`` or ``"none"``)."""
 
     estimate: Any
     observations: Any
     init_frame: int
     initial_state: Any
     timings: dict[str, float]
+    anchor: str = "head"
 
 
 def stereo_offline(params, key, frames: np.ndarray,
                    observe: Callable[[], Any] | None = None, smooth_lag: int = 0,
-                   repeat: bool = False) -> StereoRun:
+                   repeat: bool = False, start_from_head: bool = True) -> StereoRun:
     """The stereo filter over a whole sequence offline: observations on the host (``observe()``;
     default :func:`stereo_pf.observe_sequence <jaxmocap.trackers.stereo_pf.observe_sequence>`
-    with the tracker's blob settings), automatic initialisation on the first frame with a
-    triangulated head (:func:`~jaxmocap.trackers.stereo_pf.anchor_frame`), the filter over
+    with the tracker's blob settings), automatic initialisation on the start frame
+    (:func:`~jaxmocap.trackers.stereo_pf.start.start_frame`: a head within the first frames,
+    else the shirt silhouette or the hands; ``start_from_head=False``: never the head), the
+    filter over
     every frame as one scan (``smooth_lag``: fixed-lag smoothing). With ``repeat`` the host
     line and the filter run a second time, compiled, for the steady-state timings."""
     from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.stereo_pf.start import start_frame
 
     if observe is None:
         def observe():
@@ -386,10 +423,10 @@ def stereo_offline(params, key, frames: np.ndarray,
         t0 = time.perf_counter()
         observe()
         timings["observe"] = time.perf_counter() - t0
-    t_init = sp.anchor_frame(obs)
+    t_init, anchor, start = start_frame(params, obs, heads=start_from_head)
 
     def filt():
-        state, _ = sp.init_top_level(params, key, jax.tree.map(lambda a: a[t_init], obs))
+        state, _ = sp.init_top_level(params, key, jax.tree.map(lambda a: a[t_init], obs), start)
         _, est = sp.run_top_level(params, state, obs, smooth_lag)
         return state, jax.block_until_ready(est)
 
@@ -400,7 +437,7 @@ def stereo_offline(params, key, frames: np.ndarray,
         t0 = time.perf_counter()
         filt()
         timings["filter"] = time.perf_counter() - t0
-    return StereoRun(est, obs, t_init, state, timings)
+    return StereoRun(est, obs, t_init, state, timings, anchor)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -499,6 +536,8 @@ def sequence_frames(frames: np.ndarray):
 __all__ = [
     "PF_JOINTS",
     "SHIRT_JOINTS",
+    "START_ANCHOR_CODES",
+    "START_ANCHOR_WORDS",
     "VALIDITY",
     "FrameResult",
     "FrameTracker",

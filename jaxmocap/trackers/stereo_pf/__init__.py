@@ -22,10 +22,12 @@ are held at ``default_q``. Estimates are the weighted particle mean.
 
 **Automatic initialisation** (§V, Fig. 4: "no initial configuration is given"): particles are
 drawn from a broad prior -- the root placed so that the model's head lies on the triangulated
-head (the mean of the valid blobs when the head is missing), a random turn about the vertical
-in +-``INIT_YAW`` and small tilts, arm joints uniform in their limits -- and refined by
-``len(init_betas)`` annealing layers (Deutscher et al. 2000) on the first frame (in
-:func:`track`: the first frame with a triangulated head, :func:`anchor_frame`). Tracking runs
+head, a random turn about the vertical in +-``INIT_YAW`` and small tilts, arm joints uniform in
+their limits -- and refined by ``len(init_betas)`` annealing layers (Deutscher et al. 2000) on
+the first frame (in :func:`track`: the first frame with a triangulated head). When no head is
+triangulated within :data:`START_WAIT` frames (skin the colour model does not find), the
+filter starts from what it has (:mod:`.start`, beyond the paper): the shirt silhouette of both
+views places the torso, else the mean of the hand blobs stands in for the head. Tracking runs
 one Condensation step per frame (Azad §II), or ``len(step_betas)`` annealing layers per frame
 when ``step_betas`` has several entries (better search, one likelihood pass per layer).
 
@@ -115,6 +117,7 @@ from jaxmocap.trackers.stereo_pf.sequence import (
     step,
     track,
 )
+from jaxmocap.trackers.stereo_pf.start import START_WAIT, Start, start_frame
 
 __all__ = [
     "AZAD_FILTER",
@@ -130,9 +133,11 @@ __all__ = [
     "REACH_MARGIN",
     "SIGMA_MAX",
     "SIGMA_MIN",
+    "START_WAIT",
     "SWIVEL_FRACTION",
     "SYNTH_SKIN_HSV",
     "SeedParams",
+    "Start",
     "StereoEstimate",
     "StereoPFParams",
     "SwivelProposal",
@@ -152,6 +157,7 @@ __all__ = [
     "online_frame",
     "run",
     "run_top_level",
+    "start_frame",
     "step",
     "support_map",
     "track",

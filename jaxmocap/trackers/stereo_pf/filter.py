@@ -10,7 +10,6 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from jaxmocap import pf
@@ -18,6 +17,7 @@ from jaxmocap.body.chain import so3_exp
 from jaxmocap.errors import InputError
 from jaxmocap.pf.cues import Observation
 from jaxmocap.trackers.stereo_pf.params import StereoEstimate, StereoPFParams, TrackerState
+from jaxmocap.trackers.stereo_pf.start import Start, choose
 
 # The filter's once-per-sequence programs (:data:`init_top_level`, :data:`run_top_level`: the
 # annealed initialisation and the offline scan) compile with XLA CPU's classic LLVM IR emitters
@@ -44,9 +44,12 @@ def _estimate(params: StereoPFParams, est: pf.PFEstimate) -> StereoEstimate:
     )
 
 
-def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation) -> pf.PFState:
+def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation,
+           start: Start | None = None) -> pf.PFState:
     """Broad initial particle set around the triangulated head (automatic initialisation:
-    :mod:`jaxmocap.trackers.stereo_pf`)."""
+    :mod:`jaxmocap.trackers.stereo_pf`), or around a :class:`~.start.Start` anchor (the
+    shirt silhouette) when one is given: the root so that ``start.rest`` lies on
+    ``start.point``, spread with ``start.cov``."""
     n, dofs = params.n_particles, params.dofs
     dt = params.prior_lower.dtype
     k_yaw, k_tilt, k_root, k_joint = jax.random.split(key, 4)
@@ -59,13 +62,18 @@ def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation) -> pf.PF
     head = jnp.where(valid[0], pts[0], jnp.where(jnp.any(valid), mean_valid, jnp.nan))
     anchored = jnp.any(valid)
     rot = so3_exp(w)
-    root = jnp.where(
-        anchored,
-        head[None, :] - (rot @ params.head_rest[:, None])[..., 0],
-        params.fallback_root[None, :],
-    )
-    std = jnp.where(anchored, params.init_root_std, 10 * params.init_root_std)
-    root = root + std * jax.random.normal(k_root, (n, 3), dt)
+    if start is None:
+        root = jnp.where(
+            anchored,
+            head[None, :] - (rot @ params.head_rest[:, None])[..., 0],
+            params.fallback_root[None, :],
+        )
+        std = jnp.where(anchored, params.init_root_std, 10 * params.init_root_std)
+        root = root + std * jax.random.normal(k_root, (n, 3), dt)
+    else:
+        root = start.point.astype(dt)[None, :] - (rot @ start.rest.astype(dt)[:, None])[..., 0]
+        chol = jnp.linalg.cholesky(start.cov.astype(dt))
+        root = root + jax.random.normal(k_root, (n, 3), dt) @ chol.T
     u = jax.random.uniform(k_joint, (n, len(dofs)), dt)
     lo, hi = params.prior_lower[None, :], params.prior_upper[None, :]
     x = lo + (hi - lo) * u
@@ -80,15 +88,23 @@ def _prior(params: StereoPFParams, key: PRNGKeyArray, obs: Observation) -> pf.PF
 
 @eqx.filter_jit
 def init(
-    params: StereoPFParams, key: PRNGKeyArray, first: Observation
+    params: StereoPFParams, key: PRNGKeyArray, first: Observation, start: Start | None = None
 ) -> tuple[TrackerState, StereoEstimate]:
     """Automatic initialisation on the first frame's observation: prior + annealing layers.
 
+    ``start``: the root prior's anchor when it is not the triangulated head (the shirt
+    silhouette, :func:`jaxmocap.trackers.stereo_pf.start.choose`); the annealing's distance
+    cue then takes the model head's place above the anchor as the head (:mod:`.start`). None:
+    Azad's head prior.
     Returns the state (ready for :func:`step` / :func:`run` from the first frame on) and the
     first frame's estimate.
     """
     k_prior, k_anneal, k_next = jax.random.split(key, 3)
-    state = _prior(params, k_prior, first)
+    state = _prior(params, k_prior, first, start)
+    if start is not None:  # the anchor's head for the annealing's distance cue (module doc)
+        head = start.point + params.head_rest - start.rest
+        first = dataclasses.replace(first, points=first.points.at[0].set(head.astype(
+            first.points.dtype)), valid=first.valid.at[0].set(True))
     filt = params.filter
     if not params.guided_init:
         filt = dataclasses.replace(filt, proposal=None)
@@ -121,14 +137,16 @@ def _filter_step_lineage(params: StereoPFParams, state: TrackerState, obs: Obser
 
 def online_frame(params: StereoPFParams, key: PRNGKeyArray, step, state, seen: list, obs):
     """One frame of an on-line filter over observations made frame by frame (each may depend
-    on the previous estimate): before the first frame with a triangulated head ``(None,
-    None)``; on it :func:`init` there, then ``step`` from frame 0 over ``seen`` (the
-    observations so far, ending with ``obs``), as :func:`run` after its init on the anchor
-    frame; afterwards one ``step``. Returns ``(state, estimate)``."""
+    on the previous estimate): before the start frame (:func:`~.start.choose`: a triangulated
+    head, or after the wait the shirt or a hand) ``(None, None)``; on it :func:`init` there,
+    then ``step`` from frame 0 over ``seen`` (the observations so far, ending with ``obs``), as
+    :func:`run` after its init on the anchor frame; afterwards one ``step``. Returns
+    ``(state, estimate)``."""
     if state is None:
-        if not np.asarray(obs.valid)[0]:
+        got = choose(params, obs.valid, obs.foreground, len(seen) - 1)
+        if got is None:
             return None, None
-        state, _ = init_top_level(params, key, obs)
+        state, _ = init_top_level(params, key, obs, got[1])
         for o in seen:
             state, est = step(state, o)
         return state, est

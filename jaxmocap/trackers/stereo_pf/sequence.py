@@ -1,6 +1,6 @@
 """Running the filter over a capture: ``step`` (host line + one jitted step), ``compile_step``,
 ``live`` (host work of frame t+1 beside the step of frame t), ``anchor_frame`` and ``track``
-(a whole sequence, automatic initialisation on its first frame with a head)."""
+(a whole sequence, automatic initialisation on its start frame, :mod:`.start`)."""
 
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from jaxmocap.trackers.stereo_pf.params import (
     StereoPFParams,
     TrackerState,
 )
+from jaxmocap.trackers.stereo_pf.start import Starter, start_frame
 
 
 def step(
@@ -49,8 +50,9 @@ def live(
 ) -> Iterator[tuple[int, StereoEstimate | None]]:
     """Online tracking of a stream of stereo frames: yields ``(t, estimate)`` for every frame.
 
-    Frames before the first one with a triangulated head yield ``None`` (nothing to anchor the
-    automatic initialisation on, :func:`anchor_frame`); the tracker initialises on that frame
+    Frames before the start frame yield ``None``: the first with a triangulated head, or after
+    :data:`~.start.START_WAIT` frames without one the first with a shirt silhouette or a hand
+    (:class:`~.start.Starter`); the tracker initialises on that frame
     (:func:`init`, its estimate is that frame's) and then takes one :func:`compile_step` step
     per frame. Host and device overlap: frame t's filter step is dispatched (asynchronously)
     before frame t-1's estimate is handed out, and frame t+1's image processing and blob
@@ -61,11 +63,13 @@ def live(
     blob_state = bloblib.init(blob_params or BLOB_PARAMS)
     state: TrackerState | None = None
     pending: tuple[int, StereoEstimate | None] | None = None
+    starter = Starter(params)
     for t, pair in enumerate(frames):
         obs, blob_state = observe(params, pair, blob_state)
         if state is None:
-            if bool(np.asarray(obs.valid)[0]):
-                state, est = init_top_level(params, key, obs)
+            got = starter(obs)
+            if got is not None:
+                state, est = init_top_level(params, key, obs, got[1])
                 out: tuple[int, StereoEstimate | None] = (t, est)
             else:
                 out = (t, None)
@@ -80,10 +84,12 @@ def live(
 
 
 def anchor_frame(observations: Observation) -> int:
-    """The frame to initialise on: the first whose head is triangulated, else the first with
-    any hand / head point, else 0. The blob tracker acquires its entities only once it sees
-    three candidates (:mod:`jaxmocap.blobs`), which can take a few frames; initialising on a
-    frame without any point would leave the root prior unanchored."""
+    """Azad's frame to initialise on, from the blobs alone: the first whose head is
+    triangulated, else the first with any hand / head point, else 0. The blob tracker acquires
+    its entities only once it sees three candidates (:mod:`jaxmocap.blobs`), which can take a
+    few frames; initialising on a frame without any point would leave the root prior
+    unanchored. The trackers (:func:`track`, :func:`live`, the driver) start by
+    :func:`~.start.start_frame` instead, which also starts from the shirt silhouette."""
     valid = np.asarray(observations.valid)
     for col in (valid[:, 0], valid.any(axis=1)):
         if col.any():
@@ -99,9 +105,9 @@ def track(
     smooth_lag: int = 0,
 ) -> StereoEstimate:
     """Track a whole stereo sequence: observations on the host, automatic initialisation on
-    the :func:`anchor_frame` (a few frames at most), then the filter over frames 0..T-1 in one
-    ``lax.scan`` (``smooth_lag``: see :func:`run`). Estimates (T, ...). With
-    ``params.adapt`` the observations come from
+    the :func:`~.start.start_frame` (a head, else the shirt silhouette or the hands), then the
+    filter over frames 0..T-1 in one ``lax.scan`` (``smooth_lag``: see :func:`run`).
+    Estimates (T, ...). With ``params.adapt`` the observations come from
     :func:`jaxmocap.trackers.stereo_pf.adapt.observe_adaptive` (the colour model re-fitted on
     line); with ``params.part_colours`` from
     :func:`jaxmocap.trackers.stereo_pf.parts.observe_parts` (per-part colours, seeded search).
@@ -116,7 +122,7 @@ def track(
         obs, _ = observe_adaptive(params, key, frames, blob_params)
     else:
         obs = observe_sequence(params, frames, blob_params)
-    t0 = anchor_frame(obs)
-    state, _ = init_top_level(params, key, jax.tree.map(lambda a: a[t0], obs))
+    t0, _, start = start_frame(params, obs)
+    state, _ = init_top_level(params, key, jax.tree.map(lambda a: a[t0], obs), start)
     _, est = run_top_level(params, state, obs, smooth_lag)
     return est
