@@ -10,7 +10,11 @@ folder). Keypoints are matched by name. Metrics (all in **centimetres**):
   which the file holds too, and a frame without one are counted separately, not averaged in);
 * **jitter** — mean ``||x_{t+1} - 2 x_t + x_{t-1}||`` over consecutive valid triples (cm per
   frame^2, the second difference), for the prediction and for the ground truth — tracking
-  noise shows as prediction jitter well above the ground truth's.
+  noise shows as prediction jitter well above the ground truth's;
+* **depth and lateral error** (:func:`depth_lateral`) — each joint's error split into its
+  component along the line of sight from the camera rig (the cameras' mean centre) to the true
+  joint and the remainder across it: a short stereo baseline measures depth far more coarsely
+  than position across the view, and the split shows which one an error is.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import numpy as np
 from jaxmocap.errors import InputError
 from jaxmocap.io.export import PoseFileError, load_track
 
-__all__ = ["evaluate", "format_table"]
+__all__ = ["depth_lateral", "evaluate", "format_table"]
 
 
 def _jitter(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -32,6 +36,20 @@ def _jitter(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
     acc = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)  # (T-2, k)
     m = ok[2:] & ok[1:-1] & ok[:-2]
     return acc[m].mean(axis=0) if m.any() else np.full(x.shape[1], np.nan)
+
+
+def depth_lateral(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The error ``pred - gt`` (..., 3) split along the line of sight ``u = (gt - origin) /
+    ||gt - origin||`` from ``origin`` (3,) (the rig's centre): ``(|e . u|, ||e - (e . u) u||)``,
+    depth and lateral, each (...,), in the units of the input. Their squares sum to
+    ``||e||^2``."""
+    e = np.asarray(pred, np.float64) - np.asarray(gt, np.float64)
+    u = np.asarray(gt, np.float64) - np.asarray(origin, np.float64)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    along = np.sum(e * u, axis=-1)
+    lateral = np.linalg.norm(e - along[..., None] * u, axis=-1)
+    return np.asarray(np.abs(along)), np.asarray(lateral)
 
 
 def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:

@@ -126,6 +126,16 @@ def test_cells_metrics_and_summary(sequential, dataset):
         err = 100 * np.linalg.norm(kp[:, ip] - gt["keypoints"][:, ig], axis=-1)
         np.testing.assert_allclose(d["error_cm"], err.mean(1), rtol=1e-5)
         np.testing.assert_allclose(m["mean_error_all_frames_cm"], err.mean(), rtol=1e-6)
+        # the split along the line of sight from the cameras' mean centre (-R^T t) and across
+        cams = json.loads((dataset / c["sequence"] / "cameras.json").read_text())["cameras"]
+        origin = np.mean([-np.asarray(k["R"]).T @ np.asarray(k["t"]) for k in cams], axis=0)
+        e = kp[:, ip] - gt["keypoints"][:, ig]
+        u = gt["keypoints"][:, ig] - origin
+        u /= np.linalg.norm(u, axis=-1, keepdims=True)
+        along = np.einsum("tjk,tjk->tj", e, u)
+        across = np.linalg.norm(np.cross(e, u), axis=-1)  # |e x u| = the lateral part
+        np.testing.assert_allclose(m["depth_error_cm"], 100 * np.abs(along).mean(), rtol=1e-5)
+        np.testing.assert_allclose(m["lateral_error_cm"], 100 * across.mean(), rtol=1e-5)
         if v.any():
             np.testing.assert_allclose(m["mpjpe_cm"],
                                        np.mean(list(m["per_joint_cm"].values())))
@@ -141,6 +151,7 @@ def test_cells_metrics_and_summary(sequential, dataset):
             "frame,valid,ess")
     md = (sequential / "summary.md").read_text()
     assert "| **all** | pf-a |" in md and (sequential / "summary.png").stat().st_size > 1000
+    assert "| depth cm | lateral cm |" in md
 
 
 def test_resume_skips_finished_cells_and_reruns_a_changed_config(sequential, dataset):

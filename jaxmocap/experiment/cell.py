@@ -11,7 +11,9 @@ metrics (in the driver, which writes the cell's folder):
   hands, ``jaxmocap.trackers.driver.PF_JOINTS``);
 * the mean error over *all* frames of the raw estimate (what the accuracy scripts report: the
   shirt tracker holds its last pose on an invalid frame), the share of frames whose reported
-  pose is within ``good_cm`` of the truth;
+  pose is within ``good_cm`` of the truth; that error split into its component along the line
+  of sight from the cameras' centre to the true joint (``depth_error_cm``) and across it
+  (``lateral_error_cm``; :func:`jaxmocap.metrics.depth_lateral`);
 * validity against the ground truth (issues 17/18): of the frames more than ``bad_cm`` off,
   the share flagged invalid (recall) and of the frames flagged invalid the share more than
   ``good_cm`` off (precision); of the frames less than ``good_cm`` off, the share flagged
@@ -386,6 +388,7 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
     ig = [list(gt.keypoint_names).index(j) for j in joints]
     err = np.linalg.norm(kp[:, ip] - gt.keypoints[:, ig], axis=-1) * 100.0  # (T, J) cm
     err[~np.isfinite(q).all(axis=1)] = np.nan
+    depth_cm, lateral_cm = _depth_lateral_cm(kp[:, ip], gt.keypoints[:, ig], gt_folder, err)
     frame_err = err.mean(axis=1)
     known = np.isfinite(frame_err)
     bad = known & (frame_err > bad_cm)
@@ -402,6 +405,9 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
         "per_joint_cm": per_joint,
         "jitter_cm_per_frame2": None if ev is None else ev["jitter_cm_per_frame2"],
         "mean_error_all_frames_cm": float(np.nanmean(frame_err)) if known.any() else None,
+        # the same frames' error split along the rig's line of sight and across it
+        "depth_error_cm": depth_cm,
+        "lateral_error_cm": lateral_cm,
         "frames_below_good_cm": float(np.mean(good & valid)),  # valid and < good_cm
         "validity": {
             "good_cm": good_cm, "bad_cm": bad_cm,
@@ -417,6 +423,25 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
     }
     m["world"] = _world_metrics(gt_folder, frame_err, valid, good_cm, result)
     return m, frame_err
+
+
+def _depth_lateral_cm(pred: np.ndarray, truth: np.ndarray, gt_folder: str, err: np.ndarray
+                      ) -> tuple[float | None, float | None]:
+    """Mean per-joint error (cm) along the line of sight from the cameras' mean centre to the
+    true joint and across it (:func:`jaxmocap.metrics.depth_lateral`), over the frames with an
+    estimate (``err`` finite); (None, None) without ``cameras.json`` or such a frame."""
+    from jaxmocap.camera import camera_center
+    from jaxmocap.io.cameras import load_cameras
+    from jaxmocap.metrics import depth_lateral
+
+    cam_file = Path(gt_folder) / "cameras.json"
+    known = np.isfinite(err).all(axis=1)
+    if not cam_file.is_file() or not known.any():
+        return None, None
+    origin = np.mean([np.asarray(camera_center(c), np.float64)
+                      for c in load_cameras(cam_file)[0]], axis=0)
+    depth, lateral = depth_lateral(pred[known], truth[known], origin)
+    return float(depth.mean() * 100.0), float(lateral.mean() * 100.0)
 
 
 def _world_metrics(gt_folder: str, frame_err, valid, good_cm: float, result: dict):

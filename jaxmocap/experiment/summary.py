@@ -12,6 +12,8 @@ import numpy as np
 COLUMNS = (  # (header, metric path, format)
     ("MPJPE cm (valid frames)", ("mpjpe_cm",), "{:.2f}"),
     ("mean cm (all frames)", ("mean_error_all_frames_cm",), "{:.2f}"),
+    ("depth cm", ("depth_error_cm",), "{:.2f}"),  # the same frames, along the line of sight
+    ("lateral cm", ("lateral_error_cm",), "{:.2f}"),  # ... and across it
     ("frames < good", ("frames_below_good_cm",), "{:.0%}"),
     ("valid", ("valid_share",), "{:.0%}"),
     ("bad flagged invalid", ("validity", "bad_flagged_invalid"), "{:.0%}"),
