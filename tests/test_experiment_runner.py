@@ -152,6 +152,9 @@ def test_cells_metrics_and_summary(sequential, dataset):
     md = (sequential / "summary.md").read_text()
     assert "| **all** | pf-a |" in md and (sequential / "summary.png").stat().st_size > 1000
     assert "| depth cm | lateral cm |" in md
+    # every cell says what its filter started from (64x48 views: no head is triangulated)
+    anchors = {c["start_anchor"] for c in got.values()}
+    assert anchors <= {"head", "shirt", "hands", "none"} and "Stereo filter started from" in md
 
 
 def test_resume_skips_finished_cells_and_reruns_a_changed_config(sequential, dataset):

@@ -1,5 +1,6 @@
 """The experiment's summary: ``summary.json`` (every cell), ``summary.md`` (a table per
-sequence and configuration, seeds averaged, and an overall row per configuration) and
+sequence and configuration, seeds averaged, and an overall row per configuration; for the
+stereo filter the anchors its cells started from) and
 ``summary.png`` (mean error per sequence and configuration, bars; seed spread as error bars)."""
 
 from __future__ import annotations
@@ -92,6 +93,14 @@ def write_summary(out: Path, exp, seqs, specs: list[dict], results: dict, stats:
             if v["failed"]:
                 row[-1] += f" ({v['failed']} failed)"
             lines.append("| " + " | ".join(row) + " |")
+    starts = {}  # the stereo filter's start anchors (jaxmocap.trackers.stereo_pf.start)
+    for c in cells:
+        if c.get("start_anchor"):
+            starts.setdefault(c["config"], []).append(c["start_anchor"])
+    if starts:
+        lines += ["", "Stereo filter started from: " + "; ".join(
+            f"{c}: " + ", ".join(f"{a} {v.count(a)}" for a in sorted(set(v)))
+            for c, v in starts.items()) + " cells"]
     errors = [c for c in cells if "error" in c]
     if errors:
         lines += ["", "## Failed cells", ""]
