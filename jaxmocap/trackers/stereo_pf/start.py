@@ -78,7 +78,7 @@ def _largest_region(mask: np.ndarray) -> np.ndarray | None:
         cv2.morphologyEx(m, cv2.MORPH_CLOSE, k), 8)
     if n < 2:
         return None
-    areas = [int(np.sum(m[labels == i])) for i in range(1, n)]
+    areas = np.bincount(labels[m > 0], minlength=n)[1:]  # the mask's own pixels per region
     i = 1 + int(np.argmax(areas))
     if areas[i - 1] < SHIRT_MIN_PX:
         return None
@@ -135,11 +135,14 @@ def silhouette_depth(cams: list, regions: list[np.ndarray]) -> float | None:
     return float(1.0 / u)
 
 
-def torso_rest(params) -> tuple[np.ndarray, float]:
+def torso_rest(params) -> tuple[np.ndarray, float] | None:
     """The model's torso at rest (root at the origin, all joints 0): the centre of its contour
-    cylinder (root frame, m) and its half depth (m; front to back)."""
+    cylinder (root frame, m) and its half depth (m; front to back); None when the contour
+    model has no limb named ``torso`` (explicit limbs: nothing to place on the shirt)."""
     lm = params.likelihood.limbs
-    k = lm.names.index("torso") if "torso" in lm.names else 0
+    if "torso" not in lm.names:
+        return None
+    k = lm.names.index("torso")
     rest = rest_transforms(params.model.chain)[lm.link[k]]
     ends = [rest[:3, :3] @ np.asarray(p[k], np.float64) + rest[:3, 3] for p in (lm.p0, lm.p1)]
     return 0.5 * (ends[0] + ends[1]), float(lm.depth[k])
@@ -151,15 +154,16 @@ def shirt_anchor(params, foreground: np.ndarray) -> np.ndarray | None:
     :data:`SURFACE_TO_AXIS` of the torso's half depth (:func:`torso_rest`: the sweep aligns
     the body's surface, the axis is behind it) -- view 1's at the depth of view 0's point in
     view 1 -- the two points averaged; None when either view has no shirt region of
-    :data:`SHIRT_MIN_PX` pixels or no depth is found."""
+    :data:`SHIRT_MIN_PX` pixels, no depth is found or the model has no torso limb."""
+    torso = torso_rest(params)
     cams = camlib.unstack_cameras(params.likelihood.cams)
     regions = [_largest_region(np.asarray(foreground[c]) > 0.5) for c in range(2)]
-    if any(r is None for r in regions):
+    if torso is None or any(r is None for r in regions):
         return None
     depth = silhouette_depth(cams, regions)
     if depth is None:
         return None
-    depth += SURFACE_TO_AXIS * torso_rest(params)[1]
+    depth += SURFACE_TO_AXIS * torso[1]
     points = []
     for cam, region in zip(cams, regions, strict=True):
         if points:  # view 1: at the depth of view 0's point
