@@ -85,28 +85,36 @@ def _draw(model, q, cam):
     return img
 
 
-@pytest.fixture(scope="module")
-def scene():
+def drawn_scene(n_frames: int, rise: float, draw=None):
+    """The drawn stereo scene: the body with its arms out, the left arm rising ``rise`` rad per
+    frame and the body stepping left; ``draw(model, q, cam)`` renders a frame (default
+    ``_draw``). Returns model, cameras, frames, poses, keypoints, params (200 particles) and the
+    observations."""
+    draw = _draw if draw is None else draw
     model = default_body()
     cams = _cams()
     q0 = np.zeros(model.n_dof)
     q0[2] = 0.75
     arms = dof_index(model, ["l_shoulder_x", "r_shoulder_x", "l_elbow", "r_elbow", "l_shoulder_y"])
     q0[arms] = [0.5, -0.4, 0.9, 1.3, -0.3]
-    n_frames = 4
     qs = np.repeat(q0[None], n_frames, 0)
-    qs[:, arms[0]] += 0.05 * np.arange(n_frames)  # the left arm rises slowly
+    qs[:, arms[0]] += rise * np.arange(n_frames)  # the left arm rises slowly
     qs[:, 1] += 0.01 * np.arange(n_frames)  # the body steps left
-    frames = np.stack([[_draw(model, q, c) for c in cams] for q in qs])
+    frames = np.stack([[draw(model, q, c) for c in cams] for q in qs])
     kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(jnp.asarray(qs)))
     params = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200))
     obs = sp.observe_sequence(params, frames)
     return model, cams, frames, qs, kp, params, obs
 
 
+@pytest.fixture(scope="module")
+def scene():
+    return drawn_scene(4, 0.05)
+
+
 def _errors(model, q_est, kp_true):
     idx = keypoint_index(model, JOINTS)
-    kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(q_est))
+    kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(jnp.asarray(q_est)))
     return np.linalg.norm(kp[:, idx] - kp_true[:, idx], axis=-1)
 
 

@@ -10,10 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_trackers_stereo_pf import BACKGROUND, JOINTS, _cams, _draw
+from test_trackers_stereo_pf import BACKGROUND, _draw, _errors, drawn_scene
 
 from jaxmocap import camera as camlib
-from jaxmocap.body import default_body, dof_index, fk, keypoint_index, keypoints
+from jaxmocap.body import fk, keypoint_index, keypoints
 from jaxmocap.trackers import stereo_pf as sp
 from jaxmocap.trackers.driver import START_ANCHOR_CODES, StereoPFFrameTracker, stereo_offline
 from jaxmocap.trackers.stereo_pf import start as st
@@ -37,26 +37,7 @@ def _headless(model, q, cam):
 
 @pytest.fixture(scope="module")
 def headless():
-    model = default_body()
-    cams = _cams()
-    q0 = np.zeros(model.n_dof)
-    q0[2] = 0.75
-    arms = dof_index(model, ["l_shoulder_x", "r_shoulder_x", "l_elbow", "r_elbow", "l_shoulder_y"])
-    q0[arms] = [0.5, -0.4, 0.9, 1.3, -0.3]
-    qs = np.repeat(q0[None], N_FRAMES, 0)
-    qs[:, arms[0]] += 0.03 * np.arange(N_FRAMES)  # the left arm rises slowly
-    qs[:, 1] += 0.01 * np.arange(N_FRAMES)  # the body steps left
-    frames = np.stack([[_headless(model, q, c) for c in cams] for q in qs])
-    kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(jnp.asarray(qs)))
-    params = sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=200))
-    obs = sp.observe_sequence(params, frames)
-    return model, cams, frames, qs, kp, params, obs
-
-
-def _errors(model, q_est, kp_true):
-    idx = keypoint_index(model, JOINTS)
-    kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(jnp.asarray(q_est)))
-    return np.linalg.norm(kp[:, idx] - kp_true[:, idx], axis=-1)
+    return drawn_scene(N_FRAMES, 0.03, _headless)
 
 
 def test_the_shirt_places_the_torso_where_no_head_is_found(headless):
