@@ -90,7 +90,7 @@ def _set_pose(ob, pos, mat3):
     ob.matrix_world = mathutils.Matrix([list(map(float, row)) for row in m])
 
 
-def _blackbody(light, kelvin: float, strength: float) -> None:
+def _blackbody(light, kelvin: float) -> None:
     """The lamp's colour from Blender's black-body node (its colour science, not ours)."""
     light.use_nodes = True
     nt = light.node_tree
@@ -98,7 +98,7 @@ def _blackbody(light, kelvin: float, strength: float) -> None:
     bb = nt.nodes.new("ShaderNodeBlackbody")
     bb.inputs["Temperature"].default_value = float(kelvin)
     nt.links.new(bb.outputs["Color"], em.inputs["Color"])
-    em.inputs["Strength"].default_value = strength
+    em.inputs["Strength"].default_value = 1.0  # the power is the lamp's energy
 
 
 def main(scene_path: str, out_dir: str) -> None:
@@ -143,7 +143,6 @@ def main(scene_path: str, out_dir: str) -> None:
         sc.cycles.filter_width = 0.01
         sc.render.use_motion_blur = False
     mats = {}
-    objects = []
     n_frames = int(meta["n_frames"])
     for i, g in enumerate(meta["geoms"]):
         key = (g["material"], tuple(np.round(s[f"rgb{i}"], 4)))
@@ -155,7 +154,6 @@ def main(scene_path: str, out_dir: str) -> None:
             checker = (s["floor_rgb"][0], s["floor_rgb"][1]) if g["material"] == "floor" else None
             mats[key] = _material(f"m{len(mats)}", g["material"], s[f"rgb{i}"], checker)
         ob = _mesh_object(g["name"], s[f"verts{i}"], s[f"faces{i}"], mats[key])
-        objects.append((ob, g["moving"]))
         if not g["moving"]:
             _set_pose(ob, s[f"pos{i}"], s[f"mat{i}"])
             continue
@@ -181,7 +179,7 @@ def main(scene_path: str, out_dir: str) -> None:
             data.shape = "RECTANGLE"
             data.size, data.size_y = lamp["size"], lamp["size"]
         data.energy = float(lamp["watts"])
-        _blackbody(data, lamp["kelvin"], 1.0)
+        _blackbody(data, lamp["kelvin"])
         ob = bpy.data.objects.new(f"lamp{k}", data)
         sc.collection.objects.link(ob)
         pos = np.asarray(lamp["pos"], float)

@@ -145,7 +145,7 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None,
     m = mujoco.MjModel.from_xml_string(scene.xml)
     d = mujoco.MjData(m)
     h, w = int(cams[0].height), int(cams[0].width)
-    rgb_r = mujoco.Renderer(m, h, w)
+    rgb_r = None if spec.renderer == "cycles" else mujoco.Renderer(m, h, w)  # Blender's images
     seg_r = mujoco.Renderer(m, h, w)
     seg_r.enable_segmentation_rendering()
     everything = mujoco.MjvOption()  # MuJoCo hides geom groups 3-5 by default
@@ -191,7 +191,7 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None,
             m.light_diffuse[li] = diffuse[k] * lv
             m.light_specular[li] = specular[k] * lv
             m.light_ambient[li] = ambient[k] * lv
-        acc = np.zeros((len(cams), h, w, 3))
+        acc = None if cycles else np.zeros((len(cams), h, w, 3))
         for s in range(spec.motion_blur):
             if cycles and s != mid:  # Blender blurs between the frames' keyframes itself
                 continue
@@ -216,7 +216,8 @@ def render_world(spec: WorldSpec, progress: bool = False, segments=None,
                     body_px[t, c] = is_body[seg_r.render()[..., 0] + 1].sum()
         if not cycles:
             _camera(spec, acc / spec.motion_blur, t, frames[t])
-    rgb_r.close()
+    if rgb_r is not None:
+        rgb_r.close()
     seg_r.close()
     blender = None
     if cycles:
