@@ -69,12 +69,10 @@ def _body(cfg: dict, folder=None):
     from jaxmocap.body import default_body, load_body
     from jaxmocap.experiment.config import SEQUENCE
 
-    own = None if folder is None else Path(folder)
-    if cfg.get("body") == SEQUENCE and own is not None \
-            and not (own / "body.urdf").is_file() and (own / "body.json").is_file():
+    if cfg.get("body") == SEQUENCE and folder is not None:
         from jaxmocap.synth.world.render import sequence_body_file
 
-        path, kw = sequence_body_file(folder)  # a package body, read from its own file
+        path, kw = sequence_body_file(folder)  # body.urdf, or a package body's own file
         return load_body(path, **kw)
     path = _sequence_file(cfg, "body", folder)
     return default_body() if path is None else load_body(path)

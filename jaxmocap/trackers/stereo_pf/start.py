@@ -116,9 +116,10 @@ def silhouette_depth(cams: list, regions: list[np.ndarray]) -> float | None:
     b = regions[1].astype(np.float32)
     h, w = b.shape
     n = np.array([0.0, 0.0, 1.0])
+    K0_inv = np.linalg.inv(K0)
     scores = []
     for u in inv:  # the plane z = 1 / u in camera 0: X1 = (R + t n^T u) X0
-        H = K1 @ (R + np.outer(t, n) * u) @ np.linalg.inv(K0)
+        H = K1 @ (R + np.outer(t, n) * u) @ K0_inv
         warped = cv2.warpPerspective(a, H, (w, h), flags=cv2.INTER_LINEAR)
         inter = float(np.sum(np.minimum(warped, b)))
         scores.append(inter / max(float(np.sum(np.maximum(warped, b))), 1.0))
