@@ -340,15 +340,13 @@ def database_views(dataset: str, joints: list[str], bins=(0, 30, 60, 90, 120, 18
 WORLD_RULE = (26 / 40, 0.053, 0.31)  # validated: 26 of 40 centroids, residual, recall
 
 
-def world_family(spec: dict, name: str) -> str:
-    """The test world a sequence belongs to for leave-one-world-out (issue 36 item 5): the
-    first round (MuJoCo, the bundled body scaled), MuJoCo with a body from another package,
-    or Blender Cycles."""
-    from jaxmocap.synth.world.split import N_PER_TRACKER
-
-    if int(name.split("_")[1]) < N_PER_TRACKER:
-        return "first round"
-    return "cycles" if spec.get("renderer") == "cycles" else "package bodies"
+def world_family(spec: dict) -> str:
+    """The test world a sequence belongs to for leave-one-world-out (issue 36 item 5), from its
+    spec: Blender Cycles, MuJoCo with a body from another package, or the first round (MuJoCo,
+    the bundled body scaled)."""
+    if spec.get("renderer") == "cycles":
+        return "cycles"
+    return "package bodies" if spec.get("body", "scaled") != "scaled" else "first round"
 
 
 def _rule_features(dataset: str, data: dict) -> dict:
@@ -365,7 +363,7 @@ def _rule_features(dataset: str, data: dict) -> dict:
         out[name] = dict(
             share=d["patches"] / (n_cams * len(doc["patches"])),
             residual=d["sig_residual"].max(1), recall=d["sig_recall"].min(1), err=d["err"],
-            family=world_family(split[name]["world"], name), split=split[name]["split"])
+            family=world_family(split[name]["world"]), split=split[name]["split"])
     return out
 
 
