@@ -17,9 +17,14 @@ from pathlib import Path
 
 from jaxmocap.errors import InputError
 
+# pybullet_envs/deep_mimic/env/humanoid_stable_pd.py loads humanoid.urdf with globalScaling=0.25
+# (the DeepMimic clips are in those units too: jaxmocap.synth.deepmimic uses the same constant)
+DEEPMIMIC_SCALE = 0.25
+
 # name -> (package, path inside it, load_body keywords)
 PACKAGE_BODIES = {
-    "deepmimic": ("pybullet_data", ("humanoid", "humanoid.urdf"), {"scale": 0.25, "up": "y"}),
+    "deepmimic": ("pybullet_data", ("humanoid", "humanoid.urdf"),
+                  {"scale": DEEPMIMIC_SCALE, "up": "y"}),
     "cmu": ("dm_control", ("suite", "humanoid_CMU.xml"), {}),
     "dmc_humanoid": ("dm_control", ("suite", "humanoid.xml"), {}),
     "gym_humanoid": ("gymnasium", ("envs", "mujoco", "assets", "humanoid.xml"), {}),

@@ -28,10 +28,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxmocap.body.packages import DEEPMIMIC_SCALE
 from jaxmocap.rotations import mm, mv, normalize_quat, quat_to_matrix, slerp
 
-# pybullet_envs/deep_mimic/env/humanoid_stable_pd.py loads humanoid.urdf with globalScaling=0.25
-DEEPMIMIC_SCALE = 0.25
 FRAME_WIDTH = 44
 
 # Source skeleton links in pybullet's joint-index order (URDF_MAINTAIN_LINK_ORDER); link 0 is the
