@@ -124,14 +124,16 @@ def _has_display() -> bool:
     return True
 
 
-def _diagnostics_csv(names: Sequence[str], rows: list[tuple[int, bool, bool, dict]]) -> str:
+def _diagnostics_csv(names: Sequence[str], rows: list[tuple[int, bool, bool, dict]],
+                     table: np.ndarray) -> str:
+    """``diagnostics.csv``: frame, read, valid and the columns of ``table``
+    (:func:`diagnostics_table` of ``rows``), empty where a value is missing or not finite."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["frame", "read", "valid", *names])
-    for t, read, valid, d in rows:
+    for (t, read, valid, _), values in zip(rows, table, strict=True):
         w.writerow([t, int(read), int(valid),
-                    *("" if k not in d or not np.isfinite(d[k]) else f"{d[k]:.6g}"
-                      for k in names)])
+                    *("" if not np.isfinite(v) else f"{v:.6g}" for v in values)])
     return buf.getvalue()
 
 
@@ -457,15 +459,15 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
                 if args.smooth:  # the per-frame estimates stay in poses.npz
                     q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
                     extra["q_raw"] = tracked.q
-                track = pose_track(tracker.body, q, tracked.valid, fps,
-                                   diagnostics_table(tracked.rows, names_d), names_d)
+                table = diagnostics_table(tracked.rows, names_d)
+                track = pose_track(tracker.body, q, tracked.valid, fps, table, names_d)
                 write_exports(files, out, tracker.body, track, formats,
                               complete=np.asarray(tracked.interrupted is None),
                               frames_in_input=np.asarray(-1 if reader.n_frames is None
                                                          else reader.n_frames, np.int64),
                               **extra)
                 files.path(out / "diagnostics.csv").write_text(
-                    _diagnostics_csv(tracker.diagnostic_names, tracked.rows))
+                    _diagnostics_csv(names_d, tracked.rows, table))
                 files.path(out / "run.json").write_text(
                     _run_json(args, tracked, reader, reader.n_frames))
                 targets = files.targets
