@@ -287,6 +287,43 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
     return result
 
 
+def speed(out: str, option: str = "own_start", reps: int = 20) -> dict:
+    """The tracked frame's step time with ``rounds.<option>`` off and on, alternated in one run
+    (``benchmarks/bench_shirt.py``'s set-up: two 640x480 cameras, its database, the tracker
+    as shipped; ``JAXMOCAP_BENCH_QUICK=1``: its quick set-up). The state is the one after the
+    first (valid) frame, so every timed frame is a tracked one."""
+    import jax
+
+    from benchmarks import bench_shirt
+    from benchmarks._common import sized, time_call
+    from jaxmocap.trackers import shirt
+
+    width, height = sized(full=(640, 480), quick=(320, 240))
+    s = bench_shirt.setup(width, height, sized(full=bench_shirt.DB_SIZE, quick=500))
+    base = s["params"]
+    value = True if option == "own_start" else 2
+    other = dataclasses.replace(base, rounds=dataclasses.replace(base.rounds, **{option: value}))
+    runs = {}
+    for name, prm in (("off", base), ("on", other)):
+        st = shirt.init(prm, s["state"].W, s["state"].q)
+        st, o = shirt.step(prm, st, s["frames"])
+        assert bool(o.valid), name
+        jax.block_until_ready(shirt.step(prm, st, s["frames"]))
+        runs[name] = (prm, st)
+    times = {"off": [], "on": []}
+    for _ in range(reps):  # alternated
+        for name, (prm, st) in runs.items():
+            med, _ = time_call(lambda prm=prm, st=st: shirt.step(prm, st, s["frames"]), n=3,
+                               warmup=0)
+            times[name].append(med)
+    res = {"option": option, "size": f"{width}x{height}", "reps": reps,
+           "median_ms": {k: round(float(np.median(v)), 2) for k, v in times.items()},
+           "min_ms": {k: round(float(np.min(v)), 2) for k, v in times.items()}}
+    print(res)
+    Path(out).write_text(json.dumps(res, indent=1))
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -305,8 +342,14 @@ def main() -> None:
     b.add_argument("--maps")
     b.add_argument("--only", nargs="*")
     b.add_argument("--hypotheses", action="store_true")
+    c = sub.add_parser("speed")
+    c.add_argument("--out", required=True)
+    c.add_argument("--option", default="own_start")
+    c.add_argument("--reps", type=int, default=20)
     args = ap.parse_args()
-    if args.cmd == "ladder":
+    if args.cmd == "speed":
+        speed(args.out, args.option, args.reps)
+    elif args.cmd == "ladder":
         ladder(args.dataset, args.out, args.config, args.name, args.only, args.set, args.maps,
                tuple(args.rungs))
     else:
