@@ -1,5 +1,9 @@
 """The colour-shirt frame step (Wang et al. 2011 §5.2), one function per paper step; ``_step``
-chains them under one jit (the frame walk: :mod:`jaxmocap.trackers.shirt`)."""
+chains them under one jit (the frame walk: :mod:`jaxmocap.trackers.shirt`).
+
+Why one file: the steps share the per-frame structures defined here (``Views``,
+``DatabasePose``, ``RoundContext``) and are read in order as the paper's frame; the starts
+(``starts_of``, ``orientation_starts``) and the rounds that run them are one mechanism."""
 
 from __future__ import annotations
 
