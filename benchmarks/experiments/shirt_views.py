@@ -324,6 +324,34 @@ def speed(out: str, option: str = "own_start", reps: int = 20) -> dict:
     return res
 
 
+def experiment_yaw(dataset: str, folder: str, out: str) -> dict:
+    """Per-frame all-frames error of an experiment's cells (``error_cm`` of each cell's
+    ``poses.npz``) by the yaw of the most frontal camera, per configuration, pooled over the
+    sequences of the first round and of the second (frames pooled)."""
+    from jaxmocap.io.cameras import load_cameras
+
+    acc: dict = {}
+    for cell in sorted(Path(folder, "cells").iterdir()):
+        seq, config, _ = cell.name.split("__")
+        d = np.load(cell / "poses.npz")
+        with np.load(Path(dataset) / seq / "groundtruth.npz") as z:
+            kp, names = z["keypoints"], list(z["keypoint_names"])
+        cams = load_cameras(Path(dataset) / seq / "cameras.json")[0]
+        yaw = torso_yaw(kp, names, cams).min(1)
+        part = "second round" if int(seq.split("_")[1]) >= 12 else "first round"
+        for lo, hi in zip(YAW_BINS[:-1], YAW_BINS[1:], strict=True):
+            m = (yaw >= lo) & (yaw < hi)
+            key = (config, part, f"{lo:.0f}-{min(hi, 180):.0f}")
+            acc.setdefault(key, []).extend(d["error_cm"][m].tolist())
+    res = [{"config": c, "part": p, "yaw": y, "frames": len(v),
+            "mean_cm": round(float(np.mean(v)), 2) if v else None}
+           for (c, p, y), v in sorted(acc.items())]
+    for r in res:
+        print(r)
+    Path(out).write_text(json.dumps(res, indent=1))
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -346,8 +374,14 @@ def main() -> None:
     c.add_argument("--out", required=True)
     c.add_argument("--option", default="own_start")
     c.add_argument("--reps", type=int, default=20)
+    e = sub.add_parser("yaw")
+    e.add_argument("dataset")
+    e.add_argument("folder")
+    e.add_argument("--out", required=True)
     args = ap.parse_args()
-    if args.cmd == "speed":
+    if args.cmd == "yaw":
+        experiment_yaw(args.dataset, args.folder, args.out)
+    elif args.cmd == "speed":
         speed(args.out, args.option, args.reps)
     elif args.cmd == "ladder":
         ladder(args.dataset, args.out, args.config, args.name, args.only, args.set, args.maps,
