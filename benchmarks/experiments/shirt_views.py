@@ -220,7 +220,7 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
         classified = None
         if maps_dir and (Path(maps_dir) / f"{s}.npz").exists():
             classified = np.load(Path(maps_dir) / f"{s}.npz")["tiny"]
-        hyp_fn = None
+        hyp_fn = canon = None
         if hypotheses:
             from jaxmocap.posedb import canonical_camera, estimate_hypotheses, map_distance
             from jaxmocap.render import tiny_id_map
@@ -228,7 +228,7 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
             hyp_fn = estimate_hypotheses
             canon = canonical_camera(jnp.float32)
 
-        def scored(q, q_true, cam, kp_true):
+        def scored(q, q_true, cam, kp_true, body=body, ip=ip):
             dt = q_true.dtype
             q = q.astype(dt)
             on_root = keypoints(body, jnp.concatenate([q_true[:6], q[6:]]))
@@ -238,7 +238,8 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
                               jnp.linalg.norm(placed[ip] - kp_true, axis=-1).mean() * 100])
 
         @jax.jit
-        def one(tiny, q_true, cam, kp_true, db=db):
+        def one(tiny, q_true, cam, kp_true, db=db, body=body, garment=garment, hyp_fn=hyp_fn,
+                canon=canon, scored=scored):
             q10, _ = estimate_pose(db, tiny)
             out = [scored(q10, q_true, cam, kp_true)]
             if hyp_fn is not None:
