@@ -358,3 +358,47 @@ def test_tiny_maps_skip_geoms_below_the_shirt():
     full = np.asarray(jax.jit(lambda qs: render.tiny_id_maps(model, garment, qs, cam))(poses))
     assert (maps > 0).mean() > 0.2  # the shirt fills a good part of each map
     assert (maps != full).mean() < 5e-4  # float rounding at silhouettes only
+
+
+# ----------------------------------------------------------------------------- orientations
+
+
+def test_orientation_hypotheses_recover_a_known_yaw(db):
+    """A pose turned by a known yaw is recovered from its rendered id map by the first
+    orientation hypothesis, and the same arms seen from behind form a separate hypothesis:
+    a small database holds the pose at yaw psi +-3, +-6 deg, at psi + 180 +-3, +-6 deg and
+    twelve other poses turned at least 60 deg from both; the query is the canonical render
+    at psi exactly (not in it)."""
+    model, garment = default_body(), default_garment(default_body())
+    base = np.asarray(db.poses[321], np.float64)
+    psi = np.radians(50.0)
+
+    def at(yaw):
+        q = base.copy()
+        q[3:6] = Rotation.from_euler("z", yaw).as_rotvec()
+        return q
+
+    offs = np.radians([-6.0, -3.0, 3.0, 6.0])
+    # other poses: none within 60 deg of either orientation (each is its own cluster)
+    others = np.asarray(db.poses, np.float64)
+    R = Rotation.from_rotvec(others[:, 3:6])
+    far = [(Rotation.from_rotvec(at(y)[3:6]).inv() * R).magnitude() > np.radians(60)
+           for y in (psi, psi + np.pi)]
+    others = others[far[0] & far[1]][:12]
+    poses = np.stack([at(psi + o) for o in offs] + [at(psi + np.pi + o) for o in offs]
+                     + list(others))
+    maps = posedb.render_maps(model, garment, poses.astype(np.float32), progress=False)
+    small = posedb.make_posedb(maps, poses, garment.n_colours)
+    query = posedb.render_maps(model, garment, at(psi)[None].astype(np.float32),
+                               progress=False)[0]
+    hyp = posedb.estimate_hypotheses(small, jnp.asarray(query), n_hyp=14, k=20)
+    yaw = Rotation.from_rotvec(np.asarray(hyp.poses[:, 3:6], np.float64)).as_euler("zyx")[:, 0]
+    assert np.isfinite(hyp.distance[:2]).all()
+    assert np.all(np.diff(np.asarray(hyp.distance)[np.isfinite(hyp.distance)]) >= 0)
+    # the first hypothesis: the pose's own orientation (its cluster's four copies blended),
+    # nearer psi than any copy (3 deg)
+    assert abs(np.degrees(np.angle(np.exp(1j * (yaw[0] - psi))))) < 2.0
+    np.testing.assert_allclose(hyp.poses[0, 6:], base[6:], atol=1e-5)
+    # the back view is one of the others, never blended into the first
+    back = [abs(np.degrees(np.angle(np.exp(1j * (y - psi - np.pi))))) for y in yaw[1:]]
+    assert min(back) < 3.0, np.degrees(yaw)

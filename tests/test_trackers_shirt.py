@@ -162,6 +162,57 @@ def test_loss_and_reacquisition(setup):
     assert np.linalg.norm(np.asarray(kp(back.q)) - truth, axis=-1).mean() < 0.08
 
 
+def test_orientation_hypotheses_start_only_after_a_loss(setup):
+    """With ``orientation_hypotheses`` (opt-in) the first (lost) frame tries every camera's
+    placed orientation hypotheses beside the usual starts and is within tolerance of the
+    truth; a tracked frame runs exactly the default program's arithmetic (the hypotheses are
+    not started there), so its outputs are bitwise the default's."""
+    p, model = setup["params"], setup["model"]
+    ph = dataclasses.replace(p, rounds=dataclasses.replace(p.rounds, orientation_hypotheses=2))
+    kp = jax.jit(lambda q: keypoints(model, q))
+    truth = np.asarray(kp(setup["q_true"]))
+    state0 = shirt.init(p, setup["W0"], jnp.zeros(model.n_dof))
+    st_h, first = shirt.step(ph, state0, setup["frames"])
+    assert bool(first.valid)
+    assert np.linalg.norm(np.asarray(kp(first.q)) - truth, axis=-1).mean() < 0.08
+    ctx_hyps = shirt_frame.orientation_starts(
+        ph, shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None),
+        shirt_frame.database_pose(
+            ph, shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None),
+            p.cams.K.dtype), p.cams.K.dtype)
+    assert 1 <= int(ctx_hyps[1]) <= 2 * p.n_cams  # real hypotheses, from both cameras
+    tracked, _ = shirt.step(p, state0, setup["frames"])
+    _, a = shirt.step(p, tracked, setup["frames"])
+    _, b = shirt.step(ph, tracked, setup["frames"])
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_own_start_carries_an_invalid_frames_estimate(setup):
+    """``own_start``: a frame flagged invalid (here by a rule that asks for more centroids than
+    the garment has) still leaves its own estimate in the state (``q_own``) while ``q``
+    holds the last valid pose; the next frame, a reacquisition, starts from it among the
+    others and lands within tolerance of the truth; without the switch the state has no
+    ``q_own`` (the state of before)."""
+    p, model = setup["params"], setup["model"]
+    dt = p.cams.K.dtype
+    assert p.rounds.own_start  # the default
+    strict = dataclasses.replace(
+        p, validity=shirt.validity_rule(dt, min_patches=10 * p.garment.n_patches))
+    kp = jax.jit(lambda q: keypoints(model, q))
+    truth = np.asarray(kp(setup["q_true"]))
+    state = shirt.init(strict, setup["W0"], jnp.zeros(model.n_dof))
+    off = dataclasses.replace(p, rounds=dataclasses.replace(p.rounds, own_start=False))
+    assert shirt.init(off, setup["W0"], jnp.zeros(model.n_dof)).q_own is None
+    for _ in range(2):
+        held = np.asarray(state.q)
+        state, out = shirt.step(strict, state, setup["frames"])
+        assert not bool(out.valid)
+        np.testing.assert_array_equal(np.asarray(state.q), held)  # nothing valid yet
+        np.testing.assert_array_equal(np.asarray(state.q_own), np.asarray(out.q_frame))
+        assert np.linalg.norm(np.asarray(kp(out.q_frame)) - truth, axis=-1).mean() < 0.08
+
+
 def test_widened_temporal_covariance_matches_numpy(rng):
     """Sigma_p + Sigma_b for the frames after a loss, for vectors of variances and matrices."""
     a = rng.uniform(0.1, 1.0, 5)

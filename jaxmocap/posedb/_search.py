@@ -303,6 +303,82 @@ def estimate_pose(
     return blend(db, nb, sigma), nb
 
 
+# Not in the paper: orientation hypotheses (issue 38 item 2). Side and back views are
+# ambiguous in a tiny map (the far arm hidden; the two patches of a colour on the front and the
+# back), so the nearest neighbours can disagree about which way the body faces, and one blend
+# of them averages orientations and the arms of different views.
+N_HYPOTHESES = 3  # orientation clusters returned by estimate_hypotheses
+HYPOTHESIS_NEIGHBOURS = 30  # nearest maps split into the clusters
+CLUSTER_ANGLE = 0.7854  # rad (45 deg): a neighbour joins a cluster within this of its seed
+
+
+def _masked_blend(poses: Array, distance: Array, member: Array, sigma) -> Array:
+    """:func:`blend_poses` over the ``member`` rows only (at most ``K_NEIGHBOURS`` of them,
+    the nearest first), weights relative to the nearest member, quaternion signs aligned with
+    it; the rows are sorted by distance."""
+    dt = poses.dtype
+    member = member & (jnp.cumsum(member) <= K_NEIGHBOURS)
+    first = jnp.argmax(member)
+    d = distance.astype(dt)
+    w = jnp.where(member, jnp.exp(-0.5 * ((d - d[first]) / sigma) ** 2), 0.0)
+    w = w / jnp.maximum(jnp.sum(w), jnp.finfo(dt).tiny)
+    lin = jnp.sum(w[:, None] * poses, axis=0)
+    quats = rotvec_to_quat(poses[:, 3:6])
+    sign = jnp.where(quats @ quats[first] < 0, -1.0, 1.0).astype(dt)
+    qbar = jnp.sum((w * sign)[:, None] * quats, axis=0)
+    qbar = jnp.where(jnp.linalg.norm(qbar) > 0, qbar, quats[first])
+    rot = quat_to_rotvec(qbar / jnp.linalg.norm(qbar))
+    return jnp.concatenate([lin[:3], rot, lin[ROOT_DOFS:]])
+
+
+class Hypotheses(NamedTuple):
+    """Orientation hypotheses of one query (:func:`estimate_hypotheses`): ``poses`` (H, n_dof)
+    blended per cluster, canonical world, nearest cluster first; ``distance`` (H,) the map
+    distance of each cluster's seed (``inf`` where the neighbours held fewer clusters: the
+    pose then repeats the first)."""
+
+    poses: Float[Array, "h n_dof"]
+    distance: Float[Array, " h"]
+
+
+@eqx.filter_jit
+def estimate_hypotheses(
+    db: PoseDB,
+    tiny: Integer[Array, "n n"],
+    n_hyp: int = N_HYPOTHESES,
+    k: int = HYPOTHESIS_NEIGHBOURS,
+    angle: float = CLUSTER_ANGLE,
+    sigma: float | Float[Array, ""] = BLEND_SIGMA,
+) -> Hypotheses:
+    """Step 2 with the orientations kept apart (issue 38 item 2): the ``k`` nearest maps of
+    ``tiny`` (:func:`query_fast`) split greedily into orientation clusters -- the nearest
+    neighbour not yet within ``angle`` (root rotation, geodesic) of an earlier cluster's seed
+    seeds the next -- and each cluster's (up to ``K_NEIGHBOURS``) nearest members blended
+    (:func:`blend_poses`'s weights and rotation mean). ``n_hyp`` clusters at most, nearest
+    seed first; the first is the blend of the nearest neighbour's orientation, so with one
+    orientation among the neighbours it is the 10-NN blend. jit/vmap."""
+    _check_query(db, tiny, k)
+    nb = query_fast(db, tiny, k)
+    poses = db.poses[nb.index]
+    quats = rotvec_to_quat(poses[:, 3:6])
+    cos_half = jnp.cos(jnp.asarray(angle, poses.dtype) / 2)
+    near = jnp.abs(quats @ quats.T) >= cos_half  # (k, k): within ``angle`` of each other
+    taken = jnp.zeros(k, bool)
+    out, dist = [], []
+    for _ in range(n_hyp):
+        free = ~taken
+        seed = jnp.argmax(free)
+        ok = jnp.any(free)
+        member = near[seed] & free
+        q = _masked_blend(poses, nb.distance, member, sigma)
+        out.append(q), dist.append(jnp.where(ok, nb.distance[seed], jnp.inf))
+        taken = taken | (near[seed] & ok)
+    poses_h = jnp.stack(out)
+    dist = jnp.stack(dist)
+    poses_h = jnp.where(jnp.isfinite(dist)[:, None], poses_h, poses_h[0][None])
+    return Hypotheses(poses_h, dist)
+
+
 def tiny_from_classified(ids: Integer[Array, "h w"]) -> Int[Array, "n n"]:
     """A classified crop (colour ids, 0 = background/unclassified) normalised to the tiny
     40x40 map the same way the database's maps are (:mod:`jaxmocap.render`)."""

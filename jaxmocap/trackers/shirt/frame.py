@@ -1,8 +1,13 @@
 """The colour-shirt frame step (Wang et al. 2011 §5.2), one function per paper step; ``_step``
-chains them under one jit (the frame walk: :mod:`jaxmocap.trackers.shirt`)."""
+chains them under one jit (the frame walk: :mod:`jaxmocap.trackers.shirt`).
+
+Why one file: the steps share the per-frame structures defined here (``Views``,
+``DatabasePose``, ``RoundContext``) and are read in order as the paper's frame; the starts
+(``starts_of``, ``orientation_starts``) and the rounds that run them are one mechanism."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
@@ -36,7 +41,7 @@ from jaxmocap.ik import (
 )
 from jaxmocap.ik import view_anchors as _view_anchors
 from jaxmocap.posedb._sample import pose_in_camera
-from jaxmocap.posedb._search import estimate_pose
+from jaxmocap.posedb._search import estimate_hypotheses, estimate_pose
 from jaxmocap.render import (
     TINY_SIZE,
     Hits,
@@ -140,6 +145,11 @@ class RoundContext(NamedTuple):
     rays: tuple[Float[Array, "n_cams 3"], Float[Array, "n_cams n n 3"]]
     look: appearance.PartColours | None = None  # the patch colour states (``patch_colours``)
     look_W: Array | None = None
+    # with ``orientation_hypotheses``: the placed hypotheses (orientation_starts), how many
+    # of them are real, and whether the previous frame was lost (they start only then)
+    hyps: Array | None = None
+    n_hyps: Array | None = None
+    lost: Array | None = None
 
 
 def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
@@ -211,7 +221,51 @@ def global_placement(params: ShirtParams, db: DatabasePose, dt) -> Array:
     return glob.q
 
 
-def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g) -> RoundContext:
+def orientation_starts(params: ShirtParams, views: Views, db: DatabasePose, dt):
+    """Issue 38 item 2: every camera's orientation hypotheses
+    (:func:`jaxmocap.posedb.estimate_hypotheses`, ``rounds.orientation_hypotheses`` of them:
+    the nearest maps split into orientation clusters, each blended on its own), each placed
+    in the world by step 2's global placement from that camera alone (its closed-form root
+    guess, then the 6-DOF IK on the centroids of the hypothesis's own patch map in the query
+    window). Returns ``(starts, n)``: the placed poses (n_cams * H, n_dof), the real ones
+    first (a camera that did not find the shirt, or a query with fewer clusters, has none),
+    and their count. A pose placed from one camera is not averaged with another camera's
+    view of a different orientation (what :func:`global_placement` does with the joint angles
+    of every camera's blend)."""
+    H, P, n = params.rounds.orientation_hypotheses, params.garment.n_patches, params.n_cams
+    cams = params.cams
+
+    def one(c, ids, win_q, ok_cam):
+        tiny = resample_ids(ids, window_from_mask(ids > 0), TINY_SIZE)
+        hyp = estimate_hypotheses(params.db, tiny, H)
+        cam = jax.tree.map(lambda a: a[c], cams)
+
+        def place(q_h, d_h):
+            q_h = q_h.astype(dt)
+            hits, win_db = tiny_hits(params.body, params.garment, q_h, params.canon)
+            guess = _root_guess(params, cam, q_h, win_db, win_q)
+            cons = patch_centroids(hits.patch, P, win_q, min_pixels=2, dtype=dt)
+            mine = (jnp.arange(n) == c)[:, None]
+            c_xy = jnp.where(mine[..., None], cons.xy[None], 0.0)
+            c_vis = mine & cons.valid[None]
+            q_b = jnp.concatenate([jnp.zeros(6, dt), q_h[6:]])
+            root0, _ = initial_root(cams, params.body.chain, params.anchors, c_xy, c_vis, q_b,
+                                    guess)
+            glob = solve_global(params.body.chain, cams, params.anchors, c_xy, c_vis, q_b,
+                                root0, params.cov.centroid)
+            ok = ok_cam & jnp.isfinite(d_h) & jnp.all(jnp.isfinite(glob.q))
+            return glob.q, ok
+
+        return jax.vmap(place)(hyp.poses, hyp.distance)
+
+    qs, ok = jax.vmap(one)(jnp.arange(n), views.cls.ids, db.win_qs, db.okq)
+    qs, ok = qs.reshape(n * H, -1), ok.reshape(n * H)
+    order = jnp.argsort(~ok, stable=True)
+    return qs[order], jnp.sum(ok).astype(jnp.int32)
+
+
+def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g,
+                  hyps=None) -> RoundContext:
     """The shared inputs of steps 3–4; the temporal prior widened by Sigma_b for
     ``reacquire_frames`` frames after a loss (its ``q_h`` comes from a cold start)."""
     uvs = jax.vmap(lambda w: crop_uv(w, params.search.work_size))(views.windows)
@@ -221,9 +275,13 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
         fresh = state.tracked < params.rounds.reacquire_frames
         cov = eqx.tree_at(lambda c: c.prior, cov, _widened(cov.prior, cov.blend, fresh))
     rays = jax.vmap(lambda cam, uv: (camera_center(cam), pixel_rays(cam, uv)[1]))(params.cams, uvs)
+    extra = {}
+    if hyps is not None:
+        extra = dict(hyps=hyps[0], n_hyps=hyps[1], lost=~state.valid)
     if params.colours.patch_colours:
-        return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W)
-    return RoundContext(views, okq, q_g, q_h, cov, uvs, rays)
+        return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W,
+                            **extra)
+    return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, **extra)
 
 
 def render_views(params: ShirtParams, ctx: RoundContext, q) -> Hits:
@@ -276,10 +334,14 @@ def pose_assisted_centroids(
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
 
 
-def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False):
+def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False, prior=None):
     """One round of steps 3 + 4 with the model rendered at ``q`` (``hits``, stacked over
     cameras): measured centroids in every camera, then the full IK (per-view anchors from
-    ``hits``)."""
+    ``hits``). ``prior``: the blend the IK's database term pulls to (default the placed blend
+    ``q_g``; an orientation hypothesis's own pose for its start), also the temporal prior
+    after a loss (where that is the blend)."""
+    if prior is not None:
+        ctx = ctx._replace(q_g=prior, q_h=jnp.where(ctx.lost, prior, ctx.q_h))
     meas = pose_assisted_centroids(params, ctx, hits.patch, plain)
     c_obs, v_obs = meas.xy, meas.valid
     chain = params.body.chain
@@ -310,7 +372,9 @@ def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
     """The starts of the first round, ``(starts, plain, n)``: the placed blend and the previous
     pose (after a loss: the blend measured without the pose prior); on (re)acquisition frames
     and ``reacquire_frames`` after, a third: the last valid pose measured without the pose
-    prior. ``n`` (2 or 3) is traced; without ``temporal_start`` the blend alone."""
+    prior. ``n`` (2 or 3) is traced; without ``temporal_start`` the blend alone. With
+    ``orientation_hypotheses``, after a loss the placed orientation hypotheses follow
+    (:func:`orientation_starts`; ``n`` counts the real ones)."""
     q_g = ctx.q_g
     if not params.rounds.temporal_start:
         return q_g[None], jnp.zeros((1,), bool), jnp.asarray(1)
@@ -323,6 +387,14 @@ def starts_of(params: ShirtParams, state: ShirtState, ctx: RoundContext):
         plain.append(jnp.array(True))
         fresh = reacquire | (state.tracked < params.rounds.reacquire_frames)
         n = n + fresh.astype(n.dtype)
+    if state.q_own is not None:
+        starts.append(state.q_own)
+        plain.append(jnp.array(False))
+        n = n + reacquire.astype(n.dtype)
+    if ctx.hyps is not None:
+        starts += list(ctx.hyps)
+        plain += [jnp.array(False)] * ctx.hyps.shape[0]
+        n = n + jnp.where(reacquire, ctx.n_hyps, 0).astype(n.dtype)
     return jnp.stack(starts), jnp.stack(plain), n
 
 
@@ -340,6 +412,10 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
     and one round for the whole frame where a loop per phase compiled three renders and two
     rounds (its cold and steady times: docs/results/realtime_profile_history.json)."""
     starts, plain, n = starts_of(params, state, ctx)
+    hyp = ctx.hyps is not None  # each start's IK pulls to its own hypothesis
+    n_plain_starts = starts.shape[0] - (ctx.hyps.shape[0] if hyp else 0)
+    is_hyp = jnp.arange(starts.shape[0]) >= n_plain_starts
+    priors = jnp.where(is_hyp[:, None], starts, ctx.q_g[None])
     total = 2 * n + n_more
     dt = ctx.q_g.dtype
     P = params.garment.n_patches
@@ -350,7 +426,7 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
     pick = lambda b, x, y: jax.tree.map(lambda u, w: jnp.where(b, u, w), x, y)  # noqa: E731
 
     def body(k, carry):
-        pose, ik_out, best = carry
+        pose, ik_out, best, prior_best = carry
         hits = render_views(params, ctx, pose)
         s = jnp.minimum(k // 2, starts.shape[0] - 1)
         in_starts = k < 2 * n
@@ -358,7 +434,9 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
         is_check = in_starts & (k % 2 == 1)
         score = agreement(params, ctx, hits)
         # a start's first round scored: kept if it agrees better than every earlier start
-        best = pick(is_check & (score > best[-1]), (*ik_out, hits, score), best)
+        kept = is_check & (score > best[-1])
+        best = pick(kept, (*ik_out, hits, score), best)
+        prior_best = jnp.where(kept, priors[s], prior_best)
         # an extra round's render: that round's result is the frame's (agreement kept)
         best = pick(~in_starts, (*ik_out, hits, best[-1]), best)
         last_check = is_check & (s == n - 1)
@@ -367,17 +445,19 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
         q_src = jnp.where(is_start, pose, best[0])
         hits_src = pick(is_start, hits, best[3])
         plain_k = is_start & plain[s]
+        prior_k = jnp.where(is_start, priors[s], prior_best) if hyp else None
         ik_out = jax.lax.cond(
             do_ik,
-            lambda: ik_round(params, ctx, q_src, hits_src, plain_k),
+            lambda: ik_round(params, ctx, q_src, hits_src, plain_k, prior_k),
             lambda: ik_out,
         )
         nxt = starts[jnp.minimum(s + 1, starts.shape[0] - 1)]
         pose = jnp.where(is_check & ~last_check, nxt, ik_out[0])
-        return pose, ik_out, best
+        return pose, ik_out, best, prior_best
 
-    init = (starts[0], (ctx.q_g, c0, v0), (ctx.q_g, c0, v0, hits0, jnp.asarray(-jnp.inf, dt)))
-    _, _, best = jax.lax.fori_loop(0, total, body, init)
+    init = (starts[0], (ctx.q_g, c0, v0), (ctx.q_g, c0, v0, hits0, jnp.asarray(-jnp.inf, dt)),
+            ctx.q_g)
+    _, _, best, _ = jax.lax.fori_loop(0, total, body, init)
     return best
 
 
@@ -480,7 +560,14 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     views = locate_and_classify(params, state, frames, masks)
     db = database_pose(params, views, dt)
     q_g = global_placement(params, db, dt)
-    ctx = round_context(params, state, views, db.okq, q_g)
+    hyps = None
+    if params.rounds.orientation_hypotheses:  # computed only after a loss (they start then)
+        H = params.rounds.orientation_hypotheses * params.n_cams
+        hyps = jax.lax.cond(
+            state.valid,
+            lambda: (jnp.broadcast_to(q_g, (H, q_g.shape[0])), jnp.asarray(0, jnp.int32)),
+            lambda: orientation_starts(params, views, db, dt))
+    ctx = round_context(params, state, views, db.okq, q_g, hyps)
     # ik_passes - 1 more rounds, and reacquire_passes more after a loss
     n_more = params.rounds.ik_passes - 1 + jnp.where(state.valid, 0, params.rounds.reacquire_passes)
     q_sol, c_obs, v_obs, hits, agree = rounds(params, state, ctx, n_more)
@@ -513,6 +600,9 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     else:
         own = measured & near_placement(ctx, q_sol)
         q_out = jnp.where(own, q_sol, state.q)
+    if state.q_own is not None:  # the frame's own estimate where it had one, valid or not
+        has_own = measured & near_placement(ctx, q_sol)
+        new_state = dataclasses.replace(new_state, q_own=jnp.where(has_own, q_sol, state.q_own))
     out = ShirtOutput(
         q=q_out,
         q_frame=q_frame.astype(dt),
