@@ -362,7 +362,10 @@ def test_per_clip_gradients_on_dask_workers_sum_to_the_in_process_loss(arm, ik_p
 
 def test_ik_loss_gradient_matches_central_differences_on_three_frames(arm, rng):
     """One 3-frame window (x64, tight solves): every covariance's gradient against central
-    differences along a random direction within 1e-4 relative."""
+    differences along a random direction within 1e-4 relative. Step 1e-3: the loss is smooth
+    only down to the LM stop (~1e-12 of its value), so smaller steps are noisier (measured,
+    centroid / blend / prior: 3.4e-5 / 1.4e-6 / 9.2e-6 at 1e-3; 2.9e-4 / 8e-8 / 2.6e-5 at 1e-4;
+    5e-4 / 8e-4 / 1.4e-4 at 1e-5)."""
     _, _, _, setup = arm
     obs = make_observations(arm, np.random.default_rng(5), n_windows=1, missing=0.2)
     obs = jax.tree.map(lambda a: a[:, :3], obs)  # (1 window, 3 frames)
@@ -374,9 +377,9 @@ def test_ik_loss_gradient_matches_central_differences_on_three_frames(arm, rng):
     for name in ("centroid", "blend", "prior"):
         g = getattr(grad, name)
         d = rng.normal(size=g.shape)
-        fd = float(directional_fd(f, theta, name, d, 1e-4))
+        fd = float(directional_fd(f, theta, name, d, 1e-3))
         an = float(jnp.vdot(g, d))
-        assert abs(fd) > 1e-7, name  # the direction moves the loss
+        assert abs(fd) > 1e-5, name  # the direction moves the loss
         assert abs(an - fd) <= 1e-4 * abs(fd), (name, an, fd)
 
 

@@ -90,7 +90,7 @@ def test_malformed_fields_and_mismatches_are_refused_naming_the_field(tmp_path, 
     with pytest.raises(TunedFileError, match="field 'body_digest'"):
         t.check_for("shirt", rename_body(body, "left_right"))
     with pytest.raises(TunedFileError, match="field 'garment_digest'"):
-        t.check_for("shirt", body, single_colour_garment(body))
+        t.check_for("shirt", body, single_colour_garment(body, (0.2, 0.3, 0.8)))
     with pytest.raises(TunedFileError, match="field 'tracker'"):
         t.check_for("pf", body)
     t.check_for("shirt", body, default_garment(body))  # the right ones pass

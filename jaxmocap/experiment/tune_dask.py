@@ -87,7 +87,10 @@ def _frames(obs: tune.IKObservations) -> float:
     from jaxmocap.trackers.shirt import MIN_VALID_PATCHES
 
     per_frame = np.asarray(obs.visible).sum(axis=(2, 3))
-    return float((per_frame >= MIN_VALID_PATCHES).sum())
+    ok = per_frame >= MIN_VALID_PATCHES
+    if obs.scored is not None:
+        ok &= np.asarray(obs.scored, bool)
+    return float(ok.sum())
 
 
 def dask_value_and_grad(client, setup: tune.IKSetup | Sequence[tune.IKSetup],
