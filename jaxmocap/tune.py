@@ -4,7 +4,8 @@ Neither paper could do this: Wang et al. (§5.2 step 4) "train off-line on groun
 the IK covariances Sigma_c, Sigma_b, Sigma_p by taking the covariance of each term at the true
 pose (:func:`jaxmocap.ik.estimate_covariances`); Azad et al. (§III-D) pick sigma_g, sigma_d by
 hand. Here each parameter group gets a differentiable loss that measures what the user wants
-(tracking error), and Adam descends it. Three groups:
+(tracking error), and an optax optimiser descends it (:func:`fit`: Adam, or L-BFGS with
+its linesearch; resumable from a :class:`FitState`). Three groups:
 
 **1. IK covariances (Wang §5.2 step 4).** ``ik_loss`` runs the tracker's last step, the IK
 solve, over a window of frames in a ``jax.lax.scan``: frame t solves
@@ -46,6 +47,10 @@ too large ones return the cloud's centre: the loss prices exactly the filter's t
 **Constrained parameters** are declared once (as dynamax's ``ParameterProperties``):
 :data:`IK_PARAMETERS`, :data:`COLOR_PARAMETERS`, :data:`PF_PARAMETERS` name the bijection of
 each field; the optimiser sees only unconstrained arrays.
+
+**Why one file** (over 600 lines): the three losses, their constraint table and the one
+optimiser loop (:func:`fit`, its checkpoints) are one study's parts, read together; split,
+each piece would import the others' private helpers (``_constrain``, the theta classes).
 """
 
 from __future__ import annotations
