@@ -248,7 +248,7 @@ def test_worker_environment_holds_threads_to_one():
     ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nskin_grow='4'\n",
      "options.skin_grow: expected a value like 0"),
     ("[[config]]\nname='a'\nmethod='shirt'\n[config.options]\ntuned='t.json'\n"
-     "covariances='isotropic'\n", "give tuned (a file of `jaxmocap tune`) or covariances"),
+     "covariances='isotropic'\n", "or covariances, not both"),
     ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\ntuned='no.json'\n",
      "options.tuned: no such file"),
 ])
