@@ -715,8 +715,9 @@ def load_fit_state(path, theta, opt: optax.GradientTransformation) -> tuple[FitS
         if n != len(leaves):
             raise TuneError(f"{path}: field {tag!r} has {n} arrays, this run's has "
                             f"{len(leaves)} (another optimiser or parameters)")
-        return jax.tree.unflatten(treedef, [jnp.asarray(f[f"leaf_{tag}_{k}"], jnp.asarray(leaf).dtype)
-                                            for k, leaf in enumerate(leaves)])
+        return jax.tree.unflatten(treedef, [
+            jnp.asarray(f[f"leaf_{tag}_{k}"], jnp.asarray(leaf).dtype)
+            for k, leaf in enumerate(leaves)])
 
     opt_like = opt.init(theta)
     state = FitState(int(f["step"]), tree("theta", theta), tree("opt", opt_like),

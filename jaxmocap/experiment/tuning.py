@@ -17,11 +17,12 @@ configuration's hash and the sequence's content digest (a rerun reads them back)
   error). Why not every frame: where the tracker is lost its blended database pose is far
   off (dev shirt_03, 13: 140 and 258 cm mean over all frames) and the re-run's LM, started
   from it, ends metres away (mean 605 cm on shirt_03, median 11 cm) where the tracker kept a
-  better start or flagged the frame: those frames would swamp the loss. Held fixed besides: the tracker's histogram
-  search, classification and database blend (all discrete), the feedback of the pose into
-  the next frame's white balance and crop, and the per-view anchors of ``Rounds.view_anchors``
-  (the loss's IK predicts each patch from its shared 3D anchor; the tracker's Cauchy width
-  ``Rounds.robust`` is kept).
+  better start or flagged the frame: those frames would swamp the loss. Held fixed besides:
+  the tracker's histogram search, classification and database blend (all discrete), the
+  feedback of the pose into the next frame's white balance and crop, the tracker's several
+  IK starts (the re-run starts each frame from ``q_b``), and the per-view anchors of
+  ``Rounds.view_anchors`` (the loss's IK predicts each patch from its shared 3D anchor; the
+  tracker's Cauchy width ``Rounds.robust`` is kept).
 
 **Parameters.** When every sequence has the same body and shirt, the full matrices
 Sigma_c, Sigma_b, Sigma_p of that body (:class:`jaxmocap.tune.IKTheta`; the file's
