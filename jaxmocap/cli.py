@@ -41,6 +41,7 @@ SUBCOMMANDS = (
     "jaxmocap.commands.body",
     "jaxmocap.commands.synth_world",
     "jaxmocap.commands.experiment",
+    "jaxmocap.commands.tune",
 )
 
 

@@ -4,7 +4,8 @@ Neither paper could do this: Wang et al. (§5.2 step 4) "train off-line on groun
 the IK covariances Sigma_c, Sigma_b, Sigma_p by taking the covariance of each term at the true
 pose (:func:`jaxmocap.ik.estimate_covariances`); Azad et al. (§III-D) pick sigma_g, sigma_d by
 hand. Here each parameter group gets a differentiable loss that measures what the user wants
-(tracking error), and Adam descends it. Three groups:
+(tracking error), and an optax optimiser descends it (:func:`fit`: Adam, or L-BFGS with
+its linesearch; resumable from a :class:`FitState`). Three groups:
 
 **1. IK covariances (Wang §5.2 step 4).** ``ik_loss`` runs the tracker's last step, the IK
 solve, over a window of frames in a ``jax.lax.scan``: frame t solves
@@ -46,6 +47,10 @@ too large ones return the cloud's centre: the loss prices exactly the filter's t
 **Constrained parameters** are declared once (as dynamax's ``ParameterProperties``):
 :data:`IK_PARAMETERS`, :data:`COLOR_PARAMETERS`, :data:`PF_PARAMETERS` name the bijection of
 each field; the optimiser sees only unconstrained arrays.
+
+**Why one file** (over 600 lines): the three losses, their constraint table and the one
+optimiser loop (:func:`fit`, its checkpoints) are one study's parts, read together; split,
+each piece would import the others' private helpers (``_constrain``, the theta classes).
 """
 
 from __future__ import annotations
@@ -57,6 +62,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxmocap.body import BodyModel, keypoints
@@ -76,8 +82,6 @@ from jaxmocap.trackers.shirt import MIN_VALID_PATCHES
 
 SOFT_TEMPERATURE = 1.0  # t of the soft classifier in the colour loss (squared std units)
 NORM_EPS = 1e-12  # m^2 under the square root of a joint error (NaN-free gradient at 0)
-# Adam (Kingma & Ba 2015) defaults.
-ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
 
 
 class TuneError(InputError):
@@ -175,14 +179,51 @@ def ik_theta(cov: IKCovariances) -> IKTheta:
     )
 
 
-def ik_covariances(theta: IKTheta) -> IKCovariances:
-    """The covariances of unconstrained parameters (positive definite by construction)."""
-    return IKCovariances(**_constrain(theta, IK_PARAMETERS))
+class IKRoleTheta(eqx.Module):
+    """Unconstrained IK covariances shared by bodies through their roles: the log-Cholesky
+    vector of Sigma_c (2 x 2) and the log variances of Sigma_b and Sigma_p (diagonal) on the
+    DOFs of a reference body (the bundled one); a body's DOF takes the variances of its
+    counterpart (``IKSetup.dof_index``, the matching of
+    :func:`jaxmocap.trackers.shirt.covariances.transfer_covariances`), or the defaults. What
+    one tunes over sequences whose bodies differ (the test world: one body per sequence)."""
+
+    centroid: Float[Array, " 3"]
+    blend: Float[Array, " n_ref"]
+    prior: Float[Array, " n_ref"]
+
+
+def ik_role_theta(cov: IKCovariances) -> IKRoleTheta:
+    """:class:`IKRoleTheta` of the reference body's covariances (their diagonals)."""
+    if cov.centroid.ndim != 2:
+        raise TuneError("ik_role_theta: tuning needs a shared Sigma_c (2, 2)")
+    diag = lambda a: a if a.ndim == 1 else jnp.diagonal(a)
+    return IKRoleTheta(LOG_CHOLESKY.to_unconstrained(cov.centroid), jnp.log(diag(cov.blend)),
+                       jnp.log(diag(cov.prior)))  # fmt: skip
+
+
+def ik_covariances(theta: IKTheta | IKRoleTheta, setup: IKSetup | None = None) -> IKCovariances:
+    """The covariances of unconstrained parameters (positive definite by construction); an
+    :class:`IKRoleTheta` gives the reference body's, or with ``setup`` (its ``dof_index``)
+    those of the setup's body."""
+    if isinstance(theta, IKTheta):
+        return IKCovariances(**_constrain(theta, IK_PARAMETERS))
+    centroid = LOG_CHOLESKY.to_value(theta.centroid)
+    blend, prior = jnp.exp(theta.blend), jnp.exp(theta.prior)
+    if setup is not None and setup.dof_index is not None:
+        idx = setup.dof_index
+        hit = idx >= 0
+        j = jnp.maximum(idx, 0)
+        blend = jnp.where(hit, blend[j], setup.default_var[0])
+        prior = jnp.where(hit, prior[j], setup.default_var[1])
+    return IKCovariances(centroid=centroid, blend=blend, prior=prior)
 
 
 class IKSetup(eqx.Module):
     """What the IK needs besides the observations: body, stacked cameras, patch anchors and
-    the keypoints the error is measured on (``joints``, indices into ``body.keypoint_names``)."""
+    the keypoints the error is measured on (``joints``, indices into ``body.keypoint_names``);
+    ``robust`` the tracker's Cauchy width of the centroid term (inf: the paper's squares);
+    ``dof_index`` (role-shared parameters, :class:`IKRoleTheta`): per DOF of ``body`` the DOF
+    of the reference body whose variances it takes, -1 for the defaults ``default_var``."""
 
     body: BodyModel
     cams: Camera
@@ -190,14 +231,20 @@ class IKSetup(eqx.Module):
     joints: Int[Array, " n_joints"]
     rtol: Float[Array, ""]  # tolerances of every IK solve (traced)
     atol: Float[Array, ""]
+    robust: Float[Array, ""] | None = None
+    dof_index: Int[Array, " n_dof"] | None = None
+    default_var: Float[Array, " 2"] | None = None  # (blend, prior) variance without a match
 
 
 def ik_setup(
     body: BodyModel, cams: Camera, anchors: PatchAnchors, joints: Sequence[str] | None = None,
-    rtol: float = DEFAULT_RTOL, atol: float = DEFAULT_ATOL,
+    rtol: float = DEFAULT_RTOL, atol: float = DEFAULT_ATOL, robust: float | None = None,
+    dof_index: ArrayLike | None = None, default_var: tuple[float, float] | None = None,
 ) -> IKSetup:  # fmt: skip
     """Validated :class:`IKSetup`; ``joints`` keypoint names (default all); ``rtol``/``atol``
-    of the IK solves (tighter than the tracker's when checking gradients)."""
+    of the IK solves (tighter than the tracker's when checking gradients); ``robust`` the
+    tracker's ``Rounds.robust``; ``dof_index`` / ``default_var`` for :class:`IKRoleTheta`
+    (:func:`jaxmocap.trackers.shirt.covariances.transfer_index`)."""
     names = list(body.keypoint_names)
     joints = names if joints is None else list(joints)
     bad = [j for j in joints if j not in names]
@@ -207,18 +254,30 @@ def ik_setup(
         raise TuneError("ik_setup: cams must be stacked (jaxmocap.camera.stack_cameras)")
     dt = cams.K.dtype
     idx = jnp.asarray([names.index(j) for j in joints], jnp.int32)
-    return IKSetup(body, cams, anchors, idx, jnp.asarray(rtol, dt), jnp.asarray(atol, dt))
+    rob = None if robust is None else jnp.asarray(robust, dt)
+    if dof_index is not None:
+        dof_index = jnp.asarray(dof_index, jnp.int32)
+        if dof_index.shape != (body.n_dof,):
+            raise TuneError(f"ik_setup: dof_index has shape {dof_index.shape}, the body "
+                            f"{body.n_dof} DOFs")
+        default_var = jnp.asarray(default_var, dt)
+    return IKSetup(body, cams, anchors, idx, jnp.asarray(rtol, dt), jnp.asarray(atol, dt), rob,
+                   dof_index, default_var)  # fmt: skip
 
 
 class IKObservations(eqx.Module):
     """Per-frame inputs of the IK step and the ground truth, over windows of T frames:
     ``centroids`` (pixels; anything, NaN included, where not ``visible``), ``visible``, the
-    blended database pose ``q_b`` and the true pose ``q_gt``."""
+    blended database pose ``q_b`` and the true pose ``q_gt``; ``scored`` (optional) the frames
+    the loss counts besides needing ``MIN_VALID_PATCHES`` centroids, e.g. those the tracker
+    reported valid (held fixed: its validity is discrete), as the experiment's per-joint error
+    counts them."""
 
     centroids: Float[Array, "n_windows t n_cams n_patches 2"]
     visible: Bool[Array, "n_windows t n_cams n_patches"]
     q_b: Float[Array, "n_windows t n_dof"]
     q_gt: Float[Array, "n_windows t n_dof"]
+    scored: Bool[Array, "n_windows t"] | None = None
 
 
 def _windows(a: np.ndarray, length: int) -> np.ndarray:
@@ -232,13 +291,22 @@ def ik_observations(
     dtype=None,
 ) -> IKObservations:
     """Stack sequences ``(centroids (T, C, P, 2), visible (T, C, P), q_b (T, n), q_gt (T,
-    n))`` into windows of ``window`` consecutive frames (a sequence's tail shorter than a
-    window is dropped; windows never straddle two sequences)."""
+    n)[, scored (T,)])`` into windows of ``window`` consecutive frames (a sequence's tail
+    shorter than a window is dropped; windows never straddle two sequences); ``scored`` given
+    for every sequence or none."""
     if window < 2:
         raise TuneError(f"ik_observations: window must be >= 2 frames, got {window}")
-    parts: list[list[np.ndarray]] = [[], [], [], []]
+    parts: list[list[np.ndarray]] = [[], [], [], [], []]
+    n_scored = 0
     for s, seq in enumerate(sequences):
-        c, v, qb, qg = (np.asarray(a) for a in seq)
+        c, v, qb, qg = (np.asarray(a) for a in seq[:4])
+        if len(seq) > 4:
+            sc = np.asarray(seq[4], bool)
+            if sc.shape != (c.shape[0],):
+                raise TuneError(f"ik_observations: sequence {s}: scored has shape {sc.shape}, "
+                                f"expected ({c.shape[0]},)")
+            parts[4].append(_windows(sc, window))
+            n_scored += 1
         T = c.shape[0]
         if c.ndim != 4 or c.shape[-1] != 2 or v.shape != c.shape[:3] or qb.shape != qg.shape:
             raise TuneError(
@@ -250,14 +318,17 @@ def ik_observations(
             raise TuneError(
                 f"ik_observations: sequence {s}: {T} centroid frames, {qb.shape[0]} poses"
             )
-        for p, a in zip(parts, (c, v.astype(bool), qb, qg), strict=True):
+        for p, a in zip(parts[:4], (c, v.astype(bool), qb, qg), strict=True):
             p.append(_windows(a, window))
     if not parts[0] or sum(p.shape[0] for p in parts[0]) == 0:
         raise TuneError(f"ik_observations: no sequence has {window} frames")
+    if n_scored not in (0, len(parts[0])):
+        raise TuneError("ik_observations: scored given for some sequences, not all")
     dt = dtype or jnp.result_type(float)
-    c, v, qb, qg = (np.concatenate(p) for p in parts)
+    c, v, qb, qg = (np.concatenate(p) for p in parts[:4])
+    sc = jnp.asarray(np.concatenate(parts[4])) if n_scored else None
     return IKObservations(
-        jnp.asarray(c, dt), jnp.asarray(v), jnp.asarray(qb, dt), jnp.asarray(qg, dt)
+        jnp.asarray(c, dt), jnp.asarray(v), jnp.asarray(qb, dt), jnp.asarray(qg, dt), sc
     )
 
 
@@ -295,7 +366,7 @@ def ik_track(
         c, v, qb = frame
         q_h = jnp.where(ok_prev, q_prev, qb)
         sol = solve_ik(chain, setup.cams, setup.anchors, c, v, qb, q_h, cov, qb,
-                       rtol=setup.rtol, atol=setup.atol)  # fmt: skip
+                       rtol=setup.rtol, atol=setup.atol, robust=setup.robust)  # fmt: skip
         ok = jnp.sum(v) >= MIN_VALID_PATCHES
         q = jnp.where(ok, sol.q, q_prev)
         return (q, ok), (q, ok)
@@ -305,10 +376,10 @@ def ik_track(
     return q, ok
 
 
-def _window_loss(cov, setup, c, v, qb, qg, jitter_weight) -> tuple[Array, Array]:
+def _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight) -> tuple[Array, Array]:
     q, ok = ik_track(cov, setup, c, v, qb)
     err, dx = jax.vmap(lambda a, b: _joint_error(setup, a, b))(q, qg)
-    w = ok.astype(err.dtype)
+    w = (ok & sc).astype(err.dtype)
     total = jnp.sum(w * err)
     n = jnp.sum(w)
     if jitter_weight:
@@ -326,17 +397,19 @@ def ik_loss_parts(
     count does not depend on ``theta`` (validity is the measured centroids'), so the loss and
     its gradient over many clips are ``sum_c total_c / sum_c n_c`` and ``sum_c grad total_c /
     sum_c n_c`` -- what :mod:`jaxmocap.experiment.tune_dask` computes per clip on workers."""
-    cov = ik_covariances(theta)
-    total, n = jax.vmap(lambda c, v, qb, qg: _window_loss(cov, setup, c, v, qb, qg, jitter_weight))(
-        obs.centroids, obs.visible, obs.q_b, obs.q_gt
-    )
+    cov = ik_covariances(theta, setup)
+    scored = jnp.ones(obs.q_b.shape[:2], bool) if obs.scored is None else obs.scored
+    total, n = jax.vmap(
+        lambda c, v, qb, qg, sc: _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight)
+    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored)
     return jnp.sum(total), jnp.sum(n)
 
 
 def ik_loss(
     theta: IKTheta, setup: IKSetup, obs: IKObservations, jitter_weight: float = 0.0
 ) -> Float[Array, ""]:
-    """Mean per-joint position error (m) of the IK track over all windows' valid frames
+    """Mean per-joint position error (m) of the IK track over all windows' valid (and scored)
+    frames
     (+ ``jitter_weight`` x mean error of the joints' frame-to-frame displacement), as a
     function of the unconstrained covariances. Windows are vmapped."""
     total, n = ik_loss_parts(theta, setup, obs, jitter_weight)
@@ -511,51 +584,92 @@ def pf_loss(
 
 # ----------------------------------------------------------------------------- optimiser
 
-
-class AdamState(NamedTuple):
-    m: eqx.Module
-    v: eqx.Module
-    count: Int[Array, ""]
+OPTIMISERS = ("adam", "lbfgs")
 
 
-def adam_init(theta) -> AdamState:
-    zeros = jax.tree.map(jnp.zeros_like, theta)
-    return AdamState(zeros, zeros, jnp.zeros((), jnp.int32))
+def make_optimiser(name: str, learning_rate: float | None = None) -> optax.GradientTransformation:
+    """An optax optimiser by name: ``"adam"`` (Kingma & Ba 2015, optax's defaults, the
+    ``learning_rate``) or ``"lbfgs"`` (``optax.lbfgs`` with its default zoom linesearch:
+    strong Wolfe conditions, at most 20 evaluations, each search starting from a unit step --
+    ``initial_guess_strategy="one"``; starting from the previous step instead stalled 0.8%
+    above the minimum of a 3 x 3 covariance fit in 40 steps, where the default reaches it to
+    1e-15; ``learning_rate`` None: the linesearch picks the step)."""
+    if name == "adam":
+        if learning_rate is None or not learning_rate > 0:
+            raise TuneError(f"fit: Adam needs a learning rate > 0, got {learning_rate}")
+        return optax.adam(learning_rate)
+    if name == "lbfgs":
+        return optax.lbfgs(learning_rate)
+    raise TuneError(f"fit: optimiser {name!r} is not one of {', '.join(OPTIMISERS)}")
 
 
-def adam_update(grad, state: AdamState, theta, learning_rate: float | Array):
-    """One Adam step (Kingma & Ba 2015, bias-corrected) on a pytree; returns (theta, state)."""
-    c = state.count + 1
-    m = jax.tree.map(lambda m, g: ADAM_B1 * m + (1 - ADAM_B1) * g, state.m, grad)
-    v = jax.tree.map(lambda v, g: ADAM_B2 * v + (1 - ADAM_B2) * g * g, state.v, grad)
-    b1 = 1 - ADAM_B1 ** c.astype(jnp.result_type(float))
-    b2 = 1 - ADAM_B2 ** c.astype(jnp.result_type(float))
-    theta = jax.tree.map(
-        lambda t, m, v: t - learning_rate * (m / b1) / (jnp.sqrt(v / b2) + ADAM_EPS), theta, m, v
-    )
-    return theta, AdamState(m, v, c)
+class FitState(NamedTuple):
+    """Where :func:`fit` is: ``step`` the index of the next iterate to evaluate, ``theta`` that
+    iterate, the optax state, the best iterate so far and its loss, and ``losses`` of the
+    iterates 0..step-1. Saved by :func:`save_fit_state`, a run continues from it and ends
+    where an uninterrupted run of the same total steps ends (the loop is deterministic)."""
+
+    step: int
+    theta: object
+    opt_state: object
+    best: object
+    best_loss: float
+    losses: tuple[float, ...]
 
 
 def fit(
     loss: Callable,
     theta,
     steps: int,
-    learning_rate: float,
+    learning_rate: float | None = 0.05,
     callback: Callable | None = None,
     value_and_grad: bool = False,
+    optimiser: str | optax.GradientTransformation = "adam",
+    start: FitState | None = None,
+    checkpoint: Callable[[FitState], None] | None = None,
 ):
-    """Minimise ``loss(theta)`` by ``steps`` Adam steps. ``loss`` returns the scalar (it is
+    """Minimise ``loss(theta)`` by ``steps`` steps of an optax ``optimiser`` (a name of
+    :data:`OPTIMISERS` or a ``GradientTransformation``). ``loss`` returns the scalar (it is
     differentiated and jitted here), or with ``value_and_grad=True`` already ``(value,
-    gradient)`` (e.g. a jitted ``jax.value_and_grad`` shared with other calls). Returns (theta
-    with the lowest loss seen, losses (steps + 1,); the last is the final iterate's).
-    ``callback(i, loss, theta)`` is called after each evaluation."""
+    gradient)`` (e.g. a jitted ``jax.value_and_grad`` shared with other calls, or gradients
+    summed over Dask workers); ``"lbfgs"`` needs the scalar (its linesearch evaluates the loss
+    along the search direction inside the jitted update). Returns (theta with the lowest loss
+    seen, losses (steps + 1,); the last is the final iterate's). ``callback(i, loss, theta)``
+    is called after each evaluation; ``checkpoint(state)`` after each update with the
+    :class:`FitState` to resume from (``start``)."""
     if steps < 0:
         raise TuneError(f"fit: steps must be >= 0, got {steps}")
-    vg = loss if value_and_grad else eqx.filter_jit(jax.value_and_grad(loss))
-    state = adam_init(theta)
-    best, best_loss, losses = theta, np.inf, []
-    for i in range(steps + 1):
-        value, grad = vg(theta)
+    is_lbfgs = optimiser == "lbfgs"
+    opt = optimiser if not isinstance(optimiser, str) else make_optimiser(
+        optimiser, None if is_lbfgs else learning_rate)
+    extra = is_lbfgs  # the linesearch: value, grad and value_fn to the update
+    if extra and value_and_grad:
+        raise TuneError("fit: an optimiser with a linesearch (L-BFGS) needs the scalar loss, "
+                        "not value_and_grad=True")
+    if extra:
+        scalar = loss
+        vg = eqx.filter_jit(optax.value_and_grad_from_state(scalar))
+
+        @eqx.filter_jit
+        def update(g, s, th, value):
+            u, s = opt.update(g, s, th, value=value, grad=g, value_fn=scalar)
+            return optax.apply_updates(th, u), s
+    else:
+        vg = loss if value_and_grad else eqx.filter_jit(jax.value_and_grad(loss))
+
+        @eqx.filter_jit
+        def update(g, s, th, value):
+            u, s = opt.update(g, s, th)
+            return optax.apply_updates(th, u), s
+
+    if start is None:
+        start = FitState(0, theta, opt.init(theta), theta, np.inf, ())
+    elif start.step > steps + 1:
+        raise TuneError(f"fit: the checkpoint is at step {start.step}, past steps={steps}")
+    i, theta, state = start.step, start.theta, start.opt_state
+    best, best_loss, losses = start.best, start.best_loss, list(start.losses)
+    while i <= steps:
+        value, grad = vg(theta, state=state) if extra else vg(theta)
         value = float(value)
         losses.append(value)
         if callback is not None:
@@ -563,5 +677,50 @@ def fit(
         if value < best_loss:
             best, best_loss = theta, value
         if i < steps:
-            theta, state = adam_update(grad, state, theta, learning_rate)
+            theta, state = update(grad, state, theta, jnp.asarray(value))
+        i += 1
+        if checkpoint is not None and i <= steps:
+            checkpoint(FitState(i, theta, state, best, best_loss, tuple(losses)))
     return best, np.asarray(losses)
+
+
+def save_fit_state(path, state: FitState, meta: dict | None = None) -> None:
+    """Write a :class:`FitState` to ``path`` (an ``.npz``: the leaves of theta, the optax
+    state and the best iterate; ``meta`` as JSON), atomically (temporary file, renamed)."""
+    import json
+    import os
+
+    arrays = {"step": np.int64(state.step), "best_loss": np.float64(state.best_loss),
+              "losses": np.asarray(state.losses, np.float64),
+              "meta": np.asarray(json.dumps(meta or {}))}  # fmt: skip
+    for tag, tree in (("theta", state.theta), ("opt", state.opt_state), ("best", state.best)):
+        for k, leaf in enumerate(jax.tree.leaves(tree)):
+            arrays[f"leaf_{tag}_{k}"] = np.asarray(leaf)
+    tmp = f"{path}.tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def load_fit_state(path, theta, opt: optax.GradientTransformation) -> tuple[FitState, dict]:
+    """(the :class:`FitState` of :func:`save_fit_state`, its meta); ``theta`` and the optax
+    optimiser ``opt`` give the trees' structure (a fresh ``init``)."""
+    import json
+
+    with np.load(path) as z:
+        f = {k: z[k] for k in z.files}
+
+    def tree(tag, like):
+        leaves, treedef = jax.tree.flatten(like)
+        n = sum(1 for k in f if k.startswith(f"leaf_{tag}_"))
+        if n != len(leaves):
+            raise TuneError(f"{path}: field {tag!r} has {n} arrays, this run's has "
+                            f"{len(leaves)} (another optimiser or parameters)")
+        return jax.tree.unflatten(treedef, [
+            jnp.asarray(f[f"leaf_{tag}_{k}"], jnp.asarray(leaf).dtype)
+            for k, leaf in enumerate(leaves)])
+
+    opt_like = opt.init(theta)
+    state = FitState(int(f["step"]), tree("theta", theta), tree("opt", opt_like),
+                     tree("best", theta), float(f["best_loss"]),
+                     tuple(float(x) for x in f["losses"]))  # fmt: skip
+    return state, json.loads(str(f["meta"]))

@@ -247,6 +247,10 @@ def test_worker_environment_holds_threads_to_one():
      "options.search: searches with the capture's colours"),
     ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\nskin_grow='4'\n",
      "options.skin_grow: expected a value like 0"),
+    ("[[config]]\nname='a'\nmethod='shirt'\n[config.options]\ntuned='t.json'\n"
+     "covariances='isotropic'\n", "or covariances, not both"),
+    ("[[config]]\nname='a'\nmethod='pf'\n[config.options]\ntuned='no.json'\n",
+     "options.tuned: no such file"),
 ])
 def test_bad_configs_fail_in_one_line(tmp_path, text, expect):
     path = tmp_path / "configs.toml"
@@ -277,6 +281,30 @@ def test_cli_refuses_bad_inputs_before_any_work(dataset, tmp_path, capsys):
     shirt.write_text("[[config]]\nname='s'\nmethod='shirt'\n")
     assert main(["experiment", str(dataset), str(shirt), "--out", str(out)]) == 2
     assert "has no colour_ids" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_tuned_file_of_another_body_is_refused_before_any_cell(dataset, tmp_path, capsys):
+    """Option ``tuned``: the file's digests are checked against every configuration's body
+    before any cell runs (exit code 2, one line naming the file and the field)."""
+    from jaxmocap.body import default_body
+    from jaxmocap.tuned import TunedParameters
+
+    TunedParameters("pf", {"sigma_g": 0.3, "sigma_d": 0.05}, "0123456789abcdef").save(
+        tmp_path / "t.json")
+    cfg = tmp_path / "tuned.toml"
+    cfg.write_text("[[config]]\nname='t'\nmethod='pf'\n[config.options]\nparticles=32\n"
+                   "tuned='t.json'\n")
+    out = tmp_path / "out"
+    assert main(["experiment", str(dataset), str(cfg), "--out", str(out), "--workers", "0",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "t.json: field 'body_digest' is 0123456789abcdef" in err and err.count("\n") == 1
+    assert not out.exists()
+    from jaxmocap.body import body_digest
+
+    TunedParameters("pf", {"sigma_g": 0.3, "sigma_d": 0.05},
+                    body_digest(default_body())).save(tmp_path / "t.json")
+    TunedParameters.load(tmp_path / "t.json").check_for("pf", default_body())  # passes
 
 
 def test_affinity_deals_configurations_to_workers_in_turn():

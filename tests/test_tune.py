@@ -355,3 +355,89 @@ def test_per_clip_gradients_on_dask_workers_sum_to_the_in_process_loss(arm, ik_p
     np.testing.assert_allclose(d_value, local_value, rtol=1e-12)
     for a, b in zip(jax.tree.leaves(d_grad), jax.tree.leaves(local_grad), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- issue 40
+
+
+def test_ik_loss_gradient_matches_central_differences_on_three_frames(arm, rng):
+    """One 3-frame window (x64, tight solves): every covariance's gradient against central
+    differences along a random direction within 1e-4 relative. Step 1e-3: the loss is smooth
+    only down to the LM stop (~1e-12 of its value), so smaller steps are noisier (measured,
+    centroid / blend / prior: 3.4e-5 / 1.4e-6 / 9.2e-6 at 1e-3; 2.9e-4 / 8e-8 / 2.6e-5 at 1e-4;
+    5e-4 / 8e-4 / 1.4e-4 at 1e-5)."""
+    _, _, _, setup = arm
+    obs = make_observations(arm, np.random.default_rng(5), n_windows=1, missing=0.2)
+    obs = jax.tree.map(lambda a: a[:, :3], obs)  # (1 window, 3 frames)
+    assert obs.q_b.shape[:2] == (1, 3)
+    theta = tune.ik_theta(IKCovariances.isotropic(2.5, 0.1, 0.15, setup.body.n_dof))
+    vg = jax.jit(jax.value_and_grad(tune.ik_loss))
+    _, grad = vg(theta, setup, obs)
+    f = lambda th: vg(th, setup, obs)[0]
+    for name in ("centroid", "blend", "prior"):
+        g = getattr(grad, name)
+        d = rng.normal(size=g.shape)
+        fd = float(directional_fd(f, theta, name, d, 1e-3))
+        an = float(jnp.vdot(g, d))
+        assert abs(fd) > 1e-5, name  # the direction moves the loss
+        assert abs(an - fd) <= 1e-4 * abs(fd), (name, an, fd)
+
+
+def _gaussian_problem(rng, n=3, m=400):
+    """Negative log-likelihood of Gaussian samples in the scaled log-Cholesky parameters:
+    its minimiser is the samples' second moment S (closed form)."""
+    A = rng.normal(size=(n, n))
+    x = rng.normal(size=(m, n)) @ (A + 2 * np.eye(n)).T
+    S = jnp.asarray(x.T @ x / m)
+
+    def nll(theta):
+        cov = tune.spd_from_log_cholesky(theta)
+        L = jnp.linalg.cholesky(cov)
+        return jnp.sum(jnp.log(jnp.diagonal(L))) + 0.5 * jnp.trace(jnp.linalg.solve(cov, S))
+
+    theta0 = tune.log_cholesky_from_spd(jnp.eye(n))
+    return nll, theta0, S
+
+
+@pytest.mark.parametrize("optimiser, steps, lr, tol", [("adam", 300, 0.05, 0.02),
+                                                       ("lbfgs", 40, None, 1e-6)])
+def test_optax_optimisers_reach_the_closed_form_minimiser(rng, optimiser, steps, lr, tol):
+    nll, theta0, S = _gaussian_problem(rng)
+    best, losses = tune.fit(nll, theta0, steps, lr, optimiser=optimiser)
+    assert losses.shape == (steps + 1,) and losses.min() < losses[0]
+    assert float(nll(best)) == pytest.approx(losses.min())
+    cov = np.asarray(tune.spd_from_log_cholesky(best))
+    np.testing.assert_allclose(cov, S, rtol=tol, atol=tol * np.abs(S).max())
+    floor = float(nll(tune.log_cholesky_from_spd(S)))
+    assert losses.min() >= floor - 1e-9  # S is the minimiser: nothing goes below it
+
+
+@pytest.mark.parametrize("optimiser", ["adam", "lbfgs"])
+def test_fit_resumes_from_a_checkpoint_as_if_uninterrupted(rng, tmp_path, optimiser):
+    """A run killed after its step-4 checkpoint, resumed from the file, ends where an
+    uninterrupted run of the same total steps ends (iterates, best and losses)."""
+    nll, theta0, _ = _gaussian_problem(rng)
+    steps = 9
+    best_a, losses_a = tune.fit(nll, theta0, steps, 0.1, optimiser=optimiser)
+    ckpt = tmp_path / "ckpt.npz"
+
+    class Killed(Exception):
+        pass
+
+    def checkpoint(state):
+        tune.save_fit_state(ckpt, state, {"run": "x"})
+        if state.step == 4:
+            raise Killed
+
+    with pytest.raises(Killed):
+        tune.fit(nll, theta0, steps, 0.1, optimiser=optimiser, checkpoint=checkpoint)
+    opt = tune.make_optimiser(optimiser, None if optimiser == "lbfgs" else 0.1)
+    start, meta = tune.load_fit_state(ckpt, theta0, opt)
+    assert start.step == 4 and len(start.losses) == 4 and meta == {"run": "x"}
+    best_b, losses_b = tune.fit(nll, theta0, steps, 0.1, optimiser=optimiser, start=start)
+    np.testing.assert_array_equal(losses_b, losses_a)
+    np.testing.assert_array_equal(best_b, best_a)
+    with pytest.raises(tune.TuneError, match="needs the scalar loss"):
+        tune.fit(jax.value_and_grad(nll), theta0, 1, optimiser="lbfgs", value_and_grad=True)
+    with pytest.raises(tune.TuneError, match="not one of adam, lbfgs"):
+        tune.make_optimiser("sgd", 0.1)

@@ -189,6 +189,13 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     from jaxmocap.commands._body import body_from_args, garment_from_args
 
     body = body_from_args(args)
+    tuned = None
+    if args.tuned:  # before the database, the colour model or the compile: exit 2 up front
+        from jaxmocap.tuned import load_tuned
+
+        if args.ik_cov:
+            raise InputError("give --tuned (a tuned-parameters file) or --ik-cov, not both")
+        tuned = load_tuned(args.tuned, args.method, body)  # the shirt's garment: below
     if args.method == "pf" and args.garment:
         raise InputError("--garment describes the colour shirt of --method shirt; the particle "
                          "filter (--method pf) segments a single-colour shirt and skin")
@@ -200,13 +207,16 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
             raise InputError("--pf-skin-grow grows the skin map of the capture's colours; it "
                              "needs --pf-colors")
         return StereoPFFrameTracker(cams, args.particles, args.seed, args.skin, body,
-                                    args.pf_colors, args.pf_skin_grow, args.pf_swivel)
+                                    args.pf_colors, args.pf_skin_grow, args.pf_swivel,
+                                    cue_widths=None if tuned is None else tuned.cue_widths())
     from jaxmocap.color import load_color_model
 
     if not args.colors:
         raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
     color = load_color_model(args.colors)
     garment = garment_from_args(args, body, color if args.garment else None)
+    if tuned is not None:
+        tuned.check_for("shirt", body, garment)
     if color.n_colors != garment.n_colours:  # before the database, which may be built first
         raise InputError(f"{args.colors}: the colour model has {color.n_colors} colours, the "
                          f"shirt has {garment.n_colours}; fit one colour per shirt colour")
@@ -224,7 +234,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
         if room is not None:
             print(f"jaxmocap track: {room.n_colors} room colours of {args.white_balance} are "
                   "background", file=sys.stderr)
-    cov = None
+    cov = None if tuned is None else tuned.ik_covariances(body)
     if args.ik_cov:
         from jaxmocap.ik import IKCovariances
 
@@ -297,6 +307,10 @@ def add_parser(sub) -> None:
                    f"amplitude (response 1/(1+(f/HZ)^4); below half the frame rate) "
                    f"(default: {DEFAULT_CUTOFF_HZ:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--tuned", metavar="TUNED_JSON",
+                   help="tuned parameters (from `jaxmocap tune`): the shirt tracker's IK "
+                   "covariances (generalises --ik-cov) or the stereo filter's cue widths "
+                   "sigma_g, sigma_d; refused when made for another tracker, body or shirt")
     from jaxmocap.commands._body import add_body_args
 
     add_body_args(p)
@@ -352,6 +366,7 @@ def _inputs(args) -> list:
     """Every file or folder the command reads (camera indices are not paths)."""
     srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
     return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
+            getattr(args, "tuned", None),
             getattr(args, "body", None), getattr(args, "garment", None),
             None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
                                                                             None)]

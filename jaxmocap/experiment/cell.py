@@ -191,7 +191,12 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         db = load_or_build(None if size is None else SamplingConfig(size=size), body, garment,
                            progress=False)
     cov_opt = opts.pop("covariances", "trained")
-    if cov_opt == "trained":  # the bundled ones, transferred by role to another body
+    tuned = opts.pop("tuned", None)
+    if tuned is not None:  # checked against the body and shirt (also before any cell)
+        from jaxmocap.tuned import load_tuned
+
+        cov = load_tuned(tuned, "shirt", body, garment).ik_covariances(body)
+    elif cov_opt == "trained":  # the bundled ones, transferred by role to another body
         cov, _ = shirt.covariances_for_body(body)
     elif cov_opt == "isotropic":
         cov = IKCovariances.isotropic(*ISOTROPIC_COV, body.n_dof)
@@ -233,8 +238,13 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
     run = drive(tracker, sequence_frames(seq.frames), progress=False, keep_outputs=True)
     # every frame's own estimate, valid or not (the cell scores both)
     q = np.stack([np.asarray(o.q, np.float64) for o in run.outputs])
+    # the IK step's inputs as the tracker measured them (jaxmocap tune holds them fixed)
+    ik = {k: np.stack([np.asarray(getattr(o, k)) for o in run.outputs])
+          for k in ("centroids", "visible", "q_blend")}
+    rob = params.rounds.robust
+    ik["robust"] = np.float64(np.inf if rob is None else rob)
     return {"q": q, "valid": run.valid, "times": run.times,
-            "diagnostics": [r[3] for r in run.rows], "body": body}
+            "diagnostics": [r[3] for r in run.rows], "body": body, "ik_observations": ik}
 
 
 def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
@@ -251,6 +261,10 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
                          f"{len(seq.cameras)} cameras")
     opts = dict(cfg["options"])
     body = _body(cfg, folder)
+    if "tuned" in opts:  # the cue widths (checked against the body, also before any cell)
+        from jaxmocap.tuned import load_tuned
+
+        opts.update(load_tuned(opts.pop("tuned"), "pf", body).cue_widths())
     base = dict(sp.AZAD_FILTER) if opts.pop("azad", False) else {}
     if "particles" in opts:
         opts["n_particles"] = opts.pop("particles")

@@ -26,7 +26,9 @@ Relative paths are relative to the configuration file. Tracker options:
   and the keywords of :func:`~jaxmocap.trackers.shirt.validity_rule`; e.g. the paper's
   ablations ``pose_prior``, ``adaptive_white_balance``, ``ik_passes``, ``min_agreement``), plus
   ``covariances`` (``"trained"`` the bundled ones (default), ``"isotropic"`` 2 px / 0.3 / 0.5,
-  or an ``.npz`` of :meth:`jaxmocap.ik.IKCovariances.save`), ``db`` (a pose database ``.npz``)
+  or an ``.npz`` of :meth:`jaxmocap.ik.IKCovariances.save`), ``tuned`` (a tuned-parameters
+  file of ``jaxmocap tune``, :mod:`jaxmocap.tuned`: its IK covariances, instead of
+  ``covariances``), ``db`` (a pose database ``.npz``)
   or ``db_size`` (the cached database of that many poses; default the 80,000 of the paper),
   ``colors`` / ``white_balance`` (files of ``jaxmocap colors``; ``colors = "scribbles"``: fitted
   from scribbles on the sequence's own first frames (its ground-truth colour ids eroded, as a
@@ -50,6 +52,7 @@ Relative paths are relative to the configuration file. Tracker options:
   (``"tracker"`` :data:`~jaxmocap.trackers.stereo_pf.BLOB_PARAMS` (default) or ``"azad"``),
   ``smooth_lag``, ``validity`` (default true: frames flagged by
   :func:`~jaxmocap.trackers.stereo_pf.frame_validity`; false: every finite frame is valid)
+  ``tuned`` (a tuned-parameters file of ``jaxmocap tune``: its cue widths sigma_g, sigma_d)
   and ``start_from_head`` (default true; false: the filter never starts from the triangulated
   head but from the shirt silhouette or the hands, :mod:`jaxmocap.trackers.stereo_pf.start`,
   to measure that start where the head is found).
@@ -97,15 +100,16 @@ EXPERIMENT_KEYS = {"good_cm", "bad_cm"}
 CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"}
 # options the experiment interprets itself (beside the trackers' make_params keywords)
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
-               "white_balance": (str,), "background": (bool,), "scene_clusters": (int,)}
+               "white_balance": (str,), "background": (bool,), "scene_clusters": (int,),
+               "tuned": (str,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,), "validity": (bool,), "search": (str,),
-            "start_from_head": (bool,)}
+            "start_from_head": (bool,), "tuned": (str,)}
 PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
 SHIRT_RESERVED = {"scene_colors", "dtype"}  # set by the experiment (scene_clusters) / the cameras
 PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin)
 PF_SKINS = ("synth", "default", "scribbles", "auto")
-PATH_OPTIONS = ("covariances", "db", "colors", "white_balance")
+PATH_OPTIONS = ("covariances", "db", "colors", "white_balance", "tuned")
 
 
 class ExperimentError(InputError):
@@ -241,6 +245,9 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
         cov = out.get("covariances", "trained")
         if cov not in ("trained", "isotropic"):
             out["covariances"] = cov
+        if "tuned" in out and "covariances" in out:
+            raise ExperimentError(f"{where}.options: give tuned (a file of `jaxmocap tune`) or "
+                                  "covariances, not both")
         for k in PATH_OPTIONS:
             if k in out and not (k == "covariances" and out[k] in ("trained", "isotropic")) \
                     and not (k == "colors" and out[k] == "scribbles"):
@@ -249,6 +256,14 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
                     raise ExperimentError(f"{where}.options.{k}: no such file {p}")
                 out[k] = str(p)
     else:
+        if "tuned" in out:
+            p = (base / out["tuned"]).resolve()
+            if not p.is_file():
+                raise ExperimentError(f"{where}.options.tuned: no such file {p}")
+            out["tuned"] = str(p)
+            if {"sigma_g", "sigma_d"} & set(out):
+                raise ExperimentError(f"{where}.options: give tuned (a file of `jaxmocap tune`) "
+                                      "or sigma_g / sigma_d, not both")
         if "particles" in out and "n_particles" in out:
             raise ExperimentError(f"{where}.options: give particles or n_particles, not both")
         n = out.get("particles", out.get("n_particles", 2))

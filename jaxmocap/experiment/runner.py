@@ -28,6 +28,7 @@ from jaxmocap.errors import InputError
 from jaxmocap.experiment._guard import _one_line, guarded
 from jaxmocap.experiment.cell import cell_metrics, compute_cell, diagnostics_csv, eval_joints
 from jaxmocap.experiment.config import (
+    SEQUENCE,
     ExperimentConfig,
     ExperimentError,
     Sequence,
@@ -47,6 +48,7 @@ def cell_name(seq: str, config: str, seed: int) -> str:
 
 def check_inputs(exp: ExperimentConfig, seqs: list[Sequence]) -> None:
     """What each configuration needs from every sequence, before any work (one line)."""
+    _check_tuned(exp, seqs)
     for s in seqs:
         try:
             info = json.loads((Path(s.folder) / "scene.json").read_text())["render"]
@@ -68,6 +70,29 @@ def check_inputs(exp: ExperimentConfig, seqs: list[Sequence]) -> None:
                         "groundtruth.npz for the session set-up; give options.colors and "
                         "options.white_balance (files of `jaxmocap colors`) or render with "
                         "--colour-ids")
+
+
+def _check_tuned(exp: ExperimentConfig, seqs: list[Sequence]) -> None:
+    """A configuration's tuned-parameters file (option ``tuned``) against the body and shirt
+    of every sequence it runs on (:meth:`jaxmocap.tuned.TunedParameters.check_for`)."""
+    from jaxmocap.experiment.cell import _body, _garment
+    from jaxmocap.tuned import TunedParameters
+
+    for c in exp.configs:
+        if "tuned" not in c.options:
+            continue
+        tuned = TunedParameters.load(c.options["tuned"])
+        cfg = c.to_dict()
+        per_seq = SEQUENCE in (c.body, c.garment)
+        for s in seqs if per_seq else seqs[:1]:
+            body = _body(cfg, s.folder)
+            garment = _garment(cfg, body, s.folder) if c.method == "shirt" else None
+            try:
+                tuned.check_for(c.method, body, garment)
+            except InputError as e:
+                raise ExperimentError(f"config '{c.name}'"
+                                      + (f", sequence {s.name}" if per_seq else "")
+                                      + f": {e}") from None
 
 
 class Plan:

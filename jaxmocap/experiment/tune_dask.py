@@ -42,30 +42,76 @@ def clip_parts(theta, setup: tune.IKSetup, obs: tune.IKObservations, jitter_weig
     return jax.device_get(((total, n), g))
 
 
-def clip_value_and_grad(setup: tune.IKSetup, clips: Sequence[tune.IKObservations],
+def _per_clip(setup, clips) -> list:
+    """One setup per clip: ``setup`` shared, or a sequence of them (clips of different
+    bodies, cameras or shirts)."""
+    setups = list(setup) if isinstance(setup, (list, tuple)) else [setup] * len(clips)
+    if len(setups) != len(clips):
+        raise tune.TuneError(f"{len(setups)} setups for {len(clips)} clips")
+    return setups
+
+
+def clip_value_and_grad(setup: tune.IKSetup | Sequence[tune.IKSetup],
+                        clips: Sequence[tune.IKObservations],
                         jitter_weight: float = 0.0) -> Callable:
-    """``theta -> (loss, grad)`` over ``clips``, clip after clip in this process."""
+    """``theta -> (loss, grad)`` over ``clips``, clip after clip in this process; ``setup``
+    shared by the clips or one per clip."""
     x64 = bool(jax.config.jax_enable_x64)
+    setups = _per_clip(setup, clips)
 
     def vg(theta):
-        return _combine([clip_parts(theta, setup, o, jitter_weight, x64) for o in clips])
+        return _combine([clip_parts(theta, s, o, jitter_weight, x64)
+                         for s, o in zip(setups, clips, strict=True)])
 
     return vg
 
 
-def dask_value_and_grad(client, setup: tune.IKSetup, clips: Sequence[tune.IKObservations],
+def clip_loss(setup: tune.IKSetup | Sequence[tune.IKSetup],
+              clips: Sequence[tune.IKObservations], jitter_weight: float = 0.0) -> Callable:
+    """The scalar ``theta -> loss`` over ``clips`` as one traceable function (what an
+    optimiser with a linesearch, L-BFGS, evaluates inside its jitted update): ``sum_c total_c
+    / sum_c n_c``, the counts computed once (they do not depend on theta)."""
+    setups = _per_clip(setup, clips)
+    n = max(sum(_frames(o) for o in clips), 1.0)
+
+    def loss(theta):
+        return sum(tune.ik_loss_parts(theta, s, o, jitter_weight)[0]
+                   for s, o in zip(setups, clips, strict=True)) / n
+
+    return loss
+
+
+def _frames(obs: tune.IKObservations) -> float:
+    """Valid frames of ``obs`` (>= MIN_VALID_PATCHES measured centroids): the count of
+    :func:`jaxmocap.tune.ik_loss_parts`."""
+    from jaxmocap.trackers.shirt import MIN_VALID_PATCHES
+
+    per_frame = np.asarray(obs.visible).sum(axis=(2, 3))
+    ok = per_frame >= MIN_VALID_PATCHES
+    if obs.scored is not None:
+        ok &= np.asarray(obs.scored, bool)
+    return float(ok.sum())
+
+
+def dask_value_and_grad(client, setup: tune.IKSetup | Sequence[tune.IKSetup],
+                        clips: Sequence[tune.IKObservations],
                         jitter_weight: float = 0.0) -> Callable:
     """``theta -> (loss, grad)`` over ``clips`` with one task per clip on ``client``'s
-    workers (module docstring); for :func:`jaxmocap.tune.fit` ``value_and_grad=True``."""
+    workers (module docstring); for :func:`jaxmocap.tune.fit` ``value_and_grad=True``;
+    ``setup`` shared by the clips or one per clip."""
     x64 = bool(jax.config.jax_enable_x64)
     host = lambda tree: jax.tree.map(np.asarray, tree)  # numpy: no device arrays on the wire
-    setup_f = client.scatter(host(setup), broadcast=True)
+    setups = _per_clip(setup, clips)
+    if all(s is setups[0] for s in setups):
+        setup_f = [client.scatter(host(setups[0]), broadcast=True)] * len(clips)
+    else:
+        setup_f = [client.scatter(host(s)) for s in setups]
     clip_f = [client.scatter(host(o)) for o in clips]
 
     def vg(theta):
         th = host(theta)
-        futures = [client.submit(_worker_parts, th, setup_f, f, jitter_weight, x64, pure=False)
-                   for f in clip_f]
+        futures = [client.submit(_worker_parts, th, sf, f, jitter_weight, x64, pure=False)
+                   for sf, f in zip(setup_f, clip_f, strict=True)]
         return _combine(client.gather(futures))
 
     return vg

@@ -273,7 +273,8 @@ class StereoPFFrameTracker:
 
     def __init__(self, cams: list[Camera], n_particles: int, seed: int, skin: str = "default",
                  body: BodyModel | None = None, pf_colors: str | None = None,
-                 skin_grow: int = 0, swivel: float | None = None, announce: bool = True):
+                 skin_grow: int = 0, swivel: float | None = None, announce: bool = True,
+                 cue_widths: dict | None = None):
         from jaxmocap import blobs
         from jaxmocap.segment import HSVInterval, SegmentParams
         from jaxmocap.trackers import stereo_pf
@@ -300,7 +301,8 @@ class StereoPFFrameTracker:
                      else stereo_pf.Proposals(swivel_fraction=swivel))
         self._make = lambda colors: stereo_pf.make_params(
             cams, model=body, motion=stereo_pf.Motion(n_particles=n_particles),
-            cues=stereo_pf.Cues(hand_swap=colors is not None), proposals=proposals,
+            cues=stereo_pf.Cues(hand_swap=colors is not None, **(cue_widths or {})),
+            proposals=proposals,
             images=stereo_pf.Images(segment=segment, colors=colors,
                                     plausible_blobs=colors is not None,
                                     skin_grow=skin_grow if colors is not None else 0))

@@ -58,27 +58,18 @@ def _dof_axes(model: BodyModel) -> dict[str, np.ndarray]:
     return axes
 
 
-def transfer_covariances(
-    cov: IKCovariances, source: BodyModel, target: BodyModel
-) -> tuple[IKCovariances, tuple[str, ...]]:
-    """Diagonal covariances of ``source`` carried to ``target`` by role (module docstring).
-
-    Returns the covariances and the names of the target DOFs that got the defaults."""
+def transfer_index(source: BodyModel, target: BodyModel) -> np.ndarray:
+    """Per DOF of ``target`` the index of the ``source`` DOF whose variances it takes by role
+    (module docstring: the root DOFs one to one, a joint role's DOF the source DOF of that
+    role about the most nearly parallel rest axis), -1 where none (the defaults)."""
     for body, what in ((source, "source"), (target, "target")):
         if body.roles is None:
             raise InputError(f"IK covariance transfer: the {what} body has no roles "
                              "(load it with jaxmocap.body.load_body)")  # fmt: skip
-    blend = np.asarray(cov.blend, np.float64)
-    prior = np.asarray(cov.prior, np.float64)
-    if blend.ndim == 2:
-        blend, prior = np.diag(blend), np.diag(np.asarray(prior).reshape(blend.shape))
     src_index = {n: i for i, n in enumerate(source.chain.dof_names)}
     src_axes, tgt_axes = _dof_axes(source), _dof_axes(target)
-    n = target.n_dof
-    out_b = np.full(n, DEFAULT_BLEND_STD**2)
-    out_p = np.full(n, DEFAULT_PRIOR_STD**2)
-    out_b[:ROOT_DOFS], out_p[:ROOT_DOFS] = blend[:ROOT_DOFS], prior[:ROOT_DOFS]
-    matched = set()
+    index = np.full(target.n_dof, -1, np.int64)
+    index[:ROOT_DOFS] = np.arange(ROOT_DOFS)
     src_roles = dict(source.roles.joints)
     for role, dofs in target.roles.joints:
         if role not in JOINT_ROLES or role not in src_roles:
@@ -90,10 +81,27 @@ def transfer_covariances(
                 if c >= best_cos:
                     best, best_cos = cand, c
             if best is not None:
-                i = target.chain.dof_names.index(name)
-                out_b[i], out_p[i] = blend[src_index[best]], prior[src_index[best]]
-                matched.add(name)
-    defaults = tuple(d for d in target.chain.dof_names[ROOT_DOFS:] if d not in matched)
+                index[target.chain.dof_names.index(name)] = src_index[best]
+    return index
+
+
+def transfer_covariances(
+    cov: IKCovariances, source: BodyModel, target: BodyModel
+) -> tuple[IKCovariances, tuple[str, ...]]:
+    """Diagonal covariances of ``source`` carried to ``target`` by role (module docstring;
+    :func:`transfer_index`).
+
+    Returns the covariances and the names of the target DOFs that got the defaults."""
+    index = transfer_index(source, target)
+    blend = np.asarray(cov.blend, np.float64)
+    prior = np.asarray(cov.prior, np.float64)
+    if blend.ndim == 2:
+        blend, prior = np.diag(blend), np.diag(np.asarray(prior).reshape(blend.shape))
+    hit = index >= 0
+    out_b = np.where(hit, blend[np.maximum(index, 0)], DEFAULT_BLEND_STD**2)
+    out_p = np.where(hit, prior[np.maximum(index, 0)], DEFAULT_PRIOR_STD**2)
+    defaults = tuple(d for i, d in enumerate(target.chain.dof_names)
+                     if i >= ROOT_DOFS and not hit[i])  # fmt: skip
     dt = jnp.asarray(cov.centroid).dtype
     return IKCovariances(centroid=cov.centroid, blend=jnp.asarray(out_b, dt),
                          prior=jnp.asarray(out_p, dt)), defaults  # fmt: skip
@@ -111,4 +119,4 @@ def covariances_for_body(body: BodyModel) -> tuple[IKCovariances, tuple[str, ...
 
 
 __all__ = ["TRAINED_COV_FILE", "covariances_for_body", "trained_covariances",
-           "transfer_covariances"]  # fmt: skip
+           "transfer_covariances", "transfer_index"]  # fmt: skip

@@ -1,0 +1,447 @@
+"""``jaxmocap tune``'s library call: a tracker's weighting tuned by gradient on a dataset's dev
+sequences, written as a tuned-parameters file (:mod:`jaxmocap.tuned`).
+
+**Observations, held fixed** (:func:`observations`): every sequence is tracked once by the
+real tracker with the configuration's settings (an experiment cell,
+:func:`jaxmocap.experiment.cell.compute_cell`: in this process, on a local Dask cluster of
+``workers`` processes or on an existing ``scheduler``, :mod:`jaxmocap.experiment.cluster`), and
+what its tuned step consumes is kept in ``OUT/observations/<sequence>.npz``, keyed by the
+configuration's hash and the sequence's content digest (a rerun reads them back):
+
+* ``shirt``: per frame the measured patch centroids and their validity and the globally
+  placed blended database pose ``q_b`` (``ShirtOutput.centroids / visible / q_blend``), with
+  the true pose, the tracker's valid flags and its own estimates. The loss is
+  :func:`jaxmocap.tune.ik_loss`: the IK step re-run over windows of ``window`` frames (the
+  temporal prior is the previous solution), mean per-joint error over the configuration's
+  evaluated joints on the frames the tracker reported valid (the experiment's per-joint
+  error). Why not every frame: where the tracker is lost its blended database pose is far
+  off (dev shirt_03, 13: 140 and 258 cm mean over all frames) and the re-run's LM, started
+  from it, ends metres away (mean 605 cm on shirt_03, median 11 cm) where the tracker kept a
+  better start or flagged the frame: those frames would swamp the loss. Held fixed besides:
+  the tracker's histogram search, classification and database blend (all discrete), the
+  feedback of the pose into the next frame's white balance and crop, the tracker's several
+  IK starts (the re-run starts each frame from ``q_b``), and the per-view anchors of
+  ``Rounds.view_anchors`` (the loss's IK predicts each patch from its shared 3D anchor; the
+  tracker's Cauchy width ``Rounds.robust`` is kept).
+
+**Parameters.** When every sequence has the same body and shirt, the full matrices
+Sigma_c, Sigma_b, Sigma_p of that body (:class:`jaxmocap.tune.IKTheta`; the file's
+``transfer`` is ``"none"``). When the bodies differ (the test world: one body per sequence)
+the parameters are shared through the bodies' roles: Sigma_c and the diagonal variances of
+the bundled body's DOFs, each body's DOF taking its counterpart's
+(:class:`jaxmocap.tune.IKRoleTheta`; ``transfer = "role"``, read as the bundled trained
+covariances are). The start is what the configuration tracked with (default: the bundled
+trained covariances, transferred by role).
+
+**Optimisation** (:func:`jaxmocap.tune.fit`, optax): Adam, or L-BFGS with its zoom
+linesearch (in this process only: the linesearch evaluates the loss inside its jitted
+update). Under Dask the gradient of each sequence is computed on a worker and summed
+(:mod:`jaxmocap.experiment.tune_dask`). Every ``every`` steps the optimiser's state is written
+to ``OUT/checkpoint.npz``; a rerun with the same ``OUT`` continues from it and ends where an
+uninterrupted run ends. The best iterate is written to ``OUT/tuned.json``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxmocap.experiment.config import (
+    ExperimentConfig,
+    ExperimentError,
+    TrackerConfig,
+    config_hash,
+    dataset_sequences,
+    digest_folder,
+    load_config,
+)
+
+TRACKERS = ("shirt",)  # tuned by this module (the stereo filter: jaxmocap.tune.pf_loss)
+OBSERVATIONS = "observations"
+CHECKPOINT = "checkpoint.npz"
+TUNED = "tuned.json"
+WINDOW = 10  # frames per IK window (docs/results/tuning.md)
+CHECKPOINT_EVERY = 5
+CACHE_VERSION = 2  # observations/<sequence>.npz: + the tracker's valid flags and poses
+
+
+def _pick_config(config, name: str | None, tracker: str | None) -> TrackerConfig:
+    """The tracker configuration tuned: ``name`` of ``config`` (a file or an
+    :class:`ExperimentConfig`), else its only one; without ``config`` the tracker's defaults
+    (the bundled body and shirt)."""
+    if config is None:
+        if tracker is None:
+            raise ExperimentError("tune: give a tracker (shirt) or a configuration file")
+        return TrackerConfig(name=tracker, method=tracker, seeds=(0,))
+    exp = config if isinstance(config, ExperimentConfig) else load_config(config)
+    names = [c.name for c in exp.configs]
+    if name is None:
+        if len(names) != 1:
+            raise ExperimentError(f"{exp.path}: {len(names)} configurations ({', '.join(names)})"
+                                  "; name the one to tune (--name)")
+        cfg = exp.configs[0]
+    else:
+        if name not in names:
+            raise ExperimentError(f"{exp.path}: no configuration {name!r} (have "
+                                  f"{', '.join(names)})")
+        cfg = exp.configs[names.index(name)]
+    if tracker is not None and cfg.method != tracker:
+        raise ExperimentError(f"{exp.path}: configuration {cfg.name!r} is method "
+                              f"{cfg.method!r}, not {tracker!r}")
+    if cfg.method not in TRACKERS:
+        raise ExperimentError(f"tune: method {cfg.method!r} is not tuned here yet (tuned: "
+                              f"{', '.join(TRACKERS)}; the stereo filter's cue widths: "
+                              "jaxmocap.tune.pf_loss)")
+    return cfg
+
+
+# ----------------------------------------------------------------------------- observations
+
+
+def observations(cfg: TrackerConfig, seqs, out: Path, workers: int = 0,
+                 scheduler: str | None = None, retries: int = 1,
+                 progress: bool = True) -> dict[str, dict]:
+    """Per sequence name the held-fixed observations (module docstring): tracked with
+    ``cfg`` (seed 0), cached in ``out/observations``. Returns ``{name: {centroids, visible,
+    q_blend, q_gt, robust}}`` (numpy)."""
+    from tqdm import tqdm
+
+    from jaxmocap.experiment._guard import _one_line, guarded
+    from jaxmocap.experiment.cell import compute_cell
+
+    folder = out / OBSERVATIONS
+    folder.mkdir(parents=True, exist_ok=True)
+    h = config_hash(cfg, 0.0, 0.0)
+    specs, have = [], {}
+    for s in seqs:
+        spec = {"cell": s.name.replace("/", "_"), "sequence": s.name, "folder": s.folder,
+                "config": cfg.to_dict(), "seed": 0, "config_hash": h,
+                "dataset_digest": digest_folder(s.folder), "x64": False}  # the tracker's f32
+        got = _read_cached(folder / f"{spec['cell']}.npz", spec)
+        if got is None:
+            specs.append(spec)
+        else:
+            have[s.name] = got
+    errors = []
+    bar = tqdm(total=len(specs), desc="observations (tracking)", unit="seq",
+               disable=not progress or not specs)
+
+    def accept(spec, res=None, err=None):
+        if err is None and "error" in res:
+            err = res["error"]
+        if err is not None:
+            errors.append(f"{spec['sequence']}: {err}")
+        else:
+            have[spec["sequence"]] = _write_cached(folder / f"{spec['cell']}.npz", spec, res)
+        bar.update(1)
+
+    if specs and workers == 0 and scheduler is None:
+        import jax
+
+        x64 = bool(jax.config.jax_enable_x64)
+        try:
+            for spec in specs:
+                try:
+                    accept(spec, guarded(compute_cell, spec))
+                except Exception as e:  # one line per sequence, reported together
+                    accept(spec, err=_one_line(e))
+        finally:
+            jax.config.update("jax_enable_x64", x64)  # compute_cell set the tracker's
+    elif specs:
+        from jaxmocap.experiment.cluster import run_on_cluster
+
+        run_on_cluster(specs, compute_cell, accept, workers, scheduler, retries, {})
+    bar.close()
+    if errors:
+        raise ExperimentError("tune: tracking failed on " + "; ".join(errors))
+    return {s.name: have[s.name] for s in seqs}
+
+
+def _read_cached(path: Path, spec: dict) -> dict | None:
+    try:
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            if (meta.get("config_hash"), meta.get("dataset_digest"), meta.get("version")) != (
+                    spec["config_hash"], spec["dataset_digest"], CACHE_VERSION):
+                return None
+            return {k: z[k] for k in z.files if k != "meta"}
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _write_cached(path: Path, spec: dict, res: dict) -> dict:
+    import os
+
+    obs = dict(res["ik_observations"])
+    obs["valid"] = np.asarray(res["valid"], bool)  # the tracker's reported validity
+    obs["q_tracker"] = np.asarray(res["q"], np.float64)  # its own estimates
+    with np.load(Path(spec["folder"]) / "groundtruth.npz") as z:
+        obs["q_gt"] = np.asarray(z["q"], np.float64)
+    meta = {k: spec[k] for k in ("sequence", "config_hash", "dataset_digest")}
+    meta["version"] = CACHE_VERSION
+    tmp = path.with_name(f".{path.name}.tmp.npz")
+    np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **obs)
+    os.replace(tmp, path)
+    return obs
+
+
+# ----------------------------------------------------------------------------- the loss
+
+
+def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
+    """(per-sequence :class:`jaxmocap.tune.IKSetup`, per-sequence windows, the start theta,
+    the file's transfer mode, body digest, dof names, garment digest, per-sequence body
+    digests)."""
+    import jax.numpy as jnp
+
+    from jaxmocap import tune
+    from jaxmocap.body import body_digest, default_body
+    from jaxmocap.camera import stack_cameras
+    from jaxmocap.experiment.cell import _body, _garment, eval_joints
+    from jaxmocap.garment import garment_digest
+    from jaxmocap.ik import IKCovariances, anchors_from_garment
+    from jaxmocap.io.cameras import load_cameras
+    from jaxmocap.trackers.shirt import covariances as shc
+
+    c = cfg.to_dict()
+    loaded = []
+    for s in seqs:
+        body = _body(c, s.folder)
+        garment = _garment(c, body, s.folder)
+        loaded.append((body, garment))
+    digests = {s.name: body_digest(b) for s, (b, _) in zip(seqs, loaded, strict=True)}
+    g_digests = {garment_digest(g) for _, g in loaded}
+    shared = len(set(digests.values())) == 1 and len(g_digests) == 1
+    opt = cfg.options
+    ref = default_body()
+    if shared:
+        body, garment = loaded[0]
+        if "tuned" in opt:
+            from jaxmocap.tuned import load_tuned
+
+            cov = load_tuned(opt["tuned"], "shirt", body, garment).ik_covariances(body)
+        elif opt.get("covariances", "trained") == "trained":
+            cov, _ = shc.covariances_for_body(body)
+        elif opt["covariances"] == "isotropic":
+            from jaxmocap.experiment.cell import ISOTROPIC_COV
+
+            cov = IKCovariances.isotropic(*ISOTROPIC_COV, body.n_dof)
+        else:
+            cov = IKCovariances.load(opt["covariances"])
+        theta = tune.ik_theta(jax_cast(cov, dtype))
+    else:
+        if "tuned" in opt:
+            from jaxmocap.tuned import TunedParameters
+
+            t = TunedParameters.load(opt["tuned"])
+            if t.transfer != "role":
+                raise ExperimentError(f"{t.path}: field 'transfer' is {t.transfer!r}; the "
+                                      "sequences' bodies differ, a start shared by role needed")
+            p = t.parameters
+            cov = IKCovariances(jnp.asarray(p["ik_centroid"]), jnp.asarray(p["ik_blend"]),
+                                jnp.asarray(p["ik_prior"]))
+        elif opt.get("covariances", "trained") == "trained":
+            cov = shc.trained_covariances(ref.n_dof)
+        elif opt["covariances"] == "isotropic":
+            from jaxmocap.experiment.cell import ISOTROPIC_COV
+
+            cov = IKCovariances.isotropic(*ISOTROPIC_COV, ref.n_dof)
+        else:
+            raise ExperimentError(f"tune: covariances {opt['covariances']} are for one body; "
+                                  "the sequences' bodies differ (tuned by role from the "
+                                  "bundled body's: leave covariances out)")
+        theta = tune.ik_role_theta(jax_cast(cov, dtype))
+    setups, clips = [], []
+    for s, (body, garment) in zip(seqs, loaded, strict=True):
+        o = obs[s.name]
+        cams, _ = load_cameras(Path(s.folder) / "cameras.json", dtype)
+        names = list(body.keypoint_names)
+        joints = [j for j in eval_joints(c) if j in names]
+        rob = float(o["robust"])
+        kw = {}
+        if not shared:
+            kw = dict(dof_index=shc.transfer_index(ref, body),
+                      default_var=(shc.DEFAULT_BLEND_STD**2, shc.DEFAULT_PRIOR_STD**2))
+        setups.append(tune.ik_setup(body, stack_cameras(cams),
+                                    anchors_from_garment(body, garment, dtype), joints,
+                                    robust=None if not np.isfinite(rob) else rob, **kw))
+        n = min(len(o["q_blend"]), len(o["q_gt"]))
+        clips.append(tune.ik_observations(
+            [(o["centroids"][:n], o["visible"][:n], o["q_blend"][:n], o["q_gt"][:n],
+              o["valid"][:n])], WINDOW, dtype))
+    if shared:
+        b, g = loaded[0]
+        ident = ("none", body_digest(b), tuple(b.chain.dof_names), garment_digest(g))
+    else:
+        ident = ("role", body_digest(ref), tuple(ref.chain.dof_names), None)
+    return setups, clips, theta, ident, digests
+
+
+def jax_cast(cov, dtype):
+    import jax
+
+    return jax.tree.map(lambda a: a.astype(dtype), cov)
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str | None = None,
+                 name: str | None = None, tracker: str | None = None,
+                 optimiser: str = "adam", steps: int = 20, learning_rate: float = 0.05,
+                 workers: int = 0, scheduler: str | None = None, every: int = CHECKPOINT_EVERY,
+                 progress: bool = True) -> dict:
+    """Tune (or resume tuning) a tracker configuration on ``dataset``'s sequences (module
+    docstring); writes ``out/tuned.json`` and returns its content (plus ``wall_s``)."""
+    import jax
+
+    from jaxmocap import tune
+    from jaxmocap.io.atomic import check_output_folder
+    from jaxmocap.tuned import TunedParameters
+
+    if optimiser not in tune.OPTIMISERS:
+        raise ExperimentError(f"--optimiser: expected one of {', '.join(tune.OPTIMISERS)}, "
+                              f"got {optimiser!r}")
+    if steps < 0 or every < 1 or workers < 0:
+        raise ExperimentError(f"tune: steps >= 0, every >= 1, workers >= 0 expected; got "
+                              f"{steps}, {every}, {workers}")
+    if optimiser == "lbfgs" and (workers or scheduler):
+        raise ExperimentError("--optimiser lbfgs runs in this process (its linesearch "
+                              "evaluates the loss inside the jitted update); give --workers 0")
+    cfg = _pick_config(config, name, tracker)
+    seqs = dataset_sequences(dataset, split, subset)
+    out = check_output_folder(out)
+    res_out = out.resolve()
+    for p in [Path(s.folder).resolve() for s in seqs] + [Path(dataset).resolve()]:
+        if res_out == p or p in res_out.parents:
+            raise ExperimentError(f"{out}: the output folder is (inside) the input {p}; "
+                                  "choose another folder")
+    if "tuned" in cfg.options:  # refused before any tracking
+        from jaxmocap.experiment.runner import _check_tuned
+
+        _check_tuned(ExperimentConfig((cfg,)), seqs)
+    t0 = time.perf_counter()
+    obs = observations(cfg, seqs, out, workers, scheduler, progress=progress)
+    t_obs = time.perf_counter() - t0
+    x64 = bool(jax.config.jax_enable_x64)
+    jax.config.update("jax_enable_x64", True)  # gradients through the LM solves in float64
+    try:
+        import jax.numpy as jnp
+
+        setups, clips, theta0, ident, digests = _setups(cfg, seqs, obs, jnp.float64)
+        key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident)
+        ckpt = out / CHECKPOINT
+        opt = tune.make_optimiser(optimiser, None if optimiser == "lbfgs" else learning_rate)
+        start = None
+        if ckpt.is_file():
+            try:
+                start, meta = tune.load_fit_state(ckpt, theta0, opt)
+            except (OSError, ValueError, KeyError, tune.TuneError):
+                raise ExperimentError(f"{ckpt}: not a checkpoint of this tuning run; remove "
+                                      "it or choose another --out") from None
+            if meta.get("key") != key:
+                raise ExperimentError(f"{ckpt}: field 'meta.key' says another run (other "
+                                      "sequences, configuration, optimiser or rate); remove it "
+                                      "or choose another --out")
+        bar_done = 0 if start is None else start.step
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps + 1, initial=min(bar_done, steps + 1), desc=f"tune {optimiser}",
+                   unit="step", disable=not progress)
+
+        def callback(i, value, th):
+            bar.update(1)
+            bar.set_postfix(loss_cm=f"{100 * value:.3f}")
+
+        def checkpoint(state):
+            if state.step % every == 0 or state.step == steps:
+                tune.save_fit_state(ckpt, state, {"key": key})
+
+        client = cluster = None
+        t1 = time.perf_counter()
+        try:
+            if workers or scheduler:
+                from jaxmocap.experiment.cluster import client_for
+                from jaxmocap.experiment.tune_dask import dask_value_and_grad
+
+                client, cluster = client_for(workers, scheduler)
+                if cluster is not None:
+                    client.wait_for_workers(max(1, workers), timeout="120s")
+                loss, vg = dask_value_and_grad(client, setups, clips), True
+            elif optimiser == "lbfgs":
+                from jaxmocap.experiment.tune_dask import clip_loss
+
+                loss, vg = clip_loss(setups, clips), False
+            else:
+                from jaxmocap.experiment.tune_dask import clip_value_and_grad
+
+                loss, vg = clip_value_and_grad(setups, clips), True
+            best, losses = tune.fit(loss, theta0, steps, learning_rate, callback=callback,
+                                    value_and_grad=vg, optimiser=optimiser, start=start,
+                                    checkpoint=checkpoint)
+        finally:
+            bar.close()
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        t_fit = time.perf_counter() - t1
+        cov = tune.ik_covariances(best)
+        params = {"ik_centroid": np.asarray(cov.centroid), "ik_blend": np.asarray(cov.blend),
+                  "ik_prior": np.asarray(cov.prior)}
+    finally:
+        jax.config.update("jax_enable_x64", x64)
+    transfer, b_digest, dofs, g_digest = ident
+    i_best = int(np.argmin(losses))
+    result = TunedParameters(
+        tracker=cfg.method, parameters=params, body_digest=b_digest, transfer=transfer,
+        dof_names=dofs, garment_digest=g_digest,
+        tuned_on={"dataset": str(Path(dataset).resolve()),
+                  "split": None if split is None else str(split), "subset": subset,
+                  "sequences": [s.name for s in seqs], "config": cfg.to_dict(),
+                  "config_path": None if config is None or isinstance(config, ExperimentConfig)
+                  else str(Path(config).resolve()),
+                  "body_digests": digests, "window": WINDOW,
+                  "frames": int(sum(_n(c) for c in clips)),
+                  "held_fixed": "the tracker's centroids, their validity, q_blend and its "
+                  "valid flags (tracked once with the configuration); the white-balance and "
+                  "crop feedback; per-view anchors (shared 3D anchors in the loss)"},
+        loss={"what": "mean per-joint position error (m) of the IK re-run over the tracker's "
+              "observations, on the frames the tracker reported valid", "before": float(losses[0]),
+              "after": float(losses[i_best]), "best_step": i_best, "steps": steps,
+              "optimiser": optimiser,
+              "learning_rate": None if optimiser == "lbfgs" else learning_rate,
+              "curve": [float(x) for x in losses]},
+        path=str(out / TUNED))
+    result.save(out / TUNED)
+    doc = result.to_json()
+    doc["wall_s"] = {"observations": t_obs, "fit": t_fit, "total": time.perf_counter() - t0}
+    (out / "tune_run.json").write_text(json.dumps(doc["wall_s"], indent=1) + "\n")
+    return doc
+
+
+def _n(clip) -> float:
+    from jaxmocap.experiment.tune_dask import _frames
+
+    return _frames(clip)
+
+
+def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident) -> str:
+    """What a checkpoint belongs to: configuration, sequences (their cached observations'
+    content), optimiser and rate, parameter kind."""
+    h = hashlib.sha256()
+    h.update(json.dumps([cfg.to_dict(), [s.name for s in seqs], optimiser,
+                         None if optimiser == "lbfgs" else learning_rate, list(ident[:2]),
+                         WINDOW], sort_keys=True, default=str).encode())
+    for s in seqs:
+        for k in ("centroids", "visible", "q_blend", "q_gt", "valid"):
+            h.update(np.ascontiguousarray(obs[s.name][k]).tobytes())
+    return h.hexdigest()[:16]
+
+
+__all__ = ["TRACKERS", "observations", "tune_dataset"]
+
