@@ -81,6 +81,9 @@ FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in 
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
 SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
+# The head as a sphere fitted to its skin outline in both views (jaxmocap.trackers.stereo_pf.head)
+# instead of the skin centroid: off (docs/results/stereo_pf_round2.md)
+HEAD_SPHERE = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +227,9 @@ class Images(eqx.Module):
       its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
       :class:`SeedParams`). Off by default: on the dev split of the test world it found no
       more hands within 8 cm and cost ~8x per frame (the module's docstring).
+    * ``head_sphere`` (not in the paper): the triangulated head replaced by a sphere of the
+      body's head radius fitted to the outline of the head's skin region in both views
+      (:mod:`jaxmocap.trackers.stereo_pf.head`), instead of the lit skin's centroid;
     """
 
     segment: SegmentParams | None = None
@@ -236,6 +242,7 @@ class Images(eqx.Module):
     adapt_spread: float = eqx.field(static=True, default=ADAPT_MAX_SPREAD)
     part_colours: bool = eqx.field(static=True, default=False)
     seed_params: SeedParams | None = eqx.field(static=True, default=None)
+    head_sphere: bool = eqx.field(static=True, default=HEAD_SPHERE)
 
 
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
@@ -273,6 +280,10 @@ class StereoPFParams(eqx.Module):
     # per-part colours and the seeded search (jaxmocap.trackers.stereo_pf.parts): its
     # thresholds; None: off
     part_colours: SeedParams | None = eqx.field(static=True, default=None)
+    # the head as a fitted sphere (jaxmocap.trackers.stereo_pf.head): (radius m, offset m from
+    # its centre to the head keypoint); None: the skin centroid
+    head_sphere: tuple[float, tuple[float, float, float]] | None = eqx.field(
+        static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -439,7 +450,15 @@ def make_params(
         else None,
         skin_grow=int(skin_grow),
         part_colours=_seed_params(images.seed_params) if part_colours else None,
+        head_sphere=_head_sphere(model) if images.head_sphere else None,
     )
+
+
+def _head_sphere(model):
+    from jaxmocap.trackers.stereo_pf.head import head_sphere
+
+    radius, offset = head_sphere(model)
+    return float(radius), tuple(float(x) for x in offset)
 
 
 def _seed_params(seed):
