@@ -236,7 +236,7 @@ def test_tracker_input_refusals(tmp_path, capsys):
     save_cameras(tmp_path / "two.json", two)
     from jaxmocap.body.packages import package_body_file
 
-    cmu, _ = package_body_file("cmu")  # a clavicle + humerus shoulder: no swivel jumps
+    cmu, _ = package_body_file("dmc_humanoid")  # two shoulder hinges: no swivel jumps
     d1 = tmp_path / "cam1"
     d1.mkdir()
     cv2.imwrite(str(d1 / "0.png"), np.zeros((H, W, 3), np.uint8))

@@ -152,6 +152,7 @@ def test_cells_metrics_and_summary(sequential, dataset):
     md = (sequential / "summary.md").read_text()
     assert "| **all** | pf-a |" in md and (sequential / "summary.png").stat().st_size > 1000
     assert "| depth cm | lateral cm |" in md
+    assert "| mean cm (all frames) | seeds' spread cm |" in md  # one seed per config here: -
     # every cell says what its filter started from (64x48 views: no head is triangulated)
     anchors = {c["start_anchor"] for c in got.values()}
     assert anchors <= {"head", "shirt", "hands", "none"} and "Stereo filter started from" in md
@@ -332,3 +333,21 @@ def test_flat_options_map_onto_the_settings_groups():
     assert kw["motion"].n_particles == 10
     assert kw["cues"].use_support and kw["cues"].edge_outside is None
     assert kw["proposals"] == sp.AZAD_FILTER["proposals"]
+
+
+def test_seed_spread_is_the_min_max_of_the_seeds_means():
+    """summary.aggregate: per seed the mean over its sequences, then min and max over the
+    seeds (issue 39 decision 6: the spread of a sequence is part of the result)."""
+    from jaxmocap.experiment.summary import _spread, aggregate
+
+    def cell(seq, seed, cm):
+        return {"sequence": seq, "seed": seed, "metrics": {
+            "mean_error_all_frames_cm": cm, "frames": 3, "frames_valid": 1}}
+
+    cells = [cell("a", 0, 10.0), cell("a", 1, 14.0), cell("a", 2, 11.0),
+             cell("b", 0, 20.0), cell("b", 1, 16.0), cell("b", 2, 30.0)]
+    one = aggregate(cells[:3])
+    assert one["seed_range_cm"] == (10.0, 14.0) and _spread(one) == "10.00-14.00 (3)"
+    both = aggregate(cells)  # seed means 15, 15, 20.5
+    assert both["seed_range_cm"] == (15.0, 20.5) and both["seeds"] == 3
+    assert _spread(aggregate(cells[:1])) == "-"

@@ -16,7 +16,8 @@ camera's view of the body is occluded by an object by more than the world metric
 colours from scribbles, blob plausibility, hand swap) or ``parts`` (the same with the
 per-part colours and the seeded search, ``make_params(part_colours=True)``: parts searched
 where the blob line missed them) or ``parts-replace`` (the search's hands replace the blob
-line's).
+line's) or ``head`` (``base`` with the head as a fitted sphere, ``Images(head_sphere=True)``,
+issue 39 item 2; ``docs/results/stereo_pf_round2.md``).
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ CONFIGS = {
     "base": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True},
     "parts": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
               "part_colours": True},
+    "head": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
+             "head_sphere": True},
     "parts-replace": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
                       "part_colours": True, "seed_replace": [False, True, True]},
 }

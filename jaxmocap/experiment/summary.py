@@ -54,11 +54,27 @@ def aggregate(cells: list[dict]) -> dict:
     vals = [c["metrics"]["mean_error_all_frames_cm"] for c in ok
             if c["metrics"]["mean_error_all_frames_cm"] is not None]
     agg["seed_std_cm"] = float(np.std(vals)) if len(vals) > 1 else None
+    # the spread over seeds of the mean error (all frames): per seed, the mean over the
+    # sequences it ran on (one sequence: its own value), then min and max over the seeds
+    by_seed: dict = {}
+    for c in ok:
+        v = c["metrics"]["mean_error_all_frames_cm"]
+        if v is not None:
+            by_seed.setdefault(c.get("seed"), []).append(v)
+    means = [float(np.mean(v)) for v in by_seed.values()]
+    agg["seed_range_cm"] = (min(means), max(means)) if len(means) > 1 else None
+    agg["seeds"] = len(means)
     return agg
 
 
 def _fmt(v, f: str) -> str:
     return "-" if v is None else f.format(v)
+
+
+def _spread(v: dict) -> str:
+    """'min-max (n seeds)' of the seeds' mean errors, '-' with fewer than two seeds."""
+    r = v.get("seed_range_cm")
+    return "-" if r is None else f"{r[0]:.2f}-{r[1]:.2f} ({v['seeds']})"
 
 
 def write_summary(out: Path, exp, seqs, specs: list[dict], results: dict, stats: dict) -> dict:
@@ -80,16 +96,20 @@ def write_summary(out: Path, exp, seqs, specs: list[dict], results: dict, stats:
         "cells": cells,
     }
     lines = [f"# Experiment: {Path(exp.path).name} on {len(names)} sequence(s)", "",
-             f"good < {exp.good_cm:g} cm, bad > {exp.bad_cm:g} cm; seeds averaged. Cells: "
+             f"good < {exp.good_cm:g} cm, bad > {exp.bad_cm:g} cm; seeds averaged (the seeds' "
+             "spread: min-max over the seeds of the mean cm, all frames; on the **all** rows of "
+             "each seed's mean over the sequences). Cells: "
              f"{stats['cells']} ({stats['computed']} computed, {stats['reused']} reused, "
              f"{stats['failed']} failed) in {stats['wall_s']:.1f} s.", "",
-             "| sequence | config | " + " | ".join(h for h, _, _ in COLUMNS) + " |",
-             "|---" * (len(COLUMNS) + 2) + "|"]
+             "| sequence | config | " + " | ".join(h for h, _, _ in COLUMNS[:2])
+             + " | seeds' spread cm | " + " | ".join(h for h, _, _ in COLUMNS[2:]) + " |",
+             "|---" * (len(COLUMNS) + 3) + "|"]
     for s in [*names, "all"]:
         for c in configs:
             v = table[(s, c)]
             row = [f"**{s}**" if s == "all" else s, c]
-            row += [_fmt(v[h], f) for h, _, f in COLUMNS]
+            row += [_fmt(v[h], f) for h, _, f in COLUMNS[:2]] + [_spread(v)]
+            row += [_fmt(v[h], f) for h, _, f in COLUMNS[2:]]
             if v["failed"]:
                 row[-1] += f" ({v['failed']} failed)"
             lines.append("| " + " | ".join(row) + " |")

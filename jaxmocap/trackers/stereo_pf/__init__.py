@@ -1,9 +1,11 @@
 """The stereo particle-filter tracker of Azad, Ude, Asfour & Dillmann (2007).
 
-Files, one per stage: :mod:`.params` (settings, ``make_params``, state), :mod:`.observation`
+Files, one per stage: :mod:`.params` (settings, ``make_params``, state), :mod:`.swivel`
+(elbow-swivel jumps for any shoulder), :mod:`.observation`
 (the host's image line and blobs), :mod:`.filter` (initialisation, the jitted step, the scan),
 :mod:`.sequence` (live loops and whole sequences), :mod:`.checks` (per-frame validity, reach),
-:mod:`.adapt` (on-line colour adaptation), :mod:`.search` (guided search for missed blobs)
+:mod:`.adapt` (on-line colour adaptation), :mod:`.head` (the head as a fitted sphere),
+:mod:`.search` (guided search for missed blobs)
 and :mod:`.parts` (per-part colours, the seeded search).
 
 Per stereo frame (320x240 pair in the paper, §V):
@@ -54,7 +56,9 @@ each frame 10% of the particles have their arms turned, each with probability 1/
 uniform in [-pi, pi) about the line from the shoulder to the hand. The hand does not move, so
 the distance cue is unchanged and the edge cue chooses the side of the elbow: a filter that
 initialised on the wrong side (a single-colour silhouette cannot tell the sides apart in some
-poses) crosses over within a few frames once the images tell them apart.
+poses) crosses over within a few frames once the images tell them apart. Any shoulder of
+three or more filtered revolute hinges swivels (:mod:`.swivel`: dm_control's CMU clavicle +
+humerus included).
 ``make_params(cams, **AZAD_FILTER)`` is Azad's filter.
 
 **Fixed-lag smoothing** (offline, :func:`run` / :func:`track` ``smooth_lag``): the estimate of

@@ -48,6 +48,21 @@ def _segment(params: StereoPFParams, image: np.ndarray) -> Segmentation:
     return Segmentation(skin, seg.foreground, seg.edges)
 
 
+def _fit_head(params: StereoPFParams, seg, points: np.ndarray) -> np.ndarray:
+    """``points`` with the head replaced by the fitted head sphere's keypoint (where it fits;
+    :func:`jaxmocap.trackers.stereo_pf.head.fit_head`)."""
+    from jaxmocap.trackers.stereo_pf.head import fit_head
+
+    radius, offset = params.head_sphere
+    c = fit_head(params.likelihood.cams, [s.skin for s in seg], [s.foreground for s in seg],
+                 np.asarray(points[bloblib.HEAD], np.float64), radius)
+    if c is None:
+        return points
+    points = np.array(points, copy=True)
+    points[bloblib.HEAD] = c + np.asarray(offset)
+    return points
+
+
 def observe(
     params: StereoPFParams,
     frame_pair: UInt8[np.ndarray, "2 h w 3"],
@@ -70,6 +85,8 @@ def observe(
         )
     else:
         points, valid = blob_obs
+    if params.head_sphere is not None and valid[bloblib.HEAD]:
+        points = _fit_head(params, seg, points)
     dt = np.dtype(params.prior_lower.dtype)
     support = None
     if params.likelihood.use_support:

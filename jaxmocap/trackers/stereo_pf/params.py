@@ -8,7 +8,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
@@ -20,10 +19,9 @@ from jaxmocap.body import (
     default_body,
     keypoint_index,
     keypoints,
-    require_roles,
     stereo_dofs,
 )
-from jaxmocap.body.chain import ROOT_DOFS, so3_exp
+from jaxmocap.body.chain import ROOT_DOFS
 from jaxmocap.camera import Camera, stack_cameras
 from jaxmocap.errors import InputError
 from jaxmocap.pf import cues as cuelib
@@ -33,6 +31,13 @@ from jaxmocap.pf.cues import StereoLikelihood
 from jaxmocap.segment import SegmentParams
 from jaxmocap.trackers.stereo_pf.checks import (
     hand_reach,
+)
+from jaxmocap.trackers.stereo_pf.swivel import (  # noqa: F401  (_rot_xyz, _angles_xyz: tests)
+    SWIVEL_ARMS,
+    SwivelProposal,
+    _angles_xyz,
+    _rot_xyz,
+    swivel_arms,
 )
 
 N_PARTICLES = 1000  # Azad §V
@@ -76,103 +81,9 @@ FALLBACK_ROOT = (0.0, 0.0, 0.9)  # root prior mean when no skin blob is seen in 
 # A skin interval for jaxmocap.synth's scenes: their beige wall and floor (H 16-19, S 52) fall
 # inside segment.SKIN_HSV_*; rendered skin has S ~ 80. Pass SegmentParams(skin=...) with it.
 SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
-
-
-SWIVEL_ARMS = (("l_shoulder", "l_hand"), ("r_shoulder", "r_hand"))  # (joint role, hand keypoint)
-def _rot_xyz(a: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    """Rx(a0) Ry(a1) Rz(a2): the model's 3-DOF ball joints (x, y, z revolute links)."""
-    return so3_exp(jnp.array([1.0, 0.0, 0.0], a.dtype) * a[0]) @ (
-        so3_exp(jnp.array([0.0, 1.0, 0.0], a.dtype) * a[1])
-        @ so3_exp(jnp.array([0.0, 0.0, 1.0], a.dtype) * a[2])
-    )
-
-
-def _angles_xyz(m: Float[Array, "3 3"]) -> Float[Array, " 3"]:
-    """The inverse of :func:`_rot_xyz` (the middle angle in [-pi/2, pi/2])."""
-    b = jnp.arcsin(jnp.clip(m[0, 2], -1.0, 1.0))
-    return jnp.stack([jnp.arctan2(-m[1, 2], m[2, 2]), b, jnp.arctan2(-m[0, 1], m[0, 0])])
-
-
-class SwivelProposal(eqx.Module):
-    """The guided proposal followed by **elbow-swivel jumps** (not in Azad's paper).
-
-    With the shoulder and the hand fixed, an arm keeps one free motion: the elbow circles the
-    shoulder-hand line (the swivel). A single-colour silhouette sees it weakly, and the filter
-    that picked the wrong side at initialisation cannot cross over by small random steps
-    while the hand stays pinned by the distance cue. For a random ``fraction`` of the
-    particles each arm (with probability 1/2) is rotated, as a rigid whole about the line
-    from its shoulder joint to its hand, by an angle uniform in [-pi, pi): the hand does not
-    move, so the distance cue is unchanged and the edge cue decides. The new shoulder angles
-    are the x-y-z decomposition of the rotated upper arm (the model's shoulders are x, y, z
-    revolute links with identity origin rotations; :func:`make_params` checks it)."""
-
-    inner: pf.GuidedProposal | None
-    model: BodyModel
-    default_q: Float[Array, " n_dof"]
-    dofs: tuple[int, ...] = eqx.field(static=True)
-    arms: tuple[tuple[tuple[int, int, int], int, int, str], ...] = eqx.field(static=True)
-    fraction: float = eqx.field(static=True)
-
-    def _swivel(self, s: Float[Array, " d"], phi: Float[Array, " a"]) -> Float[Array, " d"]:
-        q = self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
-        tr = cuelib.pose_transforms(self.model, q)
-        hands = cuelib.distance_points(self.model, tr, tuple(arm[3] for arm in self.arms))
-        for a, (cols, parent, link, _) in enumerate(self.arms):
-            u = hands[a] - tr[link, :3, 3]
-            u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
-            rp = tr[parent, :3, :3]
-            c = np.asarray(cols)
-            m = rp.T @ so3_exp(u * phi[a]) @ rp @ _rot_xyz(s[c])
-            s = s.at[c].set(_angles_xyz(m))
-        return s
-
-    def __call__(self, x: Float[Array, "n d"], observation, key: PRNGKeyArray):
-        k_inner, k_pick, k_phi, k_arm = jax.random.split(key, 4)
-        if self.inner is not None:
-            x = self.inner(x, observation, k_inner)
-        n, n_arms = x.shape[0], len(self.arms)
-        m = int(round(self.fraction * n))
-        if m == 0:
-            return x
-        idx = jax.random.permutation(k_pick, n)[:m]
-        phi = jax.random.uniform(k_phi, (m, n_arms), x.dtype, -jnp.pi, jnp.pi)
-        phi = jnp.where(jax.random.bernoulli(k_arm, 0.5, (m, n_arms)), phi, 0.0)
-        return x.at[idx].set(jax.vmap(self._swivel)(x[idx], phi))
-
-
-def _swivel_arms(model: BodyModel, dofs: np.ndarray):
-    """The arms whose shoulder DOFs (joint roles ``l_shoulder``/``r_shoulder``) are filtered,
-    as (positions of the x, y, z shoulder DOFs in the filtered state, parent link of the
-    shoulder, the shoulder's last link, hand keypoint name); raises one line if a filtered
-    shoulder is not the three x, y, z revolute links :class:`SwivelProposal` decomposes."""
-    chain, out = model.chain, []
-    roles = require_roles(model, "stereo_pf.make_params: swivel_fraction")
-    topo = chain.topology
-    pos = {int(d): i for i, d in enumerate(dofs)}
-    for joint, hand in SWIVEL_ARMS:
-        names = roles.dofs(joint)
-        idx = [chain.dof_names.index(n) for n in names]
-        if not any(i in pos for i in idx):
-            continue  # this shoulder is not filtered: nothing to swivel
-        links = [next(k for k, (_, _, d) in enumerate(topo) if d == i) for i in idx]
-        ok = (
-            len(idx) == 3
-            and all(i in pos for i in idx)
-            and topo[links[1]][0] == links[0]
-            and topo[links[2]][0] == links[1]
-            and np.allclose(np.asarray(chain.joint_axis)[links], np.eye(3))
-            and np.allclose(np.asarray(chain.joint_origin)[links, :3, :3], np.eye(3))
-            and np.allclose(np.asarray(chain.joint_origin)[links[1:], :3, 3], 0.0)
-        )
-        if not ok:
-            raise InputError(
-                f"stereo_pf.make_params: swivel_fraction > 0 needs the {joint} joint "
-                f"{names} of {roles.source} to be three filtered x, y, z revolute links with "
-                "identity origin rotations; give Proposals(swivel_fraction=0) for this body "
-                "(jaxmocap track --pf-swivel 0)"
-            )
-        out.append((tuple(pos[i] for i in idx), topo[links[0]][0], links[2], hand))
-    return tuple(out)
+# The head as a sphere fitted to its skin outline in both views (jaxmocap.trackers.stereo_pf.head)
+# instead of the skin centroid: off (docs/results/stereo_pf_round2.md)
+HEAD_SPHERE = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -316,6 +227,9 @@ class Images(eqx.Module):
       its own colour (:mod:`jaxmocap.trackers.stereo_pf.parts`; ``seed_params`` its
       :class:`SeedParams`). Off by default: on the dev split of the test world it found no
       more hands within 8 cm and cost ~8x per frame (the module's docstring).
+    * ``head_sphere`` (not in the paper): the triangulated head replaced by a sphere of the
+      body's head radius fitted to the outline of the head's skin region in both views
+      (:mod:`jaxmocap.trackers.stereo_pf.head`), instead of the lit skin's centroid;
     """
 
     segment: SegmentParams | None = None
@@ -328,6 +242,7 @@ class Images(eqx.Module):
     adapt_spread: float = eqx.field(static=True, default=ADAPT_MAX_SPREAD)
     part_colours: bool = eqx.field(static=True, default=False)
     seed_params: SeedParams | None = eqx.field(static=True, default=None)
+    head_sphere: bool = eqx.field(static=True, default=HEAD_SPHERE)
 
 
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
@@ -365,6 +280,10 @@ class StereoPFParams(eqx.Module):
     # per-part colours and the seeded search (jaxmocap.trackers.stereo_pf.parts): its
     # thresholds; None: off
     part_colours: SeedParams | None = eqx.field(static=True, default=None)
+    # the head as a fitted sphere (jaxmocap.trackers.stereo_pf.head): (radius m, offset m from
+    # its centre to the head keypoint); None: the skin centroid
+    head_sphere: tuple[float, tuple[float, float, float]] | None = eqx.field(
+        static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -490,11 +409,12 @@ def make_params(
         raise InputError(
             f"stereo_pf.make_params: swivel_fraction: expected in [0, 1], got {swivel_fraction}"
         )
-    arms = _swivel_arms(model, dofs) if swivel_fraction > 0 else ()
-    if arms:  # no filtered x-y-z shoulder: nothing to turn
+    arms, fits = (swivel_arms(model, dofs, np.asarray(default_q)) if swivel_fraction > 0
+                  else ((), None))
+    if arms:  # no filtered shoulder: nothing to turn
         proposal = SwivelProposal(
             inner=proposal, model=model, default_q=default_q, dofs=tuple(int(i) for i in dofs),
-            arms=arms, fraction=float(swivel_fraction),
+            arms=arms, fraction=float(swivel_fraction), fits=fits,
         )  # fmt: skip
     filt = pf.PFParams(
         loglik=lik,
@@ -530,7 +450,15 @@ def make_params(
         else None,
         skin_grow=int(skin_grow),
         part_colours=_seed_params(images.seed_params) if part_colours else None,
+        head_sphere=_head_sphere(model) if images.head_sphere else None,
     )
+
+
+def _head_sphere(model):
+    from jaxmocap.trackers.stereo_pf.head import head_sphere
+
+    radius, offset = head_sphere(model)
+    return float(radius), tuple(float(x) for x in offset)
 
 
 def _seed_params(seed):
