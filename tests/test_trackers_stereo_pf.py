@@ -503,7 +503,8 @@ def test_online_tracker_takes_the_capture_colours_and_skin_grow(scene, tmp_path)
     np.testing.assert_array_equal(seg.skin, hysteresis_masks(tr.params.colors, frames[0, 0],
                                                              4)[0])
     args = argparse.Namespace(method="pf", garment=None, pf_colors=None, skin="default",
-                               pf_skin_grow=4, body=None, particles=20, seed=0)
+                               pf_skin_grow=4, body=None, particles=20, seed=0,
+                               tuned=None, ik_cov=None)
     with pytest.raises(InputError, match="needs --pf-colors"):
         _make_tracker(args, cams, ["0", "1"])
 
