@@ -52,6 +52,23 @@ def depth_lateral(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray
     return np.asarray(np.abs(along)), np.asarray(lateral)
 
 
+def facing_angle(l_shoulder: np.ndarray, r_shoulder: np.ndarray, neck: np.ndarray,
+                 centres: np.ndarray) -> np.ndarray:
+    """The angle (degrees) between a body's facing direction and the direction to each camera,
+    in the ground plane (world Z up): 0 facing the camera, 90 side-on, 180 the back to it.
+    The facing direction is the shoulder axis (left minus right) crossed with up; the camera
+    direction runs from the neck to each centre. ``l_shoulder``, ``r_shoulder``, ``neck``
+    (T, 3), ``centres`` (n_cams, 3) -> (T, n_cams). Used to bin errors by view (issue 38
+    decision 2)."""
+    lat = np.asarray(l_shoulder, np.float64) - np.asarray(r_shoulder, np.float64)
+    fwd = np.cross(lat, [0.0, 0.0, 1.0])[:, None, :2]
+    to_cam = (np.asarray(centres, np.float64)[None, :, :2]
+              - np.asarray(neck, np.float64)[:, None, :2])
+    cos = np.sum(fwd * to_cam, -1) / (np.linalg.norm(fwd, axis=-1)
+                                      * np.linalg.norm(to_cam, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:
     """The metrics of the module docstring as a JSON-ready dict."""
     gt_path = Path(gt_path)

@@ -28,3 +28,20 @@ def test_batches_and_the_components_make_up_the_error(rng):
     # a joint at the right place has neither
     d0, l0 = depth_lateral(gt, gt, np.zeros(3))
     assert not d0.any() and not l0.any()
+
+
+def test_facing_angle_on_hand_placed_views():
+    """A body facing +x at the origin (left shoulder +y): a camera ahead on +x is at 0 deg, one
+    on +y (the body's left) at 90, one behind at 180, one at 45 deg ahead-left at 45; turning
+    the body by 30 deg about z shifts each angle by 30 (a frame of its own)."""
+    from jaxmocap.metrics import facing_angle
+
+    centres = np.array([[3.0, 0, 1.5], [0, 3.0, 1.5], [-3.0, 0, 1.5], [2.0, 2.0, 1.5]])
+    th = np.radians(30.0)
+    rot = np.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1]])
+    l_sh = np.array([[0, 0.2, 1.4], rot @ [0, 0.2, 1.4]])
+    r_sh = np.array([[0, -0.2, 1.4], rot @ [0, -0.2, 1.4]])
+    neck = np.array([[0, 0, 1.5], [0, 0, 1.5]])
+    a = facing_angle(l_sh, r_sh, neck, centres)
+    np.testing.assert_allclose(a[0], [0, 90, 180, 45], atol=1e-9)
+    np.testing.assert_allclose(a[1], [30, 60, 150, 15], atol=1e-9)

@@ -231,7 +231,9 @@ def yaw_table(dataset: str, folder: str, bins=(0, 30, 60, 90, 120, 180)) -> dict
     its most frontal camera (the one the database query sees best) and by the least frontal.
     The facing direction is the ground truth's shoulder axis x up (no body naming beyond the
     keypoint roles ``l_shoulder`` / ``r_shoulder`` / ``neck``)."""
+    from jaxmocap.camera import camera_center
     from jaxmocap.io.cameras import load_cameras
+    from jaxmocap.metrics import facing_angle
 
     rows = []
     for name, d in _load(folder).items():
@@ -239,16 +241,9 @@ def yaw_table(dataset: str, folder: str, bins=(0, 30, 60, 90, 120, 180)) -> dict
         with np.load(seq / "groundtruth.npz") as z:
             kp, names = z["keypoints"], list(z["keypoint_names"])
         cams = load_cameras(seq / "cameras.json")[0]
-        lat = kp[:, names.index("l_shoulder")] - kp[:, names.index("r_shoulder")]
-        fwd = np.cross(lat, [0.0, 0.0, 1.0])[:, :2]
-        yaws = []
-        for cam in cams:
-            c = -np.asarray(cam.R).T @ np.asarray(cam.t)
-            to_cam = c[None, :2] - kp[:, names.index("neck"), :2]
-            cos = np.sum(fwd * to_cam, 1) / (np.linalg.norm(fwd, axis=1)
-                                             * np.linalg.norm(to_cam, axis=1))
-            yaws.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-        yaws = np.stack(yaws, 1)
+        yaws = facing_angle(kp[:, names.index("l_shoulder")], kp[:, names.index("r_shoulder")],
+                            kp[:, names.index("neck")],
+                            np.stack([np.asarray(camera_center(c)) for c in cams]))
         for t in range(len(d["err"])):
             eb = d["err_blend"][t] if "err_blend" in d else np.nan
             rows.append((name, yaws[t].min(), yaws[t].max(), d["err"][t], bool(d["valid"][t]),

@@ -46,18 +46,14 @@ CONFIG = "benchmarks/experiments/world2_shirt.toml"
 
 
 def torso_yaw(kp: np.ndarray, names: list[str], cams) -> np.ndarray:
-    """(T, n_cams) angle (deg) between the torso's facing direction (the shoulder axis x up,
-    horizontal) and the direction to each camera: 0 facing it, 90 side-on, 180 the back."""
-    lat = kp[:, names.index("l_shoulder")] - kp[:, names.index("r_shoulder")]
-    fwd = np.cross(lat, [0.0, 0.0, 1.0])[:, :2]
-    out = []
-    for cam in cams:
-        c = -np.asarray(cam.R).T @ np.asarray(cam.t)
-        to_cam = c[None, :2] - kp[:, names.index("neck"), :2]
-        cos = np.sum(fwd * to_cam, 1) / (np.linalg.norm(fwd, axis=1)
-                                         * np.linalg.norm(to_cam, axis=1))
-        out.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-    return np.stack(out, 1)
+    """(T, n_cams) facing angle (deg) of the true torso to each camera
+    (:func:`jaxmocap.metrics.facing_angle`): 0 facing it, 90 side-on, 180 the back."""
+    from jaxmocap.camera import camera_center
+    from jaxmocap.metrics import facing_angle
+
+    centres = np.stack([np.asarray(camera_center(c)) for c in cams])
+    return facing_angle(kp[:, names.index("l_shoulder")], kp[:, names.index("r_shoulder")],
+                        kp[:, names.index("neck")], centres)
 
 
 def _track(seq, folder, cfg, mode, tiny_maps):
