@@ -45,14 +45,15 @@ validity = false
 def pf_run(tmp_path_factory):
     """A tiny stereo sequence (64x48, 3 frames, `jaxmocap synth`) tuned by the command for 2
     Adam steps."""
-    root = tmp_path_factory.mktemp("pf")
+    base = tmp_path_factory.mktemp("pf")
+    root = base / "data"
     assert main(["synth", str(root / "clip"), "--clip", "humanoid3d_punch", "--preset",
                  "stereo", "--garment", "single", "--background", "plain", "--frames", "3",
                  "--width", "64", "--height", "48", "--png", "--no-video", "--no-colour-ids",
                  "--quiet", "--seed", "0"]) == 0
-    cfg = root / "pf.toml"
+    cfg = base / "pf.toml"
     cfg.write_text(PF_CONFIG)
-    out = root / "out"
+    out = base / "out"
     assert main(["tune", str(root), "--tracker", "pf", "--config", str(cfg), "--steps", "2",
                  "--every", "1", "--learning-rate", "0.1", "--out", str(out), "--quiet"]) == 0
     return root, cfg, out
@@ -114,5 +115,9 @@ def test_pf_loss_on_the_cached_observations_matches_central_differences(pf_run):
         shift = lambda s, name=name: eqx.tree_at(lambda t: getattr(t, name), theta,
                                                  getattr(theta, name) + s)
         fd = (float(scalar(shift(h))) - float(scalar(shift(-h)))) / (2 * h)
+        if name == "sigma_d" and not np.asarray(data.obs.valid).any():
+            # no head / hand triangulated in the tiny images: the distance cue is absent
+            assert g == 0.0 and fd == 0.0
+            continue
         assert abs(g) > 1e-9, name
         assert abs(g - fd) <= 1e-4 * abs(fd), (name, g, fd)

@@ -28,7 +28,8 @@ def add_parser(sub) -> None:
         description="Track every sequence of DATASET once with the tracker configuration "
         "(its observations held fixed), then tune the parameters that weight the tracker's "
         "terms by gradient descent through the differentiable step (shirt: the IK term "
-        "covariances; pf: the edge and distance cue widths sigma_g, sigma_d) and write them as a tuned-parameters file for `jaxmocap track --tuned`, "
+        "covariances; pf: the edge and distance cue widths sigma_g, sigma_d) and write "
+        "them as a tuned-parameters file for `jaxmocap track --tuned`, "
         "`jaxmocap experiment` (option tuned) and the Python API (jaxmocap.tuned). Tune on "
         "dev sequences only.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
