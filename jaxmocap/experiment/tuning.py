@@ -24,6 +24,28 @@ configuration's hash and the sequence's content digest (a rerun reads them back)
   ``Rounds.view_anchors`` (the loss's IK predicts each patch from its shared 3D anchor; the
   tracker's Cauchy width ``Rounds.robust`` is kept).
 
+* ``pf``: what the stereo filter's likelihood read per frame (``Observation``: the edge maps
+  of both cameras, the foreground, the triangulated head / hands and their validity, stored
+  as ``edges, foreground, points, points_valid``), with the true pose, the filter's valid
+  flags and its own estimates (``StereoRun.observations``, ``estimate.q``). The loss is
+  :func:`jaxmocap.tune.pf_loss`: one weighting step over fixed particles. Per frame the filter
+  reported valid, :data:`PF_PARTICLES` particles ``s_hat_t + eps_tj`` around the filter's OWN
+  estimate ``s_hat_t`` (its DOF subset; the offset from the truth is the filter's real error,
+  not a synthetic one), ``eps_tj ~ N(0, sigma_max^2)`` per DOF (the filter's noise maximum,
+  ``PFParams.sigma_max``), clipped to its joint box, key :data:`PF_KEY`; weights
+  ``softmax_j log p(z_t | s_tj)`` with the candidate sigma_g, sigma_d (the configuration's
+  other cue settings as tracked); loss = mean per-joint error of the weighted mean over the
+  configuration's evaluated joints (the DOFs outside the filter's subset at its default pose,
+  for estimate and truth alike), frame-weighted over the sequences. Held fixed: the
+  observations (the host image pipeline and blob tracker, discrete), the filter's estimates
+  and valid flags, the particles, and the whole recursion — prediction, adaptive noise,
+  resampling, annealing layers, the swivel / seeded jumps — none of which the widths change
+  in this loss. Still a one-step surrogate: it asks which widths best pick the truth out of
+  a cloud at the filter's own error, not how the widths change where the filter goes next
+  (docs/results/tuning.md section 3: a surrogate with particles around the truth loosened
+  sigma_d and made the real filter worse). In the filter's float32; the descent runs in this
+  process (the tracking may run on Dask).
+
 **Parameters.** When every sequence has the same body and shirt, the full matrices
 Sigma_c, Sigma_b, Sigma_p of that body (:class:`jaxmocap.tune.IKTheta`; the file's
 ``transfer`` is ``"none"``). When the bodies differ (the test world: one body per sequence)
@@ -32,6 +54,10 @@ the bundled body's DOFs, each body's DOF taking its counterpart's
 (:class:`jaxmocap.tune.IKRoleTheta`; ``transfer = "role"``, read as the bundled trained
 covariances are). The start is what the configuration tracked with (default: the bundled
 trained covariances, transferred by role).
+
+For ``pf`` the parameters are log sigma_g, log sigma_d (:class:`jaxmocap.tune.PFTheta`),
+starting from the configuration's; they do not depend on the body, so with bodies that
+differ the file says ``transfer = "role"`` (any body with roles accepts it).
 
 **Optimisation** (:func:`jaxmocap.tune.fit`, optax): Adam, or L-BFGS with its zoom
 linesearch (in this process only: the linesearch evaluates the loss inside its jitted
