@@ -543,16 +543,20 @@ def pf_particles(
 ) -> Float[Array, "t n d"]:  # fmt: skip
     """Fixed particles ``s_gt + delta_t + eps_tj`` (``delta_t ~ N(0, offset_std^2)`` shared
     by a frame's particles — the prediction error —, ``eps_tj ~ N(0, spread_std^2)`` the
-    diffusion), clipped to ``[lower, upper]`` where given."""
+    diffusion; stds scalar or per DOF), clipped to ``[lower, upper]`` where given. ``jaxmocap
+    tune --tracker pf`` passes the filter's own estimates as ``s_gt`` with ``offset_std`` 0:
+    the offset from the truth is then the filter's real error."""
     s = jnp.asarray(s_gt)
+    shape = (s.shape[0], n, s.shape[1])
     k1, k2 = jax.random.split(key)
-    delta = jax.random.normal(k1, s.shape, s.dtype) * jnp.asarray(offset_std, s.dtype)
-    eps = jax.random.normal(k2, (s.shape[0], n, s.shape[1]), s.dtype) * jnp.asarray(
-        spread_std, s.dtype
-    )
+    delta = jax.random.normal(k1, s.shape, s.dtype) * jnp.broadcast_to(
+        jnp.asarray(offset_std, s.dtype), s.shape)  # scalars or per-DOF (d,) stds
+    eps = jax.random.normal(k2, shape, s.dtype) * jnp.broadcast_to(
+        jnp.asarray(spread_std, s.dtype), shape)
     p = s[:, None, :] + delta[:, None, :] + eps
     if lower is not None:
-        p = jnp.clip(p, jnp.asarray(lower, s.dtype), jnp.asarray(upper, s.dtype))
+        p = jnp.clip(p, jnp.broadcast_to(jnp.asarray(lower, s.dtype), shape),
+                     jnp.broadcast_to(jnp.asarray(upper, s.dtype), shape))
     return p
 
 

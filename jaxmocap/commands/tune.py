@@ -11,6 +11,8 @@ EPILOG = """examples:
   jaxmocap tune /work/world --tracker shirt --config benchmarks/experiments/world_shirt.toml \\
       --name robust --split split.json --subset dev --steps 30 --out tuned_shirt
   jaxmocap tune data/ --tracker shirt --optimiser lbfgs --steps 10 --out tuned
+  jaxmocap tune /work/world --tracker pf --config benchmarks/experiments/world_pf.toml \\
+      --name jaxmocap --split dev_pf.json --steps 10 --out tuned_pf
   jaxmocap track --tuned tuned_shirt/tuned.json ...      # or experiment option tuned = "..."
 
 outputs in --out: tuned.json (the parameters, the body / garment digests they were tuned for,
@@ -26,12 +28,13 @@ def add_parser(sub) -> None:
         description="Track every sequence of DATASET once with the tracker configuration "
         "(its observations held fixed), then tune the parameters that weight the tracker's "
         "terms by gradient descent through the differentiable step (shirt: the IK term "
-        "covariances) and write them as a tuned-parameters file for `jaxmocap track --tuned`, "
+        "covariances; pf: the edge and distance cue widths sigma_g, sigma_d) and write "
+        "them as a tuned-parameters file for `jaxmocap track --tuned`, "
         "`jaxmocap experiment` (option tuned) and the Python API (jaxmocap.tuned). Tune on "
         "dev sequences only.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dataset", help="a `jaxmocap synth` folder, or a folder of them")
-    p.add_argument("--tracker", choices=("shirt",), default="shirt",
+    p.add_argument("--tracker", choices=("shirt", "pf"), default="shirt",
                    help="the tracker whose parameters are tuned (default: %(default)s)")
     p.add_argument("--config", metavar="TOML", help="an experiment configuration file "
                    "(`jaxmocap experiment`): the tracker settings the observations are made "

@@ -247,14 +247,15 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
             "diagnostics": [r[3] for r in run.rows], "body": body, "ik_observations": ik}
 
 
-def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
-    import jax
+def pf_setup(seq, cfg: dict, folder=None):
+    """The stereo filter's settings of configuration ``cfg`` (a :meth:`TrackerConfig.to_dict`)
+    for ``seq``: ``(params, blob, lag, validity, search, start_from_head)`` (also what
+    ``jaxmocap tune --tracker pf`` rebuilds its likelihood from)."""
     import jax.numpy as jnp
 
     from jaxmocap import blobs as bloblib
     from jaxmocap.segment import HSVInterval, SegmentParams
     from jaxmocap.trackers import stereo_pf as sp
-    from jaxmocap.trackers.driver import START_ANCHOR_CODES, stereo_offline
 
     if len(seq.cameras) != 2:
         raise InputError(f"method 'pf' needs a stereo pair; the sequence has "
@@ -291,6 +292,16 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
         colors = calibrate_from_frames(seq.frames[:, 0])
     images = dataclasses.replace(kw.pop("images", sp.Images()), segment=segment, colors=colors)
     params = sp.make_params(list(seq.cameras), model=body, images=images, **kw)
+    return params, blob, lag, validity, search, heads
+
+
+def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
+    import jax
+
+    from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.driver import START_ANCHOR_CODES, stereo_offline
+
+    params, blob, lag, validity, search, heads = pf_setup(seq, cfg, folder)
     key = jax.random.key(seed)
     if search != "off":  # ... with the prediction-guided search (the filter alongside)
         from jaxmocap.trackers.stereo_pf import search as pfs
@@ -331,9 +342,16 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
              "start_anchor": code} for t in range(n)]
     per_frame = (observe_s + warm) / n
     return {"q": q, "valid": valid, "times": np.full(n, per_frame), "diagnostics": rows,
-            "body": body, "first_run_s": observe_first + first, "init_frame": t_init,
+            "body": params.model, "first_run_s": observe_first + first, "init_frame": t_init,
             "start_anchor": run.anchor,
-            "blobs": (np.asarray(obs.points), ov)}  # the skin points fed into the filter
+            "blobs": (np.asarray(obs.points), ov),  # the skin points fed into the filter
+            # what its likelihood read (jaxmocap tune --tracker pf; dropped by compute_cell
+            # unless the spec asks: MBs per frame)
+            "pf_observations": {k: np.asarray(v) for k, v in
+                                zip(("edges", "points", "points_valid", "foreground",
+                                     "support"),
+                                    (obs.edges, obs.points, obs.valid, obs.foreground,
+                                     obs.support), strict=True) if v is not None}}
 
 
 def compute_cell(spec: dict) -> dict:
@@ -352,6 +370,8 @@ def compute_cell(spec: dict) -> dict:
     run = _track_shirt if cfg["method"] == "shirt" else _track_pf
     out = run(seq, cfg, int(spec["seed"]), spec["folder"])
     out.pop("body")
+    if not spec.get("keep_observations"):
+        out.pop("pf_observations", None)
     out["wall_s"] = time.perf_counter() - t0
     out["fps"] = float(seq.config.fps)
     return out

@@ -24,6 +24,28 @@ configuration's hash and the sequence's content digest (a rerun reads them back)
   ``Rounds.view_anchors`` (the loss's IK predicts each patch from its shared 3D anchor; the
   tracker's Cauchy width ``Rounds.robust`` is kept).
 
+* ``pf``: what the stereo filter's likelihood read per frame (``Observation``: the edge maps
+  of both cameras, the foreground, the triangulated head / hands and their validity, stored
+  as ``edges, foreground, points, points_valid``), with the true pose, the filter's valid
+  flags and its own estimates (``StereoRun.observations``, ``estimate.q``). The loss is
+  :func:`jaxmocap.tune.pf_loss`: one weighting step over fixed particles. Per frame the filter
+  reported valid, :data:`PF_PARTICLES` particles ``s_hat_t + eps_tj`` around the filter's OWN
+  estimate ``s_hat_t`` (its DOF subset; the offset from the truth is the filter's real error,
+  not a synthetic one), ``eps_tj ~ N(0, sigma_max^2)`` per DOF (the filter's noise maximum,
+  ``PFParams.sigma_max``), clipped to its joint box, key :data:`PF_KEY`; weights
+  ``softmax_j log p(z_t | s_tj)`` with the candidate sigma_g, sigma_d (the configuration's
+  other cue settings as tracked); loss = mean per-joint error of the weighted mean over the
+  configuration's evaluated joints (the DOFs outside the filter's subset at its default pose,
+  for estimate and truth alike), frame-weighted over the sequences. Held fixed: the
+  observations (the host image pipeline and blob tracker, discrete), the filter's estimates
+  and valid flags, the particles, and the whole recursion — prediction, adaptive noise,
+  resampling, annealing layers, the swivel / seeded jumps — none of which the widths change
+  in this loss. Still a one-step surrogate: it asks which widths best pick the truth out of
+  a cloud at the filter's own error, not how the widths change where the filter goes next
+  (docs/results/tuning.md section 3: a surrogate with particles around the truth loosened
+  sigma_d and made the real filter worse). In the filter's float32; the descent runs in this
+  process (the tracking may run on Dask).
+
 **Parameters.** When every sequence has the same body and shirt, the full matrices
 Sigma_c, Sigma_b, Sigma_p of that body (:class:`jaxmocap.tune.IKTheta`; the file's
 ``transfer`` is ``"none"``). When the bodies differ (the test world: one body per sequence)
@@ -32,6 +54,10 @@ the bundled body's DOFs, each body's DOF taking its counterpart's
 (:class:`jaxmocap.tune.IKRoleTheta`; ``transfer = "role"``, read as the bundled trained
 covariances are). The start is what the configuration tracked with (default: the bundled
 trained covariances, transferred by role).
+
+For ``pf`` the parameters are log sigma_g, log sigma_d (:class:`jaxmocap.tune.PFTheta`),
+starting from the configuration's; they do not depend on the body, so with bodies that
+differ the file says ``transfer = "role"`` (any body with roles accepts it).
 
 **Optimisation** (:func:`jaxmocap.tune.fit`, optax): Adam, or L-BFGS with its zoom
 linesearch (in this process only: the linesearch evaluates the loss inside its jitted
@@ -60,13 +86,25 @@ from jaxmocap.experiment.config import (
     load_config,
 )
 
-TRACKERS = ("shirt",)  # tuned by this module (the stereo filter: jaxmocap.tune.pf_loss)
+TRACKERS = ("shirt", "pf")  # tuned by this module
 OBSERVATIONS = "observations"
 CHECKPOINT = "checkpoint.npz"
 TUNED = "tuned.json"
 WINDOW = 10  # frames per IK window (docs/results/tuning.md)
+PF_PARTICLES = 200  # fixed particles per frame in the stereo filter's loss
+PF_KEY = 0  # their random key
 CHECKPOINT_EVERY = 5
 CACHE_VERSION = 2  # observations/<sequence>.npz: + the tracker's valid flags and poses
+
+
+PF_HELD_FIXED = ("the filter's observations (edge maps, foreground, triangulated head/hands "
+                 "and their validity), its estimates and valid flags (tracked once with the "
+                 "configuration); the fixed particles: the filter's own estimate of each "
+                 "frame plus N(0, sigma_max^2) per DOF, clipped to the joint box; the "
+                 "resampling, prediction and annealing (one weighting step, no recursion)")
+PF_LOSS = ("mean per-joint position error (m, DOFs outside the filter's subset at its "
+           "default pose) of one weighting step's estimate over fixed particles around the "
+           "filter's own estimate, on the frames the filter reported valid")
 
 
 def _pick_config(config, name: str | None, tracker: str | None) -> TrackerConfig:
@@ -75,7 +113,7 @@ def _pick_config(config, name: str | None, tracker: str | None) -> TrackerConfig
     (the bundled body and shirt)."""
     if config is None:
         if tracker is None:
-            raise ExperimentError("tune: give a tracker (shirt) or a configuration file")
+            raise ExperimentError("tune: give a tracker (shirt, pf) or a configuration file")
         return TrackerConfig(name=tracker, method=tracker, seeds=(0,))
     exp = config if isinstance(config, ExperimentConfig) else load_config(config)
     names = [c.name for c in exp.configs]
@@ -93,9 +131,8 @@ def _pick_config(config, name: str | None, tracker: str | None) -> TrackerConfig
         raise ExperimentError(f"{exp.path}: configuration {cfg.name!r} is method "
                               f"{cfg.method!r}, not {tracker!r}")
     if cfg.method not in TRACKERS:
-        raise ExperimentError(f"tune: method {cfg.method!r} is not tuned here yet (tuned: "
-                              f"{', '.join(TRACKERS)}; the stereo filter's cue widths: "
-                              "jaxmocap.tune.pf_loss)")
+        raise ExperimentError(f"tune: method {cfg.method!r} is not tuned here (tuned: "
+                              f"{', '.join(TRACKERS)})")
     return cfg
 
 
@@ -120,7 +157,8 @@ def observations(cfg: TrackerConfig, seqs, out: Path, workers: int = 0,
     for s in seqs:
         spec = {"cell": s.name.replace("/", "_"), "sequence": s.name, "folder": s.folder,
                 "config": cfg.to_dict(), "seed": 0, "config_hash": h,
-                "dataset_digest": digest_folder(s.folder), "x64": False}  # the tracker's f32
+                "dataset_digest": digest_folder(s.folder), "x64": False,  # the tracker's f32
+                "keep_observations": cfg.method == "pf"}
         got = _read_cached(folder / f"{spec['cell']}.npz", spec)
         if got is None:
             specs.append(spec)
@@ -176,7 +214,7 @@ def _read_cached(path: Path, spec: dict) -> dict | None:
 def _write_cached(path: Path, spec: dict, res: dict) -> dict:
     import os
 
-    obs = dict(res["ik_observations"])
+    obs = dict(res["ik_observations"] if "ik_observations" in res else res["pf_observations"])
     obs["valid"] = np.asarray(res["valid"], bool)  # the tracker's reported validity
     obs["q_tracker"] = np.asarray(res["q"], np.float64)  # its own estimates
     with np.load(Path(spec["folder"]) / "groundtruth.npz") as z:
@@ -281,6 +319,85 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
     return setups, clips, theta, ident, digests
 
 
+def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
+    """The stereo filter's loss terms (module docstring): per sequence ``(likelihood, data,
+    joints)`` with :class:`jaxmocap.tune.PFData` over the frames the filter reported valid,
+    the start theta (the configuration's cue widths), the file's identity (as
+    :func:`_setups`) and the per-sequence body digests."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap import tune
+    from jaxmocap.body import body_digest, default_body, keypoint_index
+    from jaxmocap.experiment.cell import eval_joints, pf_setup
+    from jaxmocap.pf.cues import Observation
+    from jaxmocap.synth.dataset import load_dataset
+
+    c = cfg.to_dict()
+    terms, digests, widths = [], {}, None
+    for i, s in enumerate(seqs):
+        params = pf_setup(load_dataset(s.folder), c, s.folder)[0]
+        lik, body = params.likelihood, params.model
+        digests[s.name] = body_digest(body)
+        if widths is None:
+            widths = (float(lik.sigma_g), float(lik.sigma_d))
+        o = obs[s.name]
+        dofs = np.asarray(lik.dofs)
+        n = min(len(o["q_tracker"]), len(o["q_gt"]), len(o["edges"]))
+        keep = np.asarray(o["valid"][:n], bool) & np.isfinite(o["q_tracker"][:n]).all(1)
+        if not keep.any():
+            continue  # the filter reported no frame valid: nothing to score
+        dt = lik.default_q.dtype
+        s_est = jnp.asarray(o["q_tracker"][:n][keep][:, dofs], dt)
+        s_gt = jnp.asarray(o["q_gt"][:n][keep][:, dofs], dt)
+        z = Observation(*(jnp.asarray(o[k][:n][keep]) for k in
+                          ("edges", "points", "points_valid", "foreground")),
+                        support=jnp.asarray(o["support"][:n][keep]) if "support" in o else None)
+        f = params.filter
+        parts = tune.pf_particles(s_est, 0.0, f.sigma_max, PF_PARTICLES,
+                                  jax.random.fold_in(jax.random.key(PF_KEY), i),
+                                  f.lower, f.upper)
+        names = list(body.keypoint_names)
+        joints = jnp.asarray(keypoint_index(body, [j for j in eval_joints(c) if j in names]))
+        terms.append((lik, tune.PFData(z, parts, s_gt), joints))
+    if not terms:
+        raise ExperimentError("tune: the stereo filter reported no frame valid on any "
+                              "sequence; nothing to tune on")
+    theta = tune.pf_theta(*widths, dtype=terms[0][0].default_q.dtype)
+    if len(set(digests.values())) == 1:
+        ident = ("none", next(iter(digests.values())), (), None)
+    else:  # the cue widths do not depend on the body: shared by any body with roles
+        ref = default_body()
+        ident = ("role", body_digest(ref), tuple(ref.chain.dof_names), None)
+    return terms, theta, ident, digests
+
+
+def _pf_losses(terms):
+    """(scalar loss, value-and-gradient) over the sequences' terms: the frame-weighted mean
+    of :func:`jaxmocap.tune.pf_loss`."""
+    import jax
+
+    from jaxmocap import tune
+
+    w = np.asarray([t[1].s_gt.shape[0] for t in terms], np.float64)
+    w = w / w.sum()
+    vg = jax.jit(jax.value_and_grad(tune.pf_loss))
+
+    def loss(theta):
+        return sum(float(wi) * tune.pf_loss(theta, *t) for wi, t in zip(w, terms, strict=True))
+
+    def value_and_grad(theta):
+        total, grad = 0.0, None
+        for wi, t in zip(w, terms, strict=True):
+            v, g = vg(theta, *t)
+            total = total + wi * v
+            g = jax.tree.map(lambda a, wi=wi: wi * a, g)
+            grad = g if grad is None else jax.tree.map(lambda a, b: a + b, grad, g)
+        return total, grad
+
+    return loss, value_and_grad
+
+
 def jax_cast(cov, dtype):
     import jax
 
@@ -328,11 +445,18 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     obs = observations(cfg, seqs, out, workers, scheduler, progress=progress)
     t_obs = time.perf_counter() - t0
     x64 = bool(jax.config.jax_enable_x64)
-    jax.config.update("jax_enable_x64", True)  # gradients through the LM solves in float64
+    pf = cfg.method == "pf"
+    # shirt: gradients through the LM solves in float64; pf: the filter's float32
+    jax.config.update("jax_enable_x64", not pf)
     try:
         import jax.numpy as jnp
 
-        setups, clips, theta0, ident, digests = _setups(cfg, seqs, obs, jnp.float64)
+        if pf:
+            terms, theta0, ident, digests = _pf_setups(cfg, seqs, obs)
+            frames = int(sum(t[1].s_gt.shape[0] for t in terms))
+        else:
+            setups, clips, theta0, ident, digests = _setups(cfg, seqs, obs, jnp.float64)
+            frames = int(sum(_n(c) for c in clips))
         key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident)
         ckpt = out / CHECKPOINT
         opt = tune.make_optimiser(optimiser, None if optimiser == "lbfgs" else learning_rate)
@@ -364,7 +488,10 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
         client = cluster = None
         t1 = time.perf_counter()
         try:
-            if workers or scheduler:
+            if pf:  # in this process (the tracking may have run on Dask)
+                scalar, pf_vg = _pf_losses(terms)
+                loss, vg = (scalar, False) if optimiser == "lbfgs" else (pf_vg, True)
+            elif workers or scheduler:
                 from jaxmocap.experiment.cluster import client_for
                 from jaxmocap.experiment.tune_dask import dask_value_and_grad
 
@@ -390,9 +517,13 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
             if cluster is not None:
                 cluster.close()
         t_fit = time.perf_counter() - t1
-        cov = tune.ik_covariances(best)
-        params = {"ik_centroid": np.asarray(cov.centroid), "ik_blend": np.asarray(cov.blend),
-                  "ik_prior": np.asarray(cov.prior)}
+        if pf:
+            params = {k: np.asarray(np.exp(getattr(best, k)), np.float64)
+                      for k in ("sigma_g", "sigma_d")}
+        else:
+            cov = tune.ik_covariances(best)
+            params = {"ik_centroid": np.asarray(cov.centroid),
+                      "ik_blend": np.asarray(cov.blend), "ik_prior": np.asarray(cov.prior)}
     finally:
         jax.config.update("jax_enable_x64", x64)
     transfer, b_digest, dofs, g_digest = ident
@@ -405,13 +536,16 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                   "sequences": [s.name for s in seqs], "config": cfg.to_dict(),
                   "config_path": None if config is None or isinstance(config, ExperimentConfig)
                   else str(Path(config).resolve()),
-                  "body_digests": digests, "window": WINDOW,
-                  "frames": int(sum(_n(c) for c in clips)),
-                  "held_fixed": "the tracker's centroids, their validity, q_blend and its "
-                  "valid flags (tracked once with the configuration); the white-balance and "
-                  "crop feedback; per-view anchors (shared 3D anchors in the loss)"},
-        loss={"what": "mean per-joint position error (m) of the IK re-run over the tracker's "
-              "observations, on the frames the tracker reported valid", "before": float(losses[0]),
+                  "body_digests": digests, "frames": frames, **(
+                      {"particles": PF_PARTICLES, "particle_key": PF_KEY} if pf
+                      else {"window": WINDOW}),
+                  "held_fixed": PF_HELD_FIXED if pf else "the tracker's centroids, their "
+                  "validity, q_blend and its valid flags (tracked once with the "
+                  "configuration); the white-balance and crop feedback; per-view anchors "
+                  "(shared 3D anchors in the loss)"},
+        loss={"what": PF_LOSS if pf else "mean per-joint position error (m) of the IK re-run "
+              "over the tracker's observations, on the frames the tracker reported valid",
+              "before": float(losses[0]),
               "after": float(losses[i_best]), "best_step": i_best, "steps": steps,
               "optimiser": optimiser,
               "learning_rate": None if optimiser == "lbfgs" else learning_rate,
@@ -437,8 +571,13 @@ def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident) -> str:
     h.update(json.dumps([cfg.to_dict(), [s.name for s in seqs], optimiser,
                          None if optimiser == "lbfgs" else learning_rate, list(ident[:2]),
                          WINDOW], sort_keys=True, default=str).encode())
+    keys = ("centroids", "visible", "q_blend", "q_gt", "valid")
+    if cfg.method == "pf":
+        keys = ("edges", "points", "points_valid", "valid", "q_tracker", "q_gt")
+    if cfg.method == "pf":
+        h.update(json.dumps([PF_PARTICLES, PF_KEY]).encode())
     for s in seqs:
-        for k in ("centroids", "visible", "q_blend", "q_gt", "valid"):
+        for k in keys:
             h.update(np.ascontiguousarray(obs[s.name][k]).tobytes())
     return h.hexdigest()[:16]
 
