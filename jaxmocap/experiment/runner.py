@@ -168,6 +168,21 @@ def write_cell(out: Path, spec: dict, result: dict, exp: ExperimentConfig, bodie
     return doc
 
 
+def output_folder(out, seqs: list[Sequence], dataset) -> Path:
+    """``out`` checked as a new or resumable output folder
+    (:func:`jaxmocap.io.atomic.check_output_folder`) that is neither a sequence's folder nor
+    the dataset's, nor inside one (no command writes into its inputs)."""
+    from jaxmocap.io.atomic import check_output_folder
+
+    out = check_output_folder(out)
+    res_out = out.resolve()
+    for p in [Path(s.folder).resolve() for s in seqs] + [Path(dataset).resolve()]:
+        if res_out == p or p in res_out.parents:
+            raise ExperimentError(f"{out}: the output folder is (inside) the input {p}; "
+                                  "choose another folder")
+    return out
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -186,7 +201,6 @@ def run_experiment(dataset, config, out, workers: int = 0, scheduler: str | None
     from tqdm import tqdm
 
     from jaxmocap.experiment.summary import write_summary
-    from jaxmocap.io.atomic import check_output_folder
 
     exp = config if isinstance(config, ExperimentConfig) else load_config(config)
     seqs = dataset_sequences(dataset, split, subset)
@@ -194,12 +208,7 @@ def run_experiment(dataset, config, out, workers: int = 0, scheduler: str | None
         raise ExperimentError(f"--workers: expected >= 0, got {workers}")
     if retries < 0:
         raise ExperimentError(f"--retries: expected >= 0, got {retries}")
-    out = check_output_folder(out)
-    res_out = out.resolve()
-    for p in [Path(s.folder).resolve() for s in seqs] + [Path(dataset).resolve()]:
-        if res_out == p or p in res_out.parents:
-            raise ExperimentError(f"{out}: the output folder is (inside) the input {p}; "
-                                  "choose another folder")
+    out = output_folder(out, seqs, dataset)
     check_inputs(exp, seqs)
     fn = cell_fn or compute_cell
     plan = Plan(exp, seqs, out, bool(jax.config.jax_enable_x64))

@@ -417,7 +417,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     import jax
 
     from jaxmocap import tune
-    from jaxmocap.io.atomic import check_output_folder
+    from jaxmocap.experiment.runner import output_folder
     from jaxmocap.tuned import TunedParameters
 
     if optimiser not in tune.OPTIMISERS:
@@ -431,12 +431,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                               "evaluates the loss inside the jitted update); give --workers 0")
     cfg = _pick_config(config, name, tracker)
     seqs = dataset_sequences(dataset, split, subset)
-    out = check_output_folder(out)
-    res_out = out.resolve()
-    for p in [Path(s.folder).resolve() for s in seqs] + [Path(dataset).resolve()]:
-        if res_out == p or p in res_out.parents:
-            raise ExperimentError(f"{out}: the output folder is (inside) the input {p}; "
-                                  "choose another folder")
+    out = output_folder(out, seqs, dataset)
     if "tuned" in cfg.options:  # refused before any tracking
         from jaxmocap.experiment.runner import _check_tuned
 
