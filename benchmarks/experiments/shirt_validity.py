@@ -91,13 +91,31 @@ def _crop_stats(shirt, params, state, frames, colour_ids):
     return jax.device_get(jnp.stack(rows))
 
 
+def track_wrapped(seq, cfg: dict, folder: str, wrap) -> dict:
+    """The experiment cell's shirt run (:func:`jaxmocap.experiment.cell._track_shirt`, seed 0)
+    with every compiled step replaced by ``wrap(params, step)`` (the program the driver runs,
+    shipped or jit): how these scripts record or steer the tracker frame by frame."""
+    from jaxmocap.experiment import cell
+    from jaxmocap.trackers import shirt
+
+    compile0 = shirt.compile_step
+
+    def compile_step(params, *a, **kw):
+        return wrap(params, compile0(params, *a, **kw))
+
+    shirt.compile_step = compile_step
+    try:
+        return cell._track_shirt(seq, cfg, 0, folder)
+    finally:
+        shirt.compile_step = compile0
+
+
 def run(dataset: str, config: str, name: str, out: str, only=None, sets=()) -> None:
     import jax
     import jax.numpy as jnp
     from tqdm import tqdm
 
     from jaxmocap.body import keypoints
-    from jaxmocap.experiment import cell
     from jaxmocap.experiment.config import dataset_sequences, load_config
     from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers import shirt
@@ -114,11 +132,8 @@ def run(dataset: str, config: str, name: str, out: str, only=None, sets=()) -> N
         folder = str(seq_info.folder)
         seq = load_dataset(folder)
         rec = []
-        compile0 = shirt.compile_step
 
-        def compile_step(params, *a, _rec=rec, compile0=compile0, **kw):
-            step0 = compile0(params, *a, **kw)  # the program the driver runs (shipped or jit)
-
+        def wrap(params, step0, _rec=rec):
             def step(state, *args):
                 new, o = step0(state, *args)
                 _rec.append((params, state, o))
@@ -126,11 +141,7 @@ def run(dataset: str, config: str, name: str, out: str, only=None, sets=()) -> N
 
             return step
 
-        shirt.compile_step = compile_step
-        try:
-            res = cell._track_shirt(seq, cfg, 0, folder)
-        finally:
-            shirt.compile_step = compile0
+        res = track_wrapped(seq, cfg, folder, wrap)
         body = res["body"]
         g = seq.groundtruth
         joints = cfg["joints"]

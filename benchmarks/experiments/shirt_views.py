@@ -33,10 +33,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from shirt_validity import track_wrapped  # noqa: E402
 
 JOINTS = ["head", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist",
           "r_wrist", "l_hand", "r_hand"]
@@ -62,14 +66,11 @@ def _track(seq, folder, cfg, mode, tiny_maps):
     import jax
     import jax.numpy as jnp
 
-    from jaxmocap.experiment import cell
     from jaxmocap.render import TINY_SIZE, resample_ids, window_from_mask
-    from jaxmocap.trackers import shirt
     from jaxmocap.trackers.shirt.frame import locate_and_classify
 
     gq = np.asarray(seq.groundtruth["q"])
     rec = []
-    compile0 = shirt.compile_step
 
     def tiny_of(params, state, frames):
         views = locate_and_classify(params, state, frames, None)
@@ -78,9 +79,7 @@ def _track(seq, folder, cfg, mode, tiny_maps):
 
     tiny_jit = jax.jit(tiny_of)
 
-    def compile_step(params, *a, **kw):
-        step0 = compile0(params, *a, **kw)
-
+    def wrap(params, step0):
         def step(state, frames, *args):
             t = len(rec)
             if mode == "true_start":
@@ -95,11 +94,7 @@ def _track(seq, folder, cfg, mode, tiny_maps):
 
         return step
 
-    shirt.compile_step = compile_step
-    try:
-        res = cell._track_shirt(seq, cfg, 0, folder)
-    finally:
-        shirt.compile_step = compile0
+    res = track_wrapped(seq, cfg, folder, wrap)
     q = np.stack([np.asarray(r[0], np.float64) for r in rec])
     qb = np.stack([np.asarray(r[1], np.float64) for r in rec])
     valid = np.array([bool(r[2]) for r in rec])
