@@ -175,11 +175,9 @@ def test_orientation_hypotheses_start_only_after_a_loss(setup):
     st_h, first = shirt.step(ph, state0, setup["frames"])
     assert bool(first.valid)
     assert np.linalg.norm(np.asarray(kp(first.q)) - truth, axis=-1).mean() < 0.08
+    views = shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None)
     ctx_hyps = shirt_frame.orientation_starts(
-        ph, shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None),
-        shirt_frame.database_pose(
-            ph, shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None),
-            p.cams.K.dtype), p.cams.K.dtype)
+        ph, views, shirt_frame.database_pose(ph, views, p.cams.K.dtype), p.cams.K.dtype)
     assert 1 <= int(ctx_hyps[1]) <= 2 * p.n_cams  # real hypotheses, from both cameras
     tracked, _ = shirt.step(p, state0, setup["frames"])
     _, a = shirt.step(p, tracked, setup["frames"])

@@ -413,9 +413,9 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
     rounds (its cold and steady times: docs/results/realtime_profile_history.json)."""
     starts, plain, n = starts_of(params, state, ctx)
     hyp = ctx.hyps is not None  # each start's IK pulls to its own hypothesis
-    n_plain_starts = starts.shape[0] - (ctx.hyps.shape[0] if hyp else 0)
-    is_hyp = jnp.arange(starts.shape[0]) >= n_plain_starts
-    priors = jnp.where(is_hyp[:, None], starts, ctx.q_g[None])
+    if hyp:  # the IK prior of each start: its own pose for a hypothesis, else the blend
+        is_hyp = jnp.arange(starts.shape[0]) >= starts.shape[0] - ctx.hyps.shape[0]
+        priors = jnp.where(is_hyp[:, None], starts, ctx.q_g[None])
     total = 2 * n + n_more
     dt = ctx.q_g.dtype
     P = params.garment.n_patches
@@ -436,7 +436,8 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
         # a start's first round scored: kept if it agrees better than every earlier start
         kept = is_check & (score > best[-1])
         best = pick(kept, (*ik_out, hits, score), best)
-        prior_best = jnp.where(kept, priors[s], prior_best)
+        if hyp:  # the kept start's prior follows it into the extra rounds
+            prior_best = jnp.where(kept, priors[s], prior_best)
         # an extra round's render: that round's result is the frame's (agreement kept)
         best = pick(~in_starts, (*ik_out, hits, best[-1]), best)
         last_check = is_check & (s == n - 1)
@@ -456,7 +457,7 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
         return pose, ik_out, best, prior_best
 
     init = (starts[0], (ctx.q_g, c0, v0), (ctx.q_g, c0, v0, hits0, jnp.asarray(-jnp.inf, dt)),
-            ctx.q_g)
+            ctx.q_g if hyp else None)
     _, _, best, _ = jax.lax.fori_loop(0, total, body, init)
     return best
 
@@ -595,13 +596,13 @@ def _step(params: ShirtParams, state: ShirtState, frames, masks) -> tuple[ShirtS
     # this frame's estimate where there was something to fit (else it is unconstrained)
     measured = jnp.any(ctx.okq) & (jnp.sum(v_obs) >= MIN_VALID_PATCHES)
     q_frame = jnp.where((measured | valid) & jnp.all(jnp.isfinite(q_sol)), q_sol, jnp.nan)
+    has_own = measured & near_placement(ctx, q_sol)
     if params.validity.hold_invalid:
         q_out, own = q_star, valid
     else:
-        own = measured & near_placement(ctx, q_sol)
+        own = has_own
         q_out = jnp.where(own, q_sol, state.q)
     if state.q_own is not None:  # the frame's own estimate where it had one, valid or not
-        has_own = measured & near_placement(ctx, q_sol)
         new_state = dataclasses.replace(new_state, q_own=jnp.where(has_own, q_sol, state.q_own))
     out = ShirtOutput(
         q=q_out,
