@@ -22,7 +22,7 @@ from jaxmocap.errors import InputError
 from jaxmocap.trackers import stereo_pf as sp
 from jaxmocap.trackers.stereo_pf import filter as sp_filter
 from jaxmocap.trackers.stereo_pf import observation as sp_observation
-from jaxmocap.trackers.stereo_pf import params as sp_params
+from jaxmocap.trackers.stereo_pf import swivel as sp_swivel
 
 W, H = 320, 240
 SHIRT = (26, 64, 204)
@@ -403,7 +403,7 @@ def test_swivel_jump_rotates_the_elbow_about_the_shoulder_hand_line(scene, rng, 
     np.testing.assert_array_equal(moved[:, :6], s[:, :6])
     np.testing.assert_array_equal(moved[:, [9, 13]], s[:, [9, 13]])
     a3 = jnp.asarray(rng.uniform(-1.4, 1.4, (20, 3)))
-    round_trip = jax.vmap(lambda v: sp_params._angles_xyz(sp_params._rot_xyz(v)))
+    round_trip = jax.vmap(lambda v: sp_swivel._angles_xyz(sp_swivel._rot_xyz(v)))
     np.testing.assert_allclose(round_trip(a3), a3,
                                atol=1e-9)  # fmt: skip
     # the whole move on a particle set: only `fraction` of the particles change

@@ -32,13 +32,7 @@ from jaxmocap.segment import SegmentParams
 from jaxmocap.trackers.stereo_pf.checks import (
     hand_reach,
 )
-from jaxmocap.trackers.stereo_pf.swivel import (  # noqa: F401  (_rot_xyz, _angles_xyz: tests)
-    SWIVEL_ARMS,
-    SwivelProposal,
-    _angles_xyz,
-    _rot_xyz,
-    swivel_arms,
-)
+from jaxmocap.trackers.stereo_pf.swivel import SwivelProposal, swivel_arms
 
 N_PARTICLES = 1000  # Azad §V
 # Adaptive noise range (std per frame at 25-30 Hz; Azad give none): root translation (m), root

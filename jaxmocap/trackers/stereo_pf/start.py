@@ -149,14 +149,16 @@ def torso_rest(params) -> tuple[np.ndarray, float] | None:
     return 0.5 * (ends[0] + ends[1]), float(lm.depth[k])
 
 
-def shirt_anchor(params, foreground: np.ndarray) -> np.ndarray | None:
+def shirt_anchor(params, foreground: np.ndarray,
+                 torso: tuple[np.ndarray, float] | None = None) -> np.ndarray | None:
     """The torso's centre in the world (m) from the two views' foreground (2, h, w): each
     view's :func:`torso_core` back-projected to the shirt's :func:`silhouette_depth` plus
     :data:`SURFACE_TO_AXIS` of the torso's half depth (:func:`torso_rest`: the sweep aligns
     the body's surface, the axis is behind it) -- view 1's at the depth of view 0's point in
     view 1 -- the two points averaged; None when either view has no shirt region of
-    :data:`SHIRT_MIN_PX` pixels, no depth is found or the model has no torso limb."""
-    torso = torso_rest(params)
+    :data:`SHIRT_MIN_PX` pixels, no depth is found or the model has no torso limb. ``torso``:
+    :func:`torso_rest` where the caller has it already."""
+    torso = torso_rest(params) if torso is None else torso
     cams = camlib.unstack_cameras(params.likelihood.cams)
     regions = [_largest_region(np.asarray(foreground[c]) > 0.5) for c in range(2)]
     if torso is None or any(r is None for r in regions):
@@ -180,10 +182,11 @@ def shirt_start(params, foreground: np.ndarray) -> Start | None:
     one): the model's counterpart is its torso centre at rest (:func:`torso_rest`); the spread
     is :data:`SHIRT_ROOT_STD` across the rig's view and :data:`SHIRT_DEPTH_STD`
     along it (from the cameras' midpoint to the anchor)."""
-    point = shirt_anchor(params, foreground)
+    torso = torso_rest(params)
+    point = None if torso is None else shirt_anchor(params, foreground, torso)
     if point is None:
         return None
-    rest = torso_rest(params)[0]
+    rest = torso[0]
     cams = camlib.unstack_cameras(params.likelihood.cams)
     mid = np.mean([np.asarray(camlib.camera_center(c), np.float64) for c in cams], axis=0)
     view = point - mid
