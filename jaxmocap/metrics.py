@@ -26,7 +26,7 @@ import numpy as np
 from jaxmocap.errors import InputError
 from jaxmocap.io.export import PoseFileError, load_track
 
-__all__ = ["depth_lateral", "evaluate", "format_table"]
+__all__ = ["depth_lateral", "evaluate", "facing_angle", "format_table"]
 
 
 def _jitter(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -49,7 +49,7 @@ def depth_lateral(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray
     u = u / np.linalg.norm(u, axis=-1, keepdims=True)
     along = np.sum(e * u, axis=-1)
     lateral = np.linalg.norm(e - along[..., None] * u, axis=-1)
-    return np.asarray(np.abs(along)), np.asarray(lateral)
+    return np.asarray(np.abs(along)), np.asarray(lateral)  # arrays also for one point
 
 
 def facing_angle(l_shoulder: np.ndarray, r_shoulder: np.ndarray, neck: np.ndarray,
@@ -94,7 +94,7 @@ def evaluate(pred_path: str | Path, gt_path: str | Path) -> dict:
     ip = [pred.keypoint_names.index(n) for n in names]
     ig = [gt.keypoint_names.index(n) for n in names]
     xp, xg = pred.keypoints[:, ip] * 100.0, gt.keypoints[:, ig] * 100.0  # cm
-    ok = pred.valid & np.isfinite(xp).all(axis=(1, 2))  # the valid flag, not finiteness
+    ok = pred.valid & np.isfinite(xp).all(axis=(1, 2))  # flagged valid and finite
     if not ok.any():
         raise InputError(f"{pred_path}: no tracked frame to evaluate (all {pred.n_frames} "
                          "frames are missing)")

@@ -128,6 +128,7 @@ def _mean(x):
 
 def ladder(dataset: str, out: str, config: str = CONFIG, name: str = "robust", only=None,
            sets=(), maps_dir: str | None = None, rungs=("tracker", "true_start")) -> dict:
+    from jaxmocap.body import keypoint_index
     from jaxmocap.synth.dataset import load_dataset
 
     cfg = _cfg(config, name, sets)
@@ -143,7 +144,7 @@ def ladder(dataset: str, out: str, config: str = CONFIG, name: str = "robust", o
             t0 = time.time()
             maps = [] if (mode == "tracker" and maps_dir) else None
             q, qb, valid, body, times = _track(seq, folder, cfg, mode, maps)
-            ip = [list(body.keypoint_names).index(j) for j in JOINTS]
+            ip = keypoint_index(body, JOINTS)
             ig = [names.index(j) for j in JOINTS]
             e = _errors(body, q, g["keypoints"], ip, ig)
             eb = _errors(body, qb, g["keypoints"], ip, ig)
@@ -188,12 +189,11 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
     import jax
     import jax.numpy as jnp
 
-    from jaxmocap.body import keypoints
+    from jaxmocap.body import keypoint_index, keypoints
     from jaxmocap.camera import to_camera
     from jaxmocap.experiment import cell
     from jaxmocap.io.cameras import load_cameras
-    from jaxmocap.posedb import load_or_build, pose_in_camera
-    from jaxmocap.posedb._search import estimate_pose, tiny_from_classified
+    from jaxmocap.posedb import estimate_pose, load_or_build, pose_in_camera, tiny_from_classified
 
     cfg = {"body": "sequence", "garment": "sequence", "options": {}}
     rows = []  # (seq, source, yaw, err joints on true root, err placed orientation, hyp...)
@@ -205,7 +205,7 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
         with np.load(folder / "groundtruth.npz") as z:
             gq, kp, names, cids = z["q"], z["keypoints"], list(z["keypoint_names"]), z["colour_ids"]
         cams = load_cameras(folder / "cameras.json")[0]
-        ip = jnp.asarray([list(body.keypoint_names).index(j) for j in JOINTS])
+        ip = jnp.asarray(keypoint_index(body, JOINTS))
         ig = [names.index(j) for j in JOINTS]
         yaw = torso_yaw(kp, names, cams)
         classified = None
