@@ -121,3 +121,15 @@ def test_pf_loss_on_the_cached_observations_matches_central_differences(pf_run):
             continue
         assert abs(g) > 1e-9, name
         assert abs(g - fd) <= 1e-4 * abs(fd), (name, g, fd)
+
+
+def test_tune_refuses_to_write_over_its_tuned_input(pf_run, capsys):
+    """A configuration whose `tuned` option names the file this run would write (the earlier
+    run's out/tuned.json) is refused in one line before any work; the file is untouched."""
+    root, _, out = pf_run
+    cfg = out.parent / "pf_tuned.toml"
+    cfg.write_text(PF_CONFIG + f'tuned = "{out / "tuned.json"}"\n')
+    before = (out / "tuned.json").read_bytes()
+    assert_refused(capsys, "is also an input of this command", "tune", str(root), "--tracker",
+                   "pf", "--config", str(cfg), "--steps", "3", "--out", str(out), "--quiet")
+    assert (out / "tuned.json").read_bytes() == before

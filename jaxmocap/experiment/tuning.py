@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from pathlib import Path
 
@@ -90,6 +91,7 @@ TRACKERS = ("shirt", "pf")  # tuned by this module
 OBSERVATIONS = "observations"
 CHECKPOINT = "checkpoint.npz"
 TUNED = "tuned.json"
+RUN_RECORD = "tune_run.json"
 WINDOW = 10  # frames per IK window (docs/results/tuning.md)
 PF_PARTICLES = 200  # fixed particles per frame in the stereo filter's loss
 PF_KEY = 0  # their random key
@@ -418,6 +420,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
 
     from jaxmocap import tune
     from jaxmocap.experiment.runner import output_folder
+    from jaxmocap.io.preflight import check_outputs
     from jaxmocap.tuned import TunedParameters
 
     if optimiser not in tune.OPTIMISERS:
@@ -432,6 +435,11 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     cfg = _pick_config(config, name, tracker)
     seqs = dataset_sequences(dataset, split, subset)
     out = output_folder(out, seqs, dataset)
+    # no file it writes may be one it reads (a config, split or tuned file kept in --out)
+    check_outputs([out / TUNED, out / RUN_RECORD, out / CHECKPOINT],
+                  [None if isinstance(config, ExperimentConfig) else config,
+                   None if split is None or not isinstance(split, (str, os.PathLike)) else split,
+                   cfg.options.get("tuned")])
     if "tuned" in cfg.options:  # refused before any tracking
         from jaxmocap.experiment.runner import _check_tuned
 
@@ -549,7 +557,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     result.save(out / TUNED)
     doc = result.to_json()
     doc["wall_s"] = {"observations": t_obs, "fit": t_fit, "total": time.perf_counter() - t0}
-    (out / "tune_run.json").write_text(json.dumps(doc["wall_s"], indent=1) + "\n")
+    (out / RUN_RECORD).write_text(json.dumps(doc["wall_s"], indent=1) + "\n")
     return doc
 
 
