@@ -31,7 +31,6 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -73,11 +72,11 @@ class TunedParameters:
                 "tuned_on": self.tuned_on, "loss": self.loss}  # fmt: skip
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the file atomically (temporary file, renamed)."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
-        os.replace(tmp, path)
+        """Write the file atomically (:func:`jaxmocap.io.atomic.write_text`: a temporary
+        file beside it, renamed)."""
+        from jaxmocap.io.atomic import write_text
+
+        write_text(path, json.dumps(self.to_json(), indent=1) + "\n")
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> TunedParameters:

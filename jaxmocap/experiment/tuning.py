@@ -214,7 +214,7 @@ def _read_cached(path: Path, spec: dict) -> dict | None:
 
 
 def _write_cached(path: Path, spec: dict, res: dict) -> dict:
-    import os
+    from jaxmocap.io.atomic import atomic_path
 
     obs = dict(res["ik_observations"] if "ik_observations" in res else res["pf_observations"])
     obs["valid"] = np.asarray(res["valid"], bool)  # the tracker's reported validity
@@ -223,9 +223,8 @@ def _write_cached(path: Path, spec: dict, res: dict) -> dict:
         obs["q_gt"] = np.asarray(z["q"], np.float64)
     meta = {k: spec[k] for k in ("sequence", "config_hash", "dataset_digest")}
     meta["version"] = CACHE_VERSION
-    tmp = path.with_name(f".{path.name}.tmp.npz")
-    np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **obs)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **obs)
     return obs
 
 
@@ -420,6 +419,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
 
     from jaxmocap import tune
     from jaxmocap.experiment.runner import output_folder
+    from jaxmocap.io.atomic import write_text
     from jaxmocap.io.preflight import check_outputs
     from jaxmocap.tuned import TunedParameters
 
@@ -557,7 +557,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     result.save(out / TUNED)
     doc = result.to_json()
     doc["wall_s"] = {"observations": t_obs, "fit": t_fit, "total": time.perf_counter() - t0}
-    (out / RUN_RECORD).write_text(json.dumps(doc["wall_s"], indent=1) + "\n")
+    write_text(out / RUN_RECORD, json.dumps(doc["wall_s"], indent=1) + "\n")
     return doc
 
 
