@@ -17,7 +17,9 @@ colours from scribbles, blob plausibility, hand swap) or ``parts`` (the same wit
 per-part colours and the seeded search, ``make_params(part_colours=True)``: parts searched
 where the blob line missed them) or ``parts-replace`` (the search's hands replace the blob
 line's) or ``head`` (``base`` with the head as a fitted sphere, ``Images(head_sphere=True)``,
-issue 39 item 2; ``docs/results/stereo_pf_round2.md``).
+issue 39 item 2; ``docs/results/stereo_pf_round2.md``) or ``hands`` / ``hands-motion`` (``base``
+with the hands gated by the filter's prediction, ``Images(hand_search=True)`` and the motion
+map, issue 39 item 1; ``docs/results/stereo_pf_hands.md``).
 """
 
 from __future__ import annotations
@@ -38,6 +40,10 @@ CONFIGS = {
               "part_colours": True},
     "head": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
              "head_sphere": True},
+    "hands": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
+              "hand_search": True},
+    "hands-motion": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
+                     "hand_search": True, "hand_motion": True},
     "parts-replace": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
                       "part_colours": True, "seed_replace": [False, True, True]},
 }

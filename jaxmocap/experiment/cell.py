@@ -311,6 +311,11 @@ def _track_pf(seq, cfg: dict, seed: int, folder=None) -> dict:
 
         def observe():
             return pfs.observe_search(params, key, seq.frames, blob, sparams)[0]
+    elif params.hand_search is not None:  # hands gated by the prediction (filter alongside)
+        from jaxmocap.trackers.stereo_pf.hands import observe_hands
+
+        def observe():
+            return observe_hands(params, key, seq.frames, blob)[0]
     elif params.part_colours is not None:  # per-part colours, seeded search (filter alongside)
         from jaxmocap.trackers.stereo_pf.parts import observe_parts
 

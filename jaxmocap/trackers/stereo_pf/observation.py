@@ -68,9 +68,12 @@ def observe(
     frame_pair: UInt8[np.ndarray, "2 h w 3"],
     blob_state: bloblib.BlobState | None,
     blob_obs: tuple[np.ndarray, np.ndarray] | None = None,
+    segmentation: list[Segmentation] | None = None,
 ) -> tuple[Observation, bloblib.BlobState | None]:
     """Host side of one frame: image processing line of both images (OpenCV) and the hand /
-    head tracker (unless ``blob_obs = (points3d (3, 3), valid (3,))`` is given)."""
+    head tracker (unless ``blob_obs = (points3d (3, 3), valid (3,))`` is given);
+    ``segmentation``: both images' :class:`~jaxmocap.segment.Segmentation` if the caller
+    already has them."""
     frame_pair = np.asarray(frame_pair)
     cams = params.likelihood.cams
     if frame_pair.shape != (2, cams.height, cams.width, 3) or frame_pair.dtype != np.uint8:
@@ -78,7 +81,7 @@ def observe(
             f"stereo_pf: frame_pair: expected uint8 (2, {cams.height}, {cams.width}, 3) RGB, "
             f"got {frame_pair.dtype} {frame_pair.shape}"
         )
-    seg = [_segment(params, frame_pair[i]) for i in range(2)]
+    seg = segmentation or [_segment(params, frame_pair[i]) for i in range(2)]
     if blob_obs is None:
         blob_state, points, valid = bloblib.update(
             blob_state, seg[0].skin, seg[1].skin, cams, reach=params.reach

@@ -78,6 +78,9 @@ SYNTH_SKIN_HSV = ((5, 65, 60), (25, 230, 255))
 # The head as a sphere fitted to its skin outline in both views (jaxmocap.trackers.stereo_pf.head)
 # instead of the skin centroid: off (docs/results/stereo_pf_round2.md)
 HEAD_SPHERE = False
+# The hands from a search gated by the particle cloud's prediction (jaxmocap.trackers.stereo_pf.
+# hands) instead of the blob line's: see docs/results/stereo_pf_hands.md
+HAND_SEARCH = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +227,13 @@ class Images(eqx.Module):
     * ``head_sphere`` (not in the paper): the triangulated head replaced by a sphere of the
       body's head radius fitted to the outline of the head's skin region in both views
       (:mod:`jaxmocap.trackers.stereo_pf.head`), instead of the lit skin's centroid;
+    * ``hand_search`` (not in the paper): once the filter runs, the hands handed to the
+      distance cue come from a search gated by the particle cloud's prediction (windows around
+      the predicted hands without the head and neck, skin components paired across the views,
+      each hand within its arm's reach of its predicted shoulder; the blob line's hands are
+      candidates too) and a hand that passes no gate is missing
+      (:mod:`jaxmocap.trackers.stereo_pf.hands`; ``hand_motion``: the motion map adds
+      candidates; ``hand_params``: its :class:`~.hands.HandParams`);
     """
 
     segment: SegmentParams | None = None
@@ -237,6 +247,9 @@ class Images(eqx.Module):
     part_colours: bool = eqx.field(static=True, default=False)
     seed_params: SeedParams | None = eqx.field(static=True, default=None)
     head_sphere: bool = eqx.field(static=True, default=HEAD_SPHERE)
+    hand_search: bool = eqx.field(static=True, default=HAND_SEARCH)
+    hand_motion: bool = eqx.field(static=True, default=False)
+    hand_params: object | None = eqx.field(static=True, default=None)
 
 
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
@@ -278,6 +291,9 @@ class StereoPFParams(eqx.Module):
     # its centre to the head keypoint); None: the skin centroid
     head_sphere: tuple[float, tuple[float, float, float]] | None = eqx.field(
         static=True, default=None)
+    # the gated hand search (jaxmocap.trackers.stereo_pf.hands): its HandParams; None: the blob
+    # line's hands
+    hand_search: object | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -445,7 +461,27 @@ def make_params(
         skin_grow=int(skin_grow),
         part_colours=_seed_params(images.seed_params) if part_colours else None,
         head_sphere=_head_sphere(model) if images.head_sphere else None,
+        hand_search=_hand_params(images, model, adapt_colors or part_colours),
     )
+
+
+def _hand_params(images, model, other):
+    if not images.hand_search:
+        if images.hand_motion or images.hand_params is not None:
+            raise InputError("stereo_pf.make_params: hand_motion / hand_params: set "
+                             "hand_search=True for them")
+        return None
+    from jaxmocap.trackers.stereo_pf.hands import HandParams, arm_reach
+
+    if other:
+        raise InputError("stereo_pf.make_params: hand_search runs its own observation loop; "
+                         "give it without adapt_colors / part_colours")
+    hp = HandParams() if images.hand_params is None else images.hand_params
+    if not isinstance(hp, HandParams):
+        raise InputError(f"stereo_pf.make_params: hand_params: expected a HandParams, got "
+                         f"{type(hp).__name__}")
+    arm_reach(model)  # the keypoints it needs, refused in one line here
+    return dataclasses.replace(hp, motion=hp.motion or images.hand_motion)
 
 
 def _head_sphere(model):

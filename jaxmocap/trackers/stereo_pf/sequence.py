@@ -110,9 +110,14 @@ def track(
     Estimates (T, ...). With ``params.adapt`` the observations come from
     :func:`jaxmocap.trackers.stereo_pf.adapt.observe_adaptive` (the colour model re-fitted on
     line); with ``params.part_colours`` from
-    :func:`jaxmocap.trackers.stereo_pf.parts.observe_parts` (per-part colours, seeded search).
+    :func:`jaxmocap.trackers.stereo_pf.parts.observe_parts` (per-part colours, seeded search);
+    with ``params.hand_search`` from :func:`jaxmocap.trackers.stereo_pf.hands.observe_hands`.
     The filter over them is the same."""
-    if params.part_colours is not None:
+    if params.hand_search is not None:
+        from jaxmocap.trackers.stereo_pf.hands import observe_hands
+
+        obs, _ = observe_hands(params, key, frames, blob_params)
+    elif params.part_colours is not None:
         from jaxmocap.trackers.stereo_pf.parts import observe_parts
 
         obs, _ = observe_parts(params, key, frames, blob_params)
