@@ -138,7 +138,7 @@ def cloud_prediction(
     kp = jax.vmap(lambda s: keypoints(params.model, params.full_q(s))[idx])(particles)
     w = jax.nn.softmax(log_weights)
     mean = jnp.einsum("n,nkc->kc", w, kp)
-    var = jnp.einsum("n,nk->k", w, jnp.sum((kp - mean) ** 2, axis=-1))
+    var = jnp.einsum("n,nk->k", w, jnp.sum((kp - mean[None]) ** 2, axis=-1))
     return mean, jnp.sqrt(var)
 
 
@@ -155,10 +155,11 @@ def hand_gates(
     the predicted shoulder, not closer to ``head`` than ``arms.near`` (the neck), finite. A
     window candidate must also have cost <= 1 (within ``gate`` of the predicted hand).
     Pure jnp: vmaps / jits."""
-    shoulder = predicted[1 + hand]
-    d_sh = jnp.linalg.norm(X - shoulder, axis=-1)
-    d_head = jnp.linalg.norm(X - head, axis=-1)
-    cost = jnp.linalg.norm(X - predicted[3 + hand], axis=-1) / gate
+    def dist(p):
+        return jnp.linalg.norm(X - jnp.broadcast_to(p, X.shape), axis=-1)
+
+    d_sh, d_head = dist(predicted[1 + hand]), dist(head)
+    cost = dist(predicted[3 + hand]) / gate
     ok = (d_sh <= arms.reach[hand]) & (d_head >= arms.near)
     ok &= jnp.all(jnp.isfinite(X), axis=-1)
     return ok, jnp.where(ok, cost, jnp.inf)
@@ -176,7 +177,10 @@ def motion_map(
     for prev in frames[:-1]:
         m &= np.abs(cur - prev.astype(np.int16)).sum(-1) > threshold
     m &= ~np.asarray(shirt, bool)
-    return cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8)) > 0
+    k = np.ones((2, 2), np.uint8)  # erosion anchored top-left, dilation bottom-right: an open
+    # that keeps every pixel of a 2x2 block in place (cv2's centred even kernel shifts it)
+    m = cv2.erode(m.astype(np.uint8), k, anchor=(0, 0))
+    return cv2.dilate(m, k, anchor=(1, 1)) > 0
 
 
 @jax.jit
