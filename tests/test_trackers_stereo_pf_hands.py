@@ -84,6 +84,13 @@ def test_neck_skin_is_never_a_hand(setup):
     blob = np.stack([HEAD, NECK, np.zeros(3)]), np.array([True, True, False])
     out, found, _ = HS.gated_hands(params, arms, masks, pred, np.full(5, 0.1), *blob)
     assert not found[0] and np.linalg.norm(out[1] - HANDS[1]) < 0.05
+    # ... nor the face when the blob line's "head" is a skin-coloured prop beside the subject:
+    # the predicted head rules it out too
+    prop_head = np.array([0.0, 0.9, 1.9])
+    blob = np.stack([prop_head, HEAD + [0.0, 0.02, -0.03], np.zeros(3)]), \
+        np.array([True, True, False])
+    out, found, _ = HS.gated_hands(params, arms, masks, pred, np.full(5, 0.1), *blob)
+    assert not found[0]
 
 
 def test_distractors_outside_the_window_or_the_reach_are_not_taken(setup):
@@ -125,7 +132,7 @@ def test_gates_vmap_and_jit_as_one_candidate_at_a_time(setup):
     _, _, arms = setup
     rng = np.random.default_rng(0)
     X = jnp.asarray(rng.normal(0, 0.4, (40, 3)) + [0, 0.2, 1.2], jnp.float32)
-    args = (jnp.asarray(_predicted(HANDS), jnp.float32), jnp.asarray(HEAD, jnp.float32),
+    args = (jnp.asarray(_predicted(HANDS), jnp.float32), jnp.asarray(HEAD[None], jnp.float32),
             jnp.float32(0.2))
     ok, cost = jax.jit(HS.hand_gates, static_argnums=2)(arms, X, 0, *args)
     one = jax.vmap(lambda x: HS.hand_gates(arms, x, 0, *args))(X)

@@ -285,6 +285,8 @@ def _check_options(where: str, method: str, options: dict, base: Path) -> dict:
                                   "colours; expected skin = 'scribbles' or 'auto'")
         if out.get("search", "off") != "off" and out.get("adapt_colors"):
             raise ExperimentError(f"{where}.options: give search or adapt_colors, not both")
+        if out.get("search", "off") != "off" and out.get("hand_search"):
+            raise ExperimentError(f"{where}.options: give search or hand_search, not both")
         if out.get("blob_params", "tracker") not in ("tracker", "azad"):
             raise ExperimentError(f"{where}.options.blob_params: expected 'tracker' or "
                                   f"'azad', got {out['blob_params']!r}")

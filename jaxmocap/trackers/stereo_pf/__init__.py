@@ -5,8 +5,8 @@ Files, one per stage: :mod:`.params` (settings, ``make_params``, state), :mod:`.
 (the host's image line and blobs), :mod:`.filter` (initialisation, the jitted step, the scan),
 :mod:`.sequence` (live loops and whole sequences), :mod:`.checks` (per-frame validity, reach),
 :mod:`.adapt` (on-line colour adaptation), :mod:`.head` (the head as a fitted sphere),
-:mod:`.search` (guided search for missed blobs)
-and :mod:`.parts` (per-part colours, the seeded search).
+:mod:`.search` (guided search for missed blobs), :mod:`.hands` (the hands gated by the
+particle cloud's prediction) and :mod:`.parts` (per-part colours, the seeded search).
 
 Per stereo frame (320x240 pair in the paper, §V):
 

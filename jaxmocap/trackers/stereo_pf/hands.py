@@ -31,7 +31,10 @@ hand-support cues. This module replaces the blob line's hands, once the filter r
    both cameras; a candidate is a hand only within the arm's reach of *its* shoulder (the
    shoulder-elbow-wrist-hand keypoint lengths at rest x :data:`REACH_MARGIN`, by keypoint roles;
    the shoulder from the prediction), farther from the head than the neck
-   (:func:`~jaxmocap.trackers.stereo_pf.checks.hand_reach`'s near distance) and within
+   (:func:`~jaxmocap.trackers.stereo_pf.checks.hand_reach`'s near distance) -- from the blob
+   line's head *and* the predicted one (the blob line's own plausibility test uses its head
+   only, which on the dev split was at times a prop: 14 "hands" on the neck of pf_06, 17 on the
+   head of pf_09 in 90 frames) -- and, for a window's candidate, within
    ``gate_m + gate_k x spread`` of the predicted hand;
 5. **one candidate per hand**: the nearest (in units of the gate) that passes, the two hands
    never on the same point (the pairing of smaller total cost). A hand with no candidate is a
@@ -147,7 +150,7 @@ def hand_gates(
     X: Float[Array, "*c 3"],
     hand: int,
     predicted: Float[Array, "5 3"],
-    head: Float[Array, " 3"],
+    heads: Float[Array, "k 3"],
     gate: Float[Array, ""],
 ) -> tuple[Bool[Array, "*c"], Float[Array, "*c"]]:
     """Which candidate points ``X`` (m) may be hand ``hand`` (0 left, 1 right) by the body
@@ -158,7 +161,8 @@ def hand_gates(
     def dist(p):
         return jnp.linalg.norm(X - jnp.broadcast_to(p, X.shape), axis=-1)
 
-    d_sh, d_head = dist(predicted[1 + hand]), dist(head)
+    d_sh = dist(predicted[1 + hand])
+    d_head = jnp.min(jnp.stack([dist(h) for h in heads]), axis=0)
     cost = dist(predicted[3 + hand]) / gate
     ok = (d_sh <= arms.reach[hand]) & (d_head >= arms.near)
     ok &= jnp.all(jnp.isfinite(X), axis=-1)
@@ -237,8 +241,11 @@ def gated_hands(
     cams = params.likelihood.cams
     predicted = np.asarray(predicted, np.float64)
     spread = np.asarray(spread, np.float64)
-    head = np.asarray(blob_points[0] if blob_valid[0] else predicted[0], np.float64)
-    neck = 0.5 * (head + 0.5 * (predicted[1] + predicted[2]))
+    # the head and neck of the blob line (if measured) and of the prediction: either may be off
+    # (the blob line's head a skin-coloured prop, the filter's head drifted)
+    heads = [predicted[0]] + ([np.asarray(blob_points[0], np.float64)] if blob_valid[0] else [])
+    centre = 0.5 * (predicted[1] + predicted[2])
+    necks = [0.5 * (h + centre) for h in heads]
     out = np.zeros((2, 3))
     found = np.zeros(2, bool)
     log = {"source": np.zeros(2, np.int8)}
@@ -246,10 +253,11 @@ def gated_hands(
         return out, found, log
     f = np.asarray(cams.K, np.float64)[:, 0, 0]
     uv, depth = (np.asarray(x, np.float64) for x in _project(
-        cams, jnp.asarray(np.vstack([predicted[3:5], head, neck]), jnp.float32)))
+        cams, jnp.asarray(np.vstack([predicted[3:5], *heads, *necks]), jnp.float32)))
+    radii = [hp.head_exclude_m] * len(heads) + [hp.neck_exclude_m] * len(necks)
     cuts = [[], []]
     for v in range(2):
-        for k, rad in ((2, hp.head_exclude_m), (3, hp.neck_exclude_m)):
+        for k, rad in enumerate(radii, start=2):
             if depth[v, k] > 0 and rad > 0:
                 cuts[v].append((uv[v, k, 0], uv[v, k, 1], f[v] * rad / depth[v, k]))
     m = bloblib.MAX_BLOBS
@@ -283,7 +291,7 @@ def gated_hands(
     for hand in range(2):
         gate = hp.gate_m + hp.gate_k * spread[3 + hand]
         _, c = _gates_jit(arms, C, hand, jnp.asarray(predicted, jnp.float32),
-                          jnp.asarray(head, jnp.float32), jnp.float32(gate))
+                          jnp.asarray(np.asarray(heads), jnp.float32), jnp.float32(gate))
         costs.append(np.asarray(c, np.float64))
     cost = np.stack(costs)  # (2, c)
     # a window candidate within the gate of the prediction; the blob line's own hands only by
