@@ -63,42 +63,17 @@ from jaxmocap.body import BodyModel, keypoint_index, keypoints
 from jaxmocap.errors import InputError
 from jaxmocap.pf.cues import Observation
 from jaxmocap.trackers.stereo_pf.checks import NECK_FRACTION, REACH_MARGIN
+from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
+from jaxmocap.trackers.stereo_pf.observation import _segment, observe
+from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, HAND_KEYPOINTS, HandParams
+
+__all__ = ["ArmReach", "HandParams", "arm_reach", "cloud_prediction", "gated_hands",
+           "hand_gates", "motion_map", "observe_hands"]
 
 # keypoints of the prediction, by role: head, left / right shoulder, left / right hand
 CLOUD_KEYPOINTS = ("head", "l_shoulder", "r_shoulder", "l_hand", "r_hand")
 ARM_CHAINS = (("l_shoulder", "l_elbow", "l_wrist", "l_hand"),
               ("r_shoulder", "r_elbow", "r_wrist", "r_hand"))
-
-
-@dataclasses.dataclass(frozen=True)
-class HandParams:
-    """Thresholds of the gated hand search (module docstring)."""
-
-    window_m: float = 0.12  # window radius around the predicted hand, metres ...
-    spread_k: float = 1.0  # ... plus this x the particle cloud's spread of the hand
-    max_window_m: float = 0.25  # ... at most
-    gate_m: float = 0.10  # a window candidate within this of the predicted hand, metres ...
-    gate_k: float = 0.5  # ... plus this x the spread
-    head_exclude_m: float = 0.11  # the head's disc, metres at its depth, cut out of the windows
-    neck_exclude_m: float = 0.07  # the neck's disc (between head and shoulders' centre)
-    min_area: int = 3  # px of a candidate component per view
-    max_epipolar_px: float = 3.0
-    velocity_damping: float = 0.5  # weight of the mean's last velocity in the prediction
-    motion: bool = False  # the motion map adds candidates (motion_map)
-    motion_threshold: float = 30.0  # sum of |RGB differences| of a moving pixel (0..765)
-    blob_hands: bool = True  # the blob line's hand points are candidates too
-
-    def __post_init__(self):
-        for name in ("window_m", "max_window_m", "gate_m", "max_epipolar_px",
-                     "motion_threshold"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"HandParams.{name}: expected > 0, got {getattr(self, name)!r}")
-        for name in ("spread_k", "gate_k", "head_exclude_m", "neck_exclude_m"):
-            if not getattr(self, name) >= 0:
-                raise InputError(f"HandParams.{name}: expected >= 0, got {getattr(self, name)!r}")
-        if not 0 <= self.velocity_damping <= 1:
-            raise InputError(f"HandParams.velocity_damping: expected a value in [0, 1], got "
-                             f"{self.velocity_damping!r}")
 
 
 class ArmReach(eqx.Module):
@@ -114,7 +89,7 @@ def arm_reach(model: BodyModel, margin: float = REACH_MARGIN) -> ArmReach:
     """:class:`ArmReach` of ``model`` at rest, by keypoint roles (the wrist optional); one
     line naming the missing keypoints when the body lacks them."""
     names = list(model.keypoint_names)
-    need = set(CLOUD_KEYPOINTS) | {"l_elbow", "r_elbow"}
+    need = set(HAND_KEYPOINTS)
     if not need <= set(names):
         raise InputError(f"stereo_pf.hands: the gated hand search needs the keypoints "
                          f"{sorted(need)}; the body has {names}; give hand_search=False")
@@ -340,10 +315,6 @@ def observe_hands(
     from the particle sets of the two frames before. Returns the stacked observations and a
     log: ``source`` (T, 2) per hand 0 missing / 1 blob line / 2 window / -1 not searched (the
     filter not yet started)."""
-    from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
-    from jaxmocap.trackers.stereo_pf.observation import _segment, observe
-    from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS
-
     hp = hp or params.hand_search or HandParams()
     arms = arm_reach(params.model)
     predict = jax.jit(lambda s, lw: cloud_prediction(params, arms, s, lw))

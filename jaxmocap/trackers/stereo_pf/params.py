@@ -108,6 +108,41 @@ class SeedParams:
     relight: bool = False
 
 
+@dataclasses.dataclass(frozen=True)
+class HandParams:
+    """Thresholds of the gated hand search (:mod:`jaxmocap.trackers.stereo_pf.hands`)."""
+
+    window_m: float = 0.12  # window radius around the predicted hand, metres ...
+    spread_k: float = 1.0  # ... plus this x the particle cloud's spread of the hand
+    max_window_m: float = 0.25  # ... at most
+    gate_m: float = 0.10  # a window candidate within this of the predicted hand, metres ...
+    gate_k: float = 0.5  # ... plus this x the spread
+    head_exclude_m: float = 0.11  # the head's disc, metres at its depth, cut out of the windows
+    neck_exclude_m: float = 0.07  # the neck's disc (between head and shoulders' centre)
+    min_area: int = 3  # px of a candidate component per view
+    max_epipolar_px: float = 3.0
+    velocity_damping: float = 0.5  # weight of the mean's last velocity in the prediction
+    motion: bool = False  # the motion map adds candidates (motion_map)
+    motion_threshold: float = 30.0  # sum of |RGB differences| of a moving pixel (0..765)
+    blob_hands: bool = True  # the blob line's hand points are candidates too
+
+    def __post_init__(self):
+        for name in ("window_m", "max_window_m", "gate_m", "max_epipolar_px",
+                     "motion_threshold"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"HandParams.{name}: expected > 0, got {getattr(self, name)!r}")
+        for name in ("spread_k", "gate_k", "head_exclude_m", "neck_exclude_m"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"HandParams.{name}: expected >= 0, got {getattr(self, name)!r}")
+        if not 0 <= self.velocity_damping <= 1:
+            raise InputError(f"HandParams.velocity_damping: expected a value in [0, 1], got "
+                             f"{self.velocity_damping!r}")
+
+
+# keypoints the gated hand search needs (by role)
+HAND_KEYPOINTS = ("head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
+
+
 class Motion(eqx.Module):
     """The particle set and its motion model (Azad §II, §V).
 
@@ -249,7 +284,7 @@ class Images(eqx.Module):
     head_sphere: bool = eqx.field(static=True, default=HEAD_SPHERE)
     hand_search: bool = eqx.field(static=True, default=HAND_SEARCH)
     hand_motion: bool = eqx.field(static=True, default=False)
-    hand_params: object | None = eqx.field(static=True, default=None)
+    hand_params: HandParams | None = eqx.field(static=True, default=None)
 
 
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
@@ -293,7 +328,7 @@ class StereoPFParams(eqx.Module):
         static=True, default=None)
     # the gated hand search (jaxmocap.trackers.stereo_pf.hands): its HandParams; None: the blob
     # line's hands
-    hand_search: object | None = eqx.field(static=True, default=None)
+    hand_search: HandParams | None = eqx.field(static=True, default=None)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -471,8 +506,6 @@ def _hand_params(images, model, other):
             raise InputError("stereo_pf.make_params: hand_motion / hand_params: set "
                              "hand_search=True for them")
         return None
-    from jaxmocap.trackers.stereo_pf.hands import HandParams, arm_reach
-
     if other:
         raise InputError("stereo_pf.make_params: hand_search runs its own observation loop; "
                          "give it without adapt_colors / part_colours")
@@ -480,7 +513,10 @@ def _hand_params(images, model, other):
     if not isinstance(hp, HandParams):
         raise InputError(f"stereo_pf.make_params: hand_params: expected a HandParams, got "
                          f"{type(hp).__name__}")
-    arm_reach(model)  # the keypoints it needs, refused in one line here
+    if not set(HAND_KEYPOINTS) <= set(model.keypoint_names):
+        raise InputError(f"stereo_pf.make_params: hand_search needs the keypoints "
+                         f"{list(HAND_KEYPOINTS)}; the body has {list(model.keypoint_names)}; "
+                         "give hand_search=False")
     return dataclasses.replace(hp, motion=hp.motion or images.hand_motion)
 
 
