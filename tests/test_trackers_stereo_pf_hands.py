@@ -107,11 +107,25 @@ def test_distractors_outside_the_window_or_the_reach_are_not_taken(setup):
     # within reach of the left shoulder is kept (the blob line's hands pass by the body only)
     prop = np.array([0.0, 1.3, 1.0])
     assert np.linalg.norm(prop - SHOULDERS[0]) > float(arms.reach[0])
-    blob = np.stack([HEAD, prop, far_prop]), np.array([True, True, True])
+    assert np.linalg.norm(prop - SHOULDERS[1]) > float(arms.reach[1])
+    blob = np.stack([HEAD, far_prop, prop]), np.array([True, True, True])
     out, found, log = HS.gated_hands(params, arms, masks, pred, np.full(5, 0.02), *blob)
     np.testing.assert_array_equal(found, [True, False])
     np.testing.assert_allclose(out[0], far_prop)
     np.testing.assert_array_equal(log["source"], [1, 0])
+
+
+def test_identities_come_from_the_blob_line_and_the_windows_not_the_prediction(setup):
+    cams, params, arms = setup
+    # a filter turned the wrong way round: its right hand predicted where the true left hand
+    # is. The blob line's left hand stays the left hand (within reach of the left shoulder)
+    pred = _predicted(HANDS[::-1])
+    pred[1:3] = SHOULDERS
+    masks = _masks(cams, [(HEAD, 0.1)])
+    blob = np.stack([HEAD, HANDS[0], np.zeros(3)]), np.array([True, True, False])
+    out, found, log = HS.gated_hands(params, arms, masks, pred, np.full(5, 0.05), *blob)
+    np.testing.assert_array_equal(found, [True, False])
+    np.testing.assert_allclose(out[0], HANDS[0])
 
 
 def test_absent_hands_are_missing_and_an_unknown_prediction_searches_nothing(setup):

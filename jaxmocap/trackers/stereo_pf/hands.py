@@ -23,8 +23,8 @@ hand-support cues. This module replaces the blob line's hands, once the filter r
 3. **candidates**: the connected components of the capture's skin map inside the window
    (optionally also of the *motion map*, :func:`motion_map`: the double frame difference on
    pixels that are not shirt), at least ``min_area`` pixels, nearest to the projected
-   prediction first; and the blob line's own hand points (either identity: its tracker may
-   swap them);
+   prediction first; and the blob line's own hand points (each for the hand its tracker
+   named);
 4. **two-view consistency and the body** (:func:`hand_gates`, jittable, vmaps over
    candidates): left / right components paired by the symmetric epipolar distance of their
    centroids (lens distortion removed, at most ``max_epipolar_px``), triangulated, in front of
@@ -37,7 +37,11 @@ hand-support cues. This module replaces the blob line's hands, once the filter r
    head of pf_09 in 90 frames) -- and, for a window's candidate, within
    ``gate_m + gate_k x spread`` of the predicted hand;
 5. **one candidate per hand**: the nearest (in units of the gate) that passes, the two hands
-   never on the same point (the pairing of smaller total cost). A hand with no candidate is a
+   never on the same point (the pairing of smaller total cost); a blob line's hand is
+   preferred to a window's and keeps the identity its tracker gave it, a window's candidate is
+   the hand of its window -- identities never come from the prediction (on pf_06 of the dev
+   split, hands named by the nearer predicted hand fed a filter turned the wrong way round its
+   own turn: 34 -> 66 cm). A hand with no candidate is a
    **missing observation** (``valid`` False, point 0: its distance term drops out; the
    hand-support cue still holds it off plain background).
 
@@ -236,12 +240,13 @@ def gated_hands(
             if depth[v, k] > 0 and rad > 0:
                 cuts[v].append((uv[v, k, 0], uv[v, k, 1], f[v] * rad / depth[v, k]))
     m = bloblib.MAX_BLOBS
-    cand_X, cand_src = [], []
+    cand_X, cand_src, cand_hand = [], [], []
     if hp.blob_hands:
         for e in (1, 2):
             if blob_valid[e]:
                 cand_X.append(np.asarray(blob_points[e], np.float64))
                 cand_src.append(1)
+                cand_hand.append(e - 1)
     for hand in range(2):
         if np.any(depth[:, hand] <= 0):
             continue
@@ -259,6 +264,7 @@ def gated_hands(
         for i, j in zip(*np.nonzero(ok), strict=True):
             cand_X.append(X[i, j])
             cand_src.append(2)
+            cand_hand.append(hand)
     if not cand_X:
         return out, found, log
     C = jnp.asarray(np.asarray(cand_X), jnp.float32)
@@ -275,6 +281,10 @@ def gated_hands(
     # candidates stand in only where the blob line has none for that hand)
     window = np.asarray(cand_src) == 2
     cost = np.where(window[None] & (cost > 1.0), np.inf, cost + window[None])
+    # identities are not taken from the prediction (a filter turned the wrong way round would
+    # confirm itself): a blob line's hand stays the hand its tracker named, a window's candidate
+    # is the hand whose window found it
+    cost = np.where(np.arange(2)[:, None] == np.asarray(cand_hand)[None], cost, np.inf)
     # one candidate per hand, never the same point for both (two candidates closer than 5 cm
     # are one point seen twice: the blob line's and the window's)
     Xc = np.asarray(cand_X)
