@@ -66,7 +66,7 @@ from jaxmocap import blobs as bloblib
 from jaxmocap.body import BodyModel, keypoint_index, keypoints
 from jaxmocap.errors import InputError
 from jaxmocap.pf.cues import Observation
-from jaxmocap.trackers.stereo_pf.checks import NECK_FRACTION, REACH_MARGIN
+from jaxmocap.trackers.stereo_pf.checks import NECK_FRACTION, REACH_MARGIN, hand_reach
 from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
 from jaxmocap.trackers.stereo_pf.observation import _segment, observe
 from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, HAND_KEYPOINTS, HandParams
@@ -82,11 +82,13 @@ ARM_CHAINS = (("l_shoulder", "l_elbow", "l_wrist", "l_hand"),
 
 class ArmReach(eqx.Module):
     """What the gates need of the body: keypoint indices of :data:`CLOUD_KEYPOINTS`, each arm's
-    reach from its shoulder (m) and the nearest a hand may come to the head (m)."""
+    reach from its shoulder (m), the nearest a hand may come to the head and the farthest it
+    may be from it (m; :func:`~jaxmocap.trackers.stereo_pf.checks.hand_reach`)."""
 
     index: tuple[int, ...] = eqx.field(static=True)
     reach: Float[Array, " 2"]
     near: Float[Array, ""]
+    far: Float[Array, ""]
 
 
 def arm_reach(model: BodyModel, margin: float = REACH_MARGIN) -> ArmReach:
@@ -105,7 +107,9 @@ def arm_reach(model: BodyModel, margin: float = REACH_MARGIN) -> ArmReach:
     mid = 0.5 * (kp[names.index("l_shoulder")] + kp[names.index("r_shoulder")])
     near = NECK_FRACTION * float(np.linalg.norm(kp[names.index("head")] - mid))
     index = tuple(int(keypoint_index(model, k)[0]) for k in CLOUD_KEYPOINTS)
-    return ArmReach(index, jnp.asarray(reach, jnp.float32), jnp.asarray(near, jnp.float32))
+    far = hand_reach(model, margin)[1]
+    return ArmReach(index, jnp.asarray(reach, jnp.float32), jnp.asarray(near, jnp.float32),
+                    jnp.asarray(far, jnp.float32))
 
 
 def cloud_prediction(
@@ -131,11 +135,15 @@ def hand_gates(
     predicted: Float[Array, "5 3"],
     heads: Float[Array, "k 3"],
     gate: Float[Array, ""],
+    reach: bool = True,
 ) -> tuple[Bool[Array, "*c"], Float[Array, "*c"]]:
     """Which candidate points ``X`` (m) may be hand ``hand`` (0 left, 1 right) by the body
     and their cost (distance to the predicted hand over ``gate``): within the arm's reach of
     the predicted shoulder, not closer to ``head`` than ``arms.near`` (the neck), finite. A
     window candidate must also have cost <= 1 (within ``gate`` of the predicted hand).
+    ``reach`` (static) False: instead of the shoulder's reach, within ``arms.far`` of a head
+    (the blob line's hands: a filter whose shoulders drifted must not gate out the hands that
+    would bring it back).
     Pure jnp: vmaps / jits."""
     def dist(p):
         return jnp.linalg.norm(X - jnp.broadcast_to(p, X.shape), axis=-1)
@@ -143,7 +151,8 @@ def hand_gates(
     d_sh = dist(predicted[1 + hand])
     d_head = jnp.min(jnp.stack([dist(h) for h in heads]), axis=0)
     cost = dist(predicted[3 + hand]) / gate
-    ok = (d_sh <= arms.reach[hand]) & (d_head >= arms.near)
+    ok = d_head >= arms.near
+    ok &= (d_sh <= arms.reach[hand]) if reach else (d_head <= arms.far)
     ok &= jnp.all(jnp.isfinite(X), axis=-1)
     return ok, jnp.where(ok, cost, jnp.inf)
 
@@ -223,7 +232,11 @@ def gated_hands(
     # the head and neck of the blob line (if measured) and of the prediction: either may be off
     # (the blob line's head a skin-coloured prop, the filter's head drifted)
     heads = [predicted[0]] + ([np.asarray(blob_points[0], np.float64)] if blob_valid[0] else [])
-    centre = 0.5 * (predicted[1] + predicted[2])
+    # the shoulders of the windows' reach test: the prediction's, moved with its head onto the
+    # measured head where there is one (a drifted filter must not gate out the hands that would
+    # bring it back: pf_06 of the dev split, the true hand 0.95 m from the drifted shoulder)
+    shoulders = predicted[1:3] + (heads[-1] - predicted[0])
+    centre = 0.5 * (shoulders[0] + shoulders[1])
     necks = [0.5 * (h + centre) for h in heads]
     out = np.zeros((2, 3))
     found = np.zeros(2, bool)
@@ -267,28 +280,40 @@ def gated_hands(
             cand_hand.append(hand)
     if not cand_X:
         return out, found, log
-    C = jnp.asarray(np.asarray(cand_X), jnp.float32)
+    Xc, src = np.asarray(cand_X), np.asarray(cand_src)
+    blob_pts = Xc[src == 1]
+    if len(blob_pts):  # a window's candidate on a blob line's hand is that hand, named already
+        near_blob = np.linalg.norm(Xc[:, None] - blob_pts[None], axis=-1).min(1) < SAME_POINT_M
+        keep = (src == 1) | ~near_blob
+        Xc, src = Xc[keep], src[keep]
+        cand_hand = list(np.asarray(cand_hand)[keep])
+    pred = np.vstack([predicted[:1], shoulders, predicted[3:5]])
+    C = jnp.asarray(Xc, jnp.float32)
     costs = []
     for hand in range(2):
         gate = hp.gate_m + hp.gate_k * spread[3 + hand]
-        _, c = _gates_jit(arms, C, hand, jnp.asarray(predicted, jnp.float32),
-                          jnp.asarray(np.asarray(heads), jnp.float32), jnp.float32(gate))
-        costs.append(np.asarray(c, np.float64))
+        ok, c = _gates_jit(arms, C, hand, jnp.asarray(pred, jnp.float32),
+                           jnp.asarray(np.asarray(heads), jnp.float32), jnp.float32(gate))
+        c = np.asarray(c, np.float64)
+        if len(blob_pts):  # the blob line's hands: reach from a head (hand_gates' reach)
+            _, c_neck = _gates_jit(arms, C, hand, jnp.asarray(pred, jnp.float32),
+                                   jnp.asarray(np.asarray(heads), jnp.float32),
+                                   jnp.float32(gate), False)
+            c = np.where(src == 1, np.asarray(c_neck, np.float64), c)
+        costs.append(c)
     cost = np.stack(costs)  # (2, c)
     # a window candidate within the gate of the prediction; the blob line's own hands only by
     # the body (a filter whose hand is off must be able to come back to a measured hand); a blob
     # line's hand passing the body's gates is preferred to a window's (+ 1: the window's
     # candidates stand in only where the blob line has none for that hand)
-    window = np.asarray(cand_src) == 2
+    window = src == 2
     cost = np.where(window[None] & (cost > 1.0), np.inf, cost + window[None])
     # identities are not taken from the prediction (a filter turned the wrong way round would
     # confirm itself): a blob line's hand stays the hand its tracker named, a window's candidate
     # is the hand whose window found it
     cost = np.where(np.arange(2)[:, None] == np.asarray(cand_hand)[None], cost, np.inf)
-    # one candidate per hand, never the same point for both (two candidates closer than 5 cm
-    # are one point seen twice: the blob line's and the window's)
-    Xc = np.asarray(cand_X)
-    same = np.linalg.norm(Xc[:, None] - Xc[None], axis=-1) < 0.05
+    # one candidate per hand, never the same point for both
+    same = np.linalg.norm(Xc[:, None] - Xc[None], axis=-1) < SAME_POINT_M
     best, best_key = (None, None), None
     c0 = [None, *np.flatnonzero(np.isfinite(cost[0]))]
     c1 = [None, *np.flatnonzero(np.isfinite(cost[1]))]
@@ -304,11 +329,13 @@ def gated_hands(
     for hand, c in enumerate(best):
         if c is not None:
             out[hand], found[hand] = Xc[c], True
-            log["source"][hand] = cand_src[c]
+            log["source"][hand] = src[c]
     return out, found, log
 
 
-_gates_jit = jax.jit(hand_gates, static_argnums=(2,))
+_gates_jit = jax.jit(hand_gates, static_argnums=(2, 6))
+SAME_POINT_M = 0.05  # two candidates closer than this are one point (the blob line's, a window's)
+
 
 
 def observe_hands(
