@@ -309,9 +309,15 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
                                     anchors_from_garment(body, garment, dtype), joints,
                                     robust=None if not np.isfinite(rob) else rob, **kw))
         n = min(len(o["q_blend"]), len(o["q_gt"]))
-        clips.append(tune.ik_observations(
+        clips.append(_scored_windows(tune.ik_observations(
             [(o["centroids"][:n], o["visible"][:n], o["q_blend"][:n], o["q_gt"][:n],
-              o["valid"][:n])], WINDOW, dtype))
+              o["valid"][:n], o["q_tracker"][:n])], WINDOW, dtype)))
+    # a sequence without any scored frame adds 0 / 0: no gradient to compile for it
+    keep = [i for i, c in enumerate(clips) if c.q_b.shape[0]]
+    if not keep:
+        raise ExperimentError("tune: the tracker reported no frame valid in any window of "
+                              f"{WINDOW} frames; nothing to tune on")
+    setups, clips = [setups[i] for i in keep], [clips[i] for i in keep]
     if shared:
         b, g = loaded[0]
         ident = ("none", body_digest(b), tuple(b.chain.dof_names), garment_digest(g))
@@ -406,6 +412,17 @@ def jax_cast(cov, dtype):
 
 
 # ----------------------------------------------------------------------------- the run
+
+
+def _scored_windows(obs):
+    """``obs`` without the windows where no frame is scored: windows are independent scans and
+    such a window adds 0 to both sums of :func:`jaxmocap.tune.ik_loss_parts`, so dropping it
+    leaves the loss and its gradient unchanged and saves its LM solves (on the test world's
+    dev split the tracker reports ~40% of frames valid; whole sequences have none)."""
+    keep = np.flatnonzero(np.asarray(obs.scored).any(axis=1))
+    return type(obs)(*(None if a is None else a[keep] for a in
+                       (obs.centroids, obs.visible, obs.q_b, obs.q_gt, obs.scored,
+                        obs.q_start)))
 
 
 def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str | None = None,
@@ -544,7 +561,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                       else {"window": WINDOW}),
                   "held_fixed": PF_HELD_FIXED if pf else "the tracker's centroids, their "
                   "validity, q_blend and its valid flags (tracked once with the "
-                  "configuration); the white-balance and crop feedback; per-view anchors "
+                  "configuration); each frame's LM start (the tracker's own estimate); the white-balance and crop feedback; per-view anchors "
                   "(shared 3D anchors in the loss)"},
         loss={"what": PF_LOSS if pf else "mean per-joint position error (m) of the IK re-run "
               "over the tracker's observations, on the frames the tracker reported valid",
