@@ -274,8 +274,13 @@ class IKObservations(eqx.Module):
     counts them. ``q_start`` (optional) the pose each frame's LM solve starts from instead of
     ``q_b``: the tracker's own estimate, so that the re-run descends into the basin the tracker
     ended in (the tracker tries several starts and keeps the best-agreeing one; a re-run from
-    ``q_b`` alone lands metres away where ``q_b`` is far off -- on the test world's dev split
-    the loss started at 172 cm against the tracker's own 9.0 cm on the same frames)."""
+    ``q_b`` alone lands metres away where ``q_b`` is far off). ``view_offset`` / ``view_shift``
+    (optional, both or neither) per-frame per-view anchors (:func:`jaxmocap.ik.view_anchors`,
+    the tracker's ``Rounds.view_anchors``) held fixed, instead of ``setup``'s shared ones: with
+    the shared 3D anchors the re-run's solutions moved up to 0.5-0.7 rad from the tracker's own
+    on the test world's dev split (shirt_03: 5-10 cm per frame against its 2-4 cm). With
+    ``q_start`` given, ``scored`` also says after which frames the temporal prior is the
+    previous solution (:func:`ik_track`'s ``prior_from``; the tracker's ``q_h``)."""
 
     centroids: Float[Array, "n_windows t n_cams n_patches 2"]
     visible: Bool[Array, "n_windows t n_cams n_patches"]
@@ -283,6 +288,8 @@ class IKObservations(eqx.Module):
     q_gt: Float[Array, "n_windows t n_dof"]
     scored: Bool[Array, "n_windows t"] | None = None
     q_start: Float[Array, "n_windows t n_dof"] | None = None
+    view_offset: Float[Array, "n_windows t n_cams n_patches 3"] | None = None
+    view_shift: Float[Array, "n_windows t n_cams n_patches 2"] | None = None
 
 
 def _windows(a: np.ndarray, length: int) -> np.ndarray:
@@ -369,33 +376,50 @@ def ik_track(
     visible: Bool[Array, "t n_cams n_patches"],
     q_b: Float[Array, "t n_dof"],
     q_start: Float[Array, "t n_dof"] | None = None,
+    view: tuple[Array, Array] | None = None,
+    prior_from: Bool[Array, " t"] | None = None,
 ) -> tuple[Float[Array, "t n_dof"], Bool[Array, " t"]]:
     """The tracker's step 4 over one window (``lax.scan``): poses q*_t and frame validity.
 
     The first frame has no temporal prior (``q_h = q_b``, as after a loss); an invalid frame
     (< ``MIN_VALID_PATCHES`` centroids) holds the previous pose (the window's first: q_b).
-    Each solve starts from ``q_start`` (default ``q_b``; :class:`IKObservations`).
+    Each solve starts from ``q_start`` (default ``q_b``) and, with ``view`` = (offsets (t, C,
+    P, 3), shifts (t, C, P, 2)), uses those per-view anchors (:class:`IKObservations`).
+    ``prior_from`` (optional): the frames after which the next frame's temporal prior is the
+    previous solution (else its q_b), as the tracker's ``q_h`` is its previous output only
+    after a frame it reported valid.
     """
     chain = setup.body.chain
+    T = q_b.shape[0]
+    if view is None:  # placeholders, unused
+        view = (jnp.zeros((T, 1, 1, 3), q_b.dtype), jnp.zeros((T, 1, 1, 2), q_b.dtype))
+        per_view = False
+    else:
+        per_view = True
+
+    if prior_from is None:
+        prior_from = jnp.ones((T,), bool)
 
     def step(carry, frame):
         q_prev, ok_prev = carry
-        c, v, qb, q0 = frame
+        c, v, qb, q0, off, sh, pf = frame
         q_h = jnp.where(ok_prev, q_prev, qb)
-        sol = solve_ik(chain, setup.cams, setup.anchors, c, v, qb, q_h, cov, q0,
+        anchors = PatchAnchors(setup.anchors.link, off, sh) if per_view else setup.anchors
+        sol = solve_ik(chain, setup.cams, anchors, c, v, qb, q_h, cov, q0,
                        rtol=setup.rtol, atol=setup.atol, robust=setup.robust)  # fmt: skip
         ok = jnp.sum(v) >= MIN_VALID_PATCHES
         q = jnp.where(ok, sol.q, q_prev)
-        return (q, ok), (q, ok)
+        return (q, ok & pf), (q, ok)
 
     init = (q_b[0], jnp.array(False))
     q0s = q_b if q_start is None else q_start
-    _, (q, ok) = jax.lax.scan(step, init, (centroids, visible, q_b, q0s))
+    _, (q, ok) = jax.lax.scan(step, init, (centroids, visible, q_b, q0s, *view, prior_from))
     return q, ok
 
 
-def _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight, q0=None) -> tuple[Array, Array]:
-    q, ok = ik_track(cov, setup, c, v, qb, q0)
+def _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight, q0=None, view=None,
+                 pf=None) -> tuple[Array, Array]:
+    q, ok = ik_track(cov, setup, c, v, qb, q0, view, pf)
     err, dx = jax.vmap(lambda a, b: _joint_error(setup, a, b))(q, qg)
     w = (ok & sc).astype(err.dtype)
     total = jnp.sum(w * err)
@@ -418,10 +442,19 @@ def ik_loss_parts(
     cov = ik_covariances(theta, setup)
     scored = jnp.ones(obs.q_b.shape[:2], bool) if obs.scored is None else obs.scored
     q0 = obs.q_b if obs.q_start is None else obs.q_start
-    total, n = jax.vmap(
-        lambda c, v, qb, qg, sc, q0: _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight,
-                                                  q0)
-    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored, q0)
+    # with the tracker's own starts (q_start), its reported validity also gates the prior
+    pf = jnp.ones_like(scored) if obs.q_start is None else scored
+    if obs.view_offset is None:
+        total, n = jax.vmap(
+            lambda c, v, qb, qg, sc, q0, pf: _window_loss(cov, setup, c, v, qb, qg, sc,
+                                                          jitter_weight, q0, None, pf)
+        )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored, q0, pf)
+    else:
+        total, n = jax.vmap(
+            lambda c, v, qb, qg, sc, q0, off, sh, pf: _window_loss(
+                cov, setup, c, v, qb, qg, sc, jitter_weight, q0, (off, sh), pf)
+        )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored, q0, obs.view_offset,
+          obs.view_shift, pf)
     return jnp.sum(total), jnp.sum(n)
 
 

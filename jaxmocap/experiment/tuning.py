@@ -309,9 +309,17 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
                                     anchors_from_garment(body, garment, dtype), joints,
                                     robust=None if not np.isfinite(rob) else rob, **kw))
         n = min(len(o["q_blend"]), len(o["q_gt"]))
-        clips.append(_scored_windows(tune.ik_observations(
+        clip = tune.ik_observations(
             [(o["centroids"][:n], o["visible"][:n], o["q_blend"][:n], o["q_gt"][:n],
-              o["valid"][:n], o["q_tracker"][:n])], WINDOW, dtype)))
+              o["valid"][:n], o["q_tracker"][:n])], WINDOW, dtype)
+        if opt.get("view_anchors", True):  # the tracker's per-view anchors (its default)
+            off, sh = _view_anchors_at(setups[-1], garment, clip.q_start.reshape(
+                -1, clip.q_start.shape[-1]), int(opt.get("work_size", 128)))
+            w = clip.q_b.shape[:2]
+            clip = type(clip)(clip.centroids, clip.visible, clip.q_b, clip.q_gt, clip.scored,
+                              clip.q_start, off.reshape(w + off.shape[1:]),
+                              sh.reshape(w + sh.shape[1:]))
+        clips.append(_scored_windows(clip))
     # a sequence without any scored frame adds 0 / 0: no gradient to compile for it
     keep = [i for i, c in enumerate(clips) if c.q_b.shape[0]]
     if not keep:
@@ -371,11 +379,10 @@ def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
         raise ExperimentError("tune: the stereo filter reported no frame valid on any "
                               "sequence; nothing to tune on")
     theta = tune.pf_theta(*widths, dtype=terms[0][0].default_q.dtype)
-    if len(set(digests.values())) == 1:
-        ident = ("none", next(iter(digests.values())), (), None)
-    else:  # the cue widths do not depend on the body: shared by any body with roles
-        ref = default_body()
-        ident = ("role", body_digest(ref), tuple(ref.chain.dof_names), None)
+    # the cue widths do not depend on the body: shared by any body with roles, also when the
+    # dev sequences share one body (the test split's bodies are others)
+    ref = default_body()
+    ident = ("role", body_digest(ref), tuple(ref.chain.dof_names), None)
     return terms, theta, ident, digests
 
 
@@ -422,7 +429,45 @@ def _scored_windows(obs):
     keep = np.flatnonzero(np.asarray(obs.scored).any(axis=1))
     return type(obs)(*(None if a is None else a[keep] for a in
                        (obs.centroids, obs.visible, obs.q_b, obs.q_gt, obs.scored,
-                        obs.q_start)))
+                        obs.q_start, obs.view_offset, obs.view_shift)))
+
+
+def _view_anchors_at(setup, garment, q, work_size: int, margin: float = 1.3):
+    """Per frame the per-view anchors (:func:`jaxmocap.ik.view_anchors`) of a render of the
+    model at the tracker's own estimate ``q`` (T, n), on a ``work_size``-square grid over the
+    box of the projected keypoints (``margin`` times its larger side) in each camera -- the
+    tracker renders on its crop of the found shirt at the last round's start; its crop window
+    is not kept, and its estimate is where its last round converged. Held fixed (not
+    differentiated)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.camera import camera_center, pixel_rays, project
+    from jaxmocap.ik import view_anchors
+    from jaxmocap.render import render_rays
+    from jaxmocap.sampling import crop_uv
+
+    body, cams = setup.body, setup.cams
+
+    def one(qt):
+        kp = keypoints(body, qt)
+
+        def grid(cam):
+            uv = project(cam, kp)
+            lo, hi = uv.min(0), uv.max(0)
+            side = margin * jnp.max(hi - lo)
+            c = (lo + hi) / 2
+            return crop_uv(jnp.stack([c[0] - side / 2, c[1] - side / 2, side, side]), work_size)
+
+        uvs = jax.vmap(grid)(cams)
+        hits = jax.vmap(lambda cam, uv: render_rays(body, garment, qt, camera_center(cam),
+                                                    pixel_rays(cam, uv)[1], cam.R[2]))(cams, uvs)
+        a = view_anchors(body.chain, setup.anchors, cams, qt, hits.patch, hits.point, uvs)
+        return a.offset, a.shift
+
+    off, sh = jax.jit(lambda qs: jax.lax.map(one, qs))(q)
+    return np.asarray(off), np.asarray(sh)
 
 
 def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str | None = None,
@@ -561,7 +606,8 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                       else {"window": WINDOW}),
                   "held_fixed": PF_HELD_FIXED if pf else "the tracker's centroids, their "
                   "validity, q_blend and its valid flags (tracked once with the "
-                  "configuration); each frame's LM start (the tracker's own estimate); the white-balance and crop feedback; per-view anchors "
+                  "configuration); each frame's LM start (the tracker's own estimate); "
+                  "the white-balance and crop feedback; per-view anchors "
                   "(shared 3D anchors in the loss)"},
         loss={"what": PF_LOSS if pf else "mean per-joint position error (m) of the IK re-run "
               "over the tracker's observations, on the frames the tracker reported valid",
