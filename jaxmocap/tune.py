@@ -271,13 +271,25 @@ class IKObservations(eqx.Module):
     blended database pose ``q_b`` and the true pose ``q_gt``; ``scored`` (optional) the frames
     the loss counts besides needing ``MIN_VALID_PATCHES`` centroids, e.g. those the tracker
     reported valid (held fixed: its validity is discrete), as the experiment's per-joint error
-    counts them."""
+    counts them. ``q_start`` (optional) the pose each frame's LM solve starts from instead of
+    ``q_b``: the tracker's own estimate, so that the re-run descends into the basin the tracker
+    ended in (the tracker tries several starts and keeps the best-agreeing one; a re-run from
+    ``q_b`` alone lands metres away where ``q_b`` is far off). ``view_offset`` / ``view_shift``
+    (optional, both or neither) per-frame per-view anchors (:func:`jaxmocap.ik.view_anchors`,
+    the tracker's ``Rounds.view_anchors``) held fixed, instead of ``setup``'s shared ones: with
+    the shared 3D anchors the re-run's solutions moved up to 0.5-0.7 rad from the tracker's own
+    on the test world's dev split (shirt_03: 5-10 cm per frame against its 2-4 cm). With
+    ``q_start`` given, ``scored`` also says after which frames the temporal prior is the
+    previous solution (:func:`ik_track`'s ``prior_from``; the tracker's ``q_h``)."""
 
     centroids: Float[Array, "n_windows t n_cams n_patches 2"]
     visible: Bool[Array, "n_windows t n_cams n_patches"]
     q_b: Float[Array, "n_windows t n_dof"]
     q_gt: Float[Array, "n_windows t n_dof"]
     scored: Bool[Array, "n_windows t"] | None = None
+    q_start: Float[Array, "n_windows t n_dof"] | None = None
+    view_offset: Float[Array, "n_windows t n_cams n_patches 3"] | None = None
+    view_shift: Float[Array, "n_windows t n_cams n_patches 2"] | None = None
 
 
 def _windows(a: np.ndarray, length: int) -> np.ndarray:
@@ -286,18 +298,19 @@ def _windows(a: np.ndarray, length: int) -> np.ndarray:
 
 
 def ik_observations(
-    sequences: Sequence[tuple[ArrayLike, ArrayLike, ArrayLike, ArrayLike]],
+    sequences: Sequence[tuple[ArrayLike, ...]],
     window: int,
     dtype=None,
 ) -> IKObservations:
     """Stack sequences ``(centroids (T, C, P, 2), visible (T, C, P), q_b (T, n), q_gt (T,
-    n)[, scored (T,)])`` into windows of ``window`` consecutive frames (a sequence's tail
-    shorter than a window is dropped; windows never straddle two sequences); ``scored`` given
-    for every sequence or none."""
+    n)[, scored (T,)[, q_start (T, n)]])`` into windows of ``window`` consecutive frames (a
+    sequence's tail shorter than a window is dropped; windows never straddle two sequences);
+    ``scored`` and ``q_start`` each given for every sequence or none (a non-finite row of
+    ``q_start``: that frame starts from ``q_b``)."""
     if window < 2:
         raise TuneError(f"ik_observations: window must be >= 2 frames, got {window}")
-    parts: list[list[np.ndarray]] = [[], [], [], [], []]
-    n_scored = 0
+    parts: list[list[np.ndarray]] = [[], [], [], [], [], []]
+    n_scored = n_start = 0
     for s, seq in enumerate(sequences):
         c, v, qb, qg = (np.asarray(a) for a in seq[:4])
         if len(seq) > 4:
@@ -307,6 +320,14 @@ def ik_observations(
                                 f"expected ({c.shape[0]},)")
             parts[4].append(_windows(sc, window))
             n_scored += 1
+        if len(seq) > 5:
+            qs = np.asarray(seq[5])
+            if qs.shape != np.shape(seq[2]):
+                raise TuneError(f"ik_observations: sequence {s}: q_start has shape {qs.shape}, "
+                                f"expected {np.shape(seq[2])} (as q_b)")
+            qs = np.where(np.isfinite(qs).all(axis=-1, keepdims=True), qs, np.asarray(seq[2]))
+            parts[5].append(_windows(qs, window))
+            n_start += 1
         T = c.shape[0]
         if c.ndim != 4 or c.shape[-1] != 2 or v.shape != c.shape[:3] or qb.shape != qg.shape:
             raise TuneError(
@@ -322,13 +343,14 @@ def ik_observations(
             p.append(_windows(a, window))
     if not parts[0] or sum(p.shape[0] for p in parts[0]) == 0:
         raise TuneError(f"ik_observations: no sequence has {window} frames")
-    if n_scored not in (0, len(parts[0])):
-        raise TuneError("ik_observations: scored given for some sequences, not all")
+    if n_scored not in (0, len(parts[0])) or n_start not in (0, len(parts[0])):
+        raise TuneError("ik_observations: scored or q_start given for some sequences, not all")
     dt = dtype or jnp.result_type(float)
     c, v, qb, qg = (np.concatenate(p) for p in parts[:4])
     sc = jnp.asarray(np.concatenate(parts[4])) if n_scored else None
+    qs = jnp.asarray(np.concatenate(parts[5]), dt) if n_start else None
     return IKObservations(
-        jnp.asarray(c, dt), jnp.asarray(v), jnp.asarray(qb, dt), jnp.asarray(qg, dt), sc
+        jnp.asarray(c, dt), jnp.asarray(v), jnp.asarray(qb, dt), jnp.asarray(qg, dt), sc, qs
     )
 
 
@@ -353,31 +375,51 @@ def ik_track(
     centroids: Float[Array, "t n_cams n_patches 2"],
     visible: Bool[Array, "t n_cams n_patches"],
     q_b: Float[Array, "t n_dof"],
+    q_start: Float[Array, "t n_dof"] | None = None,
+    view: tuple[Array, Array] | None = None,
+    prior_from: Bool[Array, " t"] | None = None,
 ) -> tuple[Float[Array, "t n_dof"], Bool[Array, " t"]]:
     """The tracker's step 4 over one window (``lax.scan``): poses q*_t and frame validity.
 
     The first frame has no temporal prior (``q_h = q_b``, as after a loss); an invalid frame
     (< ``MIN_VALID_PATCHES`` centroids) holds the previous pose (the window's first: q_b).
+    Each solve starts from ``q_start`` (default ``q_b``) and, with ``view`` = (offsets (t, C,
+    P, 3), shifts (t, C, P, 2)), uses those per-view anchors (:class:`IKObservations`).
+    ``prior_from`` (optional): the frames after which the next frame's temporal prior is the
+    previous solution (else its q_b), as the tracker's ``q_h`` is its previous output only
+    after a frame it reported valid.
     """
     chain = setup.body.chain
+    T = q_b.shape[0]
+    if view is None:  # placeholders, unused
+        view = (jnp.zeros((T, 1, 1, 3), q_b.dtype), jnp.zeros((T, 1, 1, 2), q_b.dtype))
+        per_view = False
+    else:
+        per_view = True
+
+    if prior_from is None:
+        prior_from = jnp.ones((T,), bool)
 
     def step(carry, frame):
         q_prev, ok_prev = carry
-        c, v, qb = frame
+        c, v, qb, q0, off, sh, pf = frame
         q_h = jnp.where(ok_prev, q_prev, qb)
-        sol = solve_ik(chain, setup.cams, setup.anchors, c, v, qb, q_h, cov, qb,
+        anchors = PatchAnchors(setup.anchors.link, off, sh) if per_view else setup.anchors
+        sol = solve_ik(chain, setup.cams, anchors, c, v, qb, q_h, cov, q0,
                        rtol=setup.rtol, atol=setup.atol, robust=setup.robust)  # fmt: skip
         ok = jnp.sum(v) >= MIN_VALID_PATCHES
         q = jnp.where(ok, sol.q, q_prev)
-        return (q, ok), (q, ok)
+        return (q, ok & pf), (q, ok)
 
     init = (q_b[0], jnp.array(False))
-    _, (q, ok) = jax.lax.scan(step, init, (centroids, visible, q_b))
+    q0s = q_b if q_start is None else q_start
+    _, (q, ok) = jax.lax.scan(step, init, (centroids, visible, q_b, q0s, *view, prior_from))
     return q, ok
 
 
-def _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight) -> tuple[Array, Array]:
-    q, ok = ik_track(cov, setup, c, v, qb)
+def _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight, q0=None, view=None,
+                 pf=None) -> tuple[Array, Array]:
+    q, ok = ik_track(cov, setup, c, v, qb, q0, view, pf)
     err, dx = jax.vmap(lambda a, b: _joint_error(setup, a, b))(q, qg)
     w = (ok & sc).astype(err.dtype)
     total = jnp.sum(w * err)
@@ -399,9 +441,20 @@ def ik_loss_parts(
     sum_c n_c`` -- what :mod:`jaxmocap.experiment.tune_dask` computes per clip on workers."""
     cov = ik_covariances(theta, setup)
     scored = jnp.ones(obs.q_b.shape[:2], bool) if obs.scored is None else obs.scored
-    total, n = jax.vmap(
-        lambda c, v, qb, qg, sc: _window_loss(cov, setup, c, v, qb, qg, sc, jitter_weight)
-    )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored)
+    q0 = obs.q_b if obs.q_start is None else obs.q_start
+    # with the tracker's own starts (q_start), its reported validity also gates the prior
+    pf = jnp.ones_like(scored) if obs.q_start is None else scored
+    if obs.view_offset is None:
+        total, n = jax.vmap(
+            lambda c, v, qb, qg, sc, q0, pf: _window_loss(cov, setup, c, v, qb, qg, sc,
+                                                          jitter_weight, q0, None, pf)
+        )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored, q0, pf)
+    else:
+        total, n = jax.vmap(
+            lambda c, v, qb, qg, sc, q0, off, sh, pf: _window_loss(
+                cov, setup, c, v, qb, qg, sc, jitter_weight, q0, (off, sh), pf)
+        )(obs.centroids, obs.visible, obs.q_b, obs.q_gt, scored, q0, obs.view_offset,
+          obs.view_shift, pf)
     return jnp.sum(total), jnp.sum(n)
 
 

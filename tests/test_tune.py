@@ -150,6 +150,41 @@ def test_ik_track_matches_per_frame_solves(arm, ik_problem):
         np.testing.assert_allclose(q_scan[t], q_prev, atol=1e-9)
 
 
+def test_ik_track_from_given_starts(arm, ik_problem):
+    """``q_start``: each solve starts there instead of at q_b (per-frame solve oracle); started
+    at the solutions themselves the scan returns them (a converged LM stays put), and a
+    non-finite start row falls back to q_b."""
+    from jaxmocap.ik import solve_ik
+
+    model, anchors, cams, setup = arm
+    obs, theta, _ = ik_problem
+    cov = tune.ik_covariances(theta)
+    c, v, qb = obs.centroids[0], obs.visible[0], obs.q_b[0]
+    track = jax.jit(tune.ik_track)
+    q_ref, ok = track(cov, setup, c, v, qb)
+    q_self, _ = track(cov, setup, c, v, qb, q_ref)
+    np.testing.assert_allclose(q_self, q_ref, atol=1e-6)
+    start = obs.q_gt[0] + 0.05
+    q_s, _ = track(cov, setup, c, v, qb, start)
+    q_prev = qb[0]
+    for t in range(T_WINDOW):
+        q_h = qb[t] if t == 0 else q_prev
+        sol = solve_ik(model.chain, cams, anchors, c[t], v[t], qb[t], q_h, cov, start[t],
+                       rtol=RTOL, atol=ATOL)  # fmt: skip
+        q_prev = sol.q if bool(ok[t]) else q_prev
+        np.testing.assert_allclose(q_s[t], q_prev, atol=1e-9)
+    n = model.n_dof
+    bad = np.asarray(start).copy()
+    bad[1] = np.nan
+    seq = (np.asarray(c), np.asarray(v), np.asarray(qb), np.asarray(obs.q_gt[0]),
+           np.ones(T_WINDOW, bool))
+    o = tune.ik_observations([(*seq, bad)], T_WINDOW)
+    np.testing.assert_allclose(o.q_start[0, 1], qb[1])
+    np.testing.assert_allclose(o.q_start[0, 0], start[0])
+    with pytest.raises(tune.TuneError, match="q_start has shape"):
+        tune.ik_observations([(*seq, np.zeros((T_WINDOW, n + 1)))], T_WINDOW)
+
+
 def test_ik_loss_gradients_match_finite_differences(arm, ik_problem, rng):
     _, _, _, setup = arm
     obs, theta, vg = ik_problem

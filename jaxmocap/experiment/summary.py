@@ -133,14 +133,13 @@ def write_summary(out: Path, exp, seqs, specs: list[dict], results: dict, stats:
 
 
 def _plot(path: Path, names: list[str], configs: list[str], cells: list[dict]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure of its own (no pyplot): the caller's backend is left as it is (a notebook that
+    # runs an experiment keeps drawing inline)
+    from matplotlib.figure import Figure
 
     groups = [*names, "all"]
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.0 + 0.9 * len(groups) * max(1, len(configs))
-                                        / 2), 3.6))
+    fig = Figure(figsize=(max(5.0, 1.0 + 0.9 * len(groups) * max(1, len(configs)) / 2), 3.6))
+    ax = fig.subplots()
     w = 0.8 / max(1, len(configs))
     for j, c in enumerate(configs):
         ys, es = [], []
@@ -159,4 +158,3 @@ def _plot(path: Path, names: list[str], configs: list[str], cells: list[dict]) -
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100, format="png")
-    plt.close(fig)
