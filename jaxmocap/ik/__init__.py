@@ -44,6 +44,7 @@ from jaxmocap.ik.anchors import (
     PatchAnchors,
     anchor_positions,
     anchors_from_garment,
+    append_anchors,
     anchors_from_samples,
     project_anchors,
     view_anchors,
@@ -57,6 +58,7 @@ from jaxmocap.ik.covariances import (
     ROBUST_ITERATIONS,
     CovarianceFileError,
     IKCovariances,
+    append_centroid_covariances,
     estimate_covariances,
 )
 from jaxmocap.ik.global_pose import (
@@ -102,6 +104,8 @@ __all__ = [
     "anchor_positions",
     "anchors_from_garment",
     "anchors_from_samples",
+    "append_anchors",
+    "append_centroid_covariances",
     "estimate_covariances",
     "ik_residuals",
     "initial_root",
