@@ -284,7 +284,7 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
         extra = dict(hyps=hyps[0], n_hyps=hyps[1], lost=~state.valid)
     if params.skin is not None:
         extra["skin"] = skin_maps(params.color, params.skin, views.cls.W, views.crops, views.fgs,
-                                  params.colours.shading, params.colours.scene_colors)
+                                  params.colours.shading)
     if params.colours.patch_colours:
         return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W,
                             **extra)

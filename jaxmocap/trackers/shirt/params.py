@@ -470,7 +470,9 @@ def make_params(
         gate_min_fraction=floats(validity.gate_min_fraction),
         min_patches=ints(validity.min_patches), report_patches=ints(validity.report_patches),
         max_residual=floats(validity.max_residual), min_recall=floats(validity.min_recall))
-    skin = make_skin_terms(body, garment, color, skin_colour) if rounds.skin_terms else None
+    skin = None
+    if rounds.skin_terms:
+        skin = make_skin_terms(body, garment, color, skin_colour, colours.scene_colors, shading)
     return ShirtParams(
         color, body, garment, cams, anchors, cov, db, canonical_camera(dt), search, rounds,
         colours, validity, ablations, tuple(int(k) for k in np.asarray(body.geometry.kind)),

@@ -44,17 +44,18 @@ from jaxmocap.body import BodyModel, fk
 from jaxmocap.body.roles import require_roles
 from jaxmocap.camera import pixel_rays, project
 from jaxmocap.color import ColorModel, classify
-from jaxmocap.color.classify import THRESHOLD
+from jaxmocap.color.classify import THRESHOLD, nearest_sq
 from jaxmocap.errors import InputError
 from jaxmocap.garment import Garment
 from jaxmocap.ik import PatchAnchors
 
 SKIN_PARTS = ("head", "l_hand", "r_hand")  # link roles whose skin is observed
-# Standard deviation (image px) of a kept skin centroid about the rendered one at the true
-# pose: measured on the DEV split (docs/results/shirt_skin.md "sigma"): the observed centroid
-# of a part's skin pixels within the window minus the centroid of its render at the
-# ground-truth pose, over the terms that pass the gates, both axes pooled.
-SKIN_SIGMA_PX = 4.0
+# Standard deviation (image px, 640x480) of a kept skin centroid about the rendered one at the
+# true pose, measured on the DEV split (shirt_00 and shirt_12, every frame; docs/results/
+# shirt_skin.md "sigma"): the observed centroid of a part's skin pixels in its window minus the
+# centroid of its render at the ground-truth pose, over the 758 coordinates of the terms that
+# passed the gates: RMS 5.5 px, 1.4826 MAD 4.6 px (the patch centroids' Sigma_c: ~2 px).
+SKIN_SIGMA_PX = 5.0
 MIN_RENDERED = 6  # rendered skin pixels (working crop px) for a part to be predicted in a view
 WINDOW_RADII = 2.0  # window radius around the predicted centroid, in radii of the rendered blob
 WINDOW_MARGIN = 0.06  # ... plus this share of the crop side (frame-to-frame motion)
@@ -66,12 +67,16 @@ class SkinTerms(eqx.Module):
     """What the skin terms need (:func:`make_skin_terms`): the skin ``colour`` (one Gaussian,
     RGB 0..255 under the white balance, like the shirt's :class:`~jaxmocap.color.ColorModel`),
     per geom the observed part it belongs to (``part_geom``: index into :data:`SKIN_PARTS`,
-    -1 none), each part's ``link`` and the terms' covariance ``cov`` (3, 2, 2) pixels^2."""
+    -1 none), each part's ``link``, the terms' covariance ``cov`` (3, 2, 2) pixels^2 and the
+    room's colours that are not skin (``background``: the scene colours less those within
+    ``T`` of the skin class, which the room's scribbles take from the uncovered head and
+    hands; None: no room colours)."""
 
     colour: ColorModel
     part_geom: Int[Array, " n_geoms"]
     link: Int[Array, " 3"]
     cov: Float[Array, "3 2 2"]
+    background: ColorModel | None = None
 
 
 def skin_parts(body: BodyModel, garment: Garment) -> tuple[np.ndarray, np.ndarray]:
@@ -113,11 +118,12 @@ def skin_colour_from_garment(color: ColorModel, garment: Garment) -> ColorModel:
 
 
 def make_skin_terms(body: BodyModel, garment: Garment, color: ColorModel,
-                    skin_colour: ColorModel | None = None,
-                    sigma_px: float = SKIN_SIGMA_PX) -> SkinTerms:
+                    skin_colour: ColorModel | None = None, scene_colors: ColorModel | None = None,
+                    gain=None, sigma_px: float = SKIN_SIGMA_PX) -> SkinTerms:
     """:class:`SkinTerms` of a capture: ``skin_colour`` one Gaussian (e.g. fitted on scribbles
     of the capture's skin, :func:`jaxmocap.color.fit_color_model` with one class), default
-    :func:`skin_colour_from_garment`."""
+    :func:`skin_colour_from_garment`; ``scene_colors`` the room's (``gain`` the distance's
+    shading range, as the classification's)."""
     part_geom, link = skin_parts(body, garment)
     if skin_colour is None:
         skin_colour = skin_colour_from_garment(color, garment)
@@ -127,21 +133,29 @@ def make_skin_terms(body: BodyModel, garment: Garment, color: ColorModel,
     cov = jnp.broadcast_to(float(sigma_px) ** 2 * jnp.eye(2, dtype=dt), (3, 2, 2))
     colour = ColorModel(skin_colour.mean.astype(dt), skin_colour.cov.astype(dt), ("skin",),
                         color.shading)
-    return SkinTerms(colour, jnp.asarray(part_geom), jnp.asarray(link), cov)
+    background = None
+    if scene_colors is not None:  # the room's colours that are not the skin's own
+        d = nearest_sq(colour, jnp.eye(3, dtype=dt), scene_colors.mean[None].astype(dt), gain)
+        keep = np.flatnonzero(np.asarray(d[0]) > THRESHOLD**2)
+        if keep.size:
+            background = ColorModel(scene_colors.mean[keep], scene_colors.cov[keep],
+                                    shading=scene_colors.shading)
+    return SkinTerms(colour, jnp.asarray(part_geom), jnp.asarray(link), cov, background)
 
 
-def skin_maps(color: ColorModel, skin: SkinTerms, W, crops, fgs, gain=None,
-              background: ColorModel | None = None) -> Bool[Array, "n_cams n n"]:
+def skin_maps(color: ColorModel, skin: SkinTerms, W, crops, fgs,
+              gain=None) -> Bool[Array, "n_cams n n"]:
     """Per camera, the crop's skin pixels: nearest to the skin class among the shirt's
-    colours and skin (threshold ``T``; the room's colours ``background`` as in step 1), under
-    each camera's white balance ``W`` (n_cams, 3, 3)."""
+    colours and skin (threshold ``T``; nearer than the room's colours that are not skin,
+    ``skin.background``, as in step 1), under each camera's white balance ``W``
+    (n_cams, 3, 3)."""
     both = ColorModel(jnp.concatenate([color.mean, skin.colour.mean.astype(color.mean.dtype)]),
                       jnp.concatenate([color.cov, skin.colour.cov.astype(color.cov.dtype)]),
                       shading=color.shading)
     k = color.n_colors + 1
 
     def one(W_i, crop, fg):
-        ids, _ = classify(both, W_i, crop, fg, THRESHOLD, gain, background)
+        ids, _ = classify(both, W_i, crop, fg, THRESHOLD, gain, skin.background)
         return ids == k
 
     fg_ax = None if fgs is None else 0
