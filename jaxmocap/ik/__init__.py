@@ -44,8 +44,8 @@ from jaxmocap.ik.anchors import (
     PatchAnchors,
     anchor_positions,
     anchors_from_garment,
-    append_anchors,
     anchors_from_samples,
+    append_anchors,
     project_anchors,
     view_anchors,
 )
