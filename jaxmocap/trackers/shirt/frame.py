@@ -341,14 +341,12 @@ def pose_assisted_centroids(
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
 
 
-def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False, prior=None,
-             skin_on=True):
+def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False, prior=None):
     """One round of steps 3 + 4 with the model rendered at ``q`` (``hits``, stacked over
     cameras): measured centroids in every camera, then the full IK (per-view anchors from
     ``hits``). ``prior``: the blend the IK's database term pulls to (default the placed blend
     ``q_g``; an orientation hypothesis's own pose for its start), also the temporal prior
-    after a loss (where that is the blend). ``skin_on`` (traced): the skin terms of
-    ``rounds.skin_terms`` apply in this round (:func:`rounds`: the rounds after the first)."""
+    after a loss (where that is the blend)."""
     if prior is not None:
         ctx = ctx._replace(q_g=prior, q_h=jnp.where(ctx.lost, prior, ctx.q_h))
     meas = pose_assisted_centroids(params, ctx, hits.patch, plain)
@@ -365,7 +363,7 @@ def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False,
                           ctx.views.windows, ctx.skin, ctx.okq)  # fmt: skip
         anchors = append_anchors(anchors, sk.anchors, params.n_cams)
         c_ik = jnp.concatenate([c_obs, sk.xy.astype(c_obs.dtype)], axis=1)
-        v_ik = jnp.concatenate([v_obs, sk.valid & skin_on], axis=1)
+        v_ik = jnp.concatenate([v_obs, sk.valid], axis=1)
         cov = append_centroid_covariances(cov, params.garment.n_patches, params.skin.cov)
     sol = solve_ik(chain, params.cams, anchors, c_ik, v_ik, ctx.q_g, ctx.q_h, cov, q,
                    robust=params.rounds.robust)  # fmt: skip
@@ -464,12 +462,9 @@ def rounds(params: ShirtParams, state: ShirtState, ctx: RoundContext, n_more):
         hits_src = pick(is_start, hits, best[3])
         plain_k = is_start & plain[s]
         prior_k = jnp.where(is_start, priors[s], prior_best) if hyp else None
-        # skin terms (rounds.skin_terms) only in the rounds after a start's first: their
-        # windows are predicted by a pose the patches have placed, and they do not choose
-        # between the starts
         ik_out = jax.lax.cond(
             do_ik,
-            lambda: ik_round(params, ctx, q_src, hits_src, plain_k, prior_k, ~is_start),
+            lambda: ik_round(params, ctx, q_src, hits_src, plain_k, prior_k),
             lambda: ik_out,
         )
         nxt = starts[jnp.minimum(s + 1, starts.shape[0] - 1)]

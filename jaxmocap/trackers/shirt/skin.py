@@ -81,9 +81,8 @@ class SkinTerms(eqx.Module):
 
 def skin_parts(body: BodyModel, garment: Garment) -> tuple[np.ndarray, np.ndarray]:
     """``(part_geom, link)``: per geom the index of the part of :data:`SKIN_PARTS` whose skin
-    it is (a skin geom of the garment on the part's role link or a link below it, the head's
-    with the neck link's: head and neck skin are one blob in the images; -1 else), and each
-    part's link index. Found by the body's roles."""
+    it is (a skin geom of the garment on the part's role link or a link below it; -1 else),
+    and each part's link index. Found by the body's roles."""
     roles = require_roles(body, "the skin terms (head and hands observed)")
     chain = body.chain
     parents = np.asarray(chain.parents)
@@ -98,8 +97,6 @@ def skin_parts(body: BodyModel, garment: Garment) -> tuple[np.ndarray, np.ndarra
         for j in range(li + 1, parents.shape[0]):  # topological order: parents first
             if int(parents[j]) in below:
                 below.add(j)
-        if role == "head" and "neck" in dict(roles.links):  # the neck's skin joins the head's:
-            below.add(chain.link_index(roles.link("neck")))  # one blob in the images
         mine = skin & np.isin(glink, sorted(below)) & (part_geom < 0)
         part_geom[mine] = k
     return part_geom, np.asarray(links, np.int32)
