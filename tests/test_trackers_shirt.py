@@ -473,7 +473,7 @@ def skin_setup(setup):
                            search=p.search, rounds=shirt.Rounds(skin_terms=True))
     state = shirt.init(ps, setup["W0"], jnp.zeros(model.n_dof))
     q = setup["q_true"]
-    views = shirt_frame.locate_and_classify(ps, state, setup["frames"], None)
+    views = shirt_frame.locate_and_classify(ps, state, jnp.asarray(setup["frames"]), None)
     ctx = shirt_frame.round_context(ps, state, views, views.found, q)
     hits = shirt_frame.render_views(ps, ctx, q)
     return dict(ps=ps, state=state, ctx=ctx, hits=hits, q=q)
