@@ -472,6 +472,7 @@ def skin_setup(setup):
     ps = shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
                            search=p.search, rounds=shirt.Rounds(skin_terms=True))
     state = shirt.init(ps, setup["W0"], jnp.zeros(model.n_dof))
+    state = dataclasses.replace(state, valid=jnp.array(True))  # a tracked frame
     q = setup["q_true"]
     views = shirt_frame.locate_and_classify(ps, state, jnp.asarray(setup["frames"]), None)
     ctx = shirt_frame.round_context(ps, state, views, views.found, q)
