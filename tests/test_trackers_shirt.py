@@ -523,7 +523,7 @@ def test_skin_centroids_observed_at_the_rendered_skin(setup, skin_setup):
 def test_skin_gate_drops_a_hidden_hand_and_no_skin_leaves_the_ik_unchanged(skin_setup):
     """A hand whose skin is not seen (its pixels removed from the skin map) fails the size
     gate (weight 0) while the others stay; with no skin seen at all the round's IK result is
-    the one without skin terms."""
+    the one without skin terms; after a loss no skin is observed."""
     import dataclasses as dc
 
     ps, ctx, hits, q = (skin_setup[k] for k in ("ps", "ctx", "hits", "q"))
@@ -543,6 +543,10 @@ def test_skin_gate_drops_a_hidden_hand_and_no_skin_leaves_the_ik_unchanged(skin_
     # and with the skin seen, the terms move the result (they are in the IK)
     seen = shirt_frame.ik_round(ps, ctx, q0, hits0)[0]
     assert float(jnp.max(jnp.abs(seen - without))) > 1e-4
+    # after a loss (the previous frame invalid) no skin is observed: no terms
+    lost = dc.replace(skin_setup["state"], valid=jnp.array(False))
+    ctx_lost = shirt_frame.round_context(ps, lost, ctx.views, ctx.okq, q)
+    assert not bool(jnp.any(ctx_lost.skin)) and bool(jnp.any(ctx.skin))
 
 
 def test_skin_terms_residual_jit_vmap_grad(skin_setup):

@@ -155,11 +155,15 @@ class Rounds(eqx.Module):
       first-round dev 15.5/7.4/21.3/23.8 -> 12.6/7.1/12.6/16.3, shirt_12 30.0 -> 30.6,
       shirt_13 41.9 -> 30.3; docs/results/shirt_views.md). False: the starts of before.
     * ``skin_terms`` (static): head and hands observed as skin (issue 38 item 1,
-      :mod:`jaxmocap.trackers.shirt.skin`): every round's IK also fits the centroids of the
-      skin pixels near each of head, left and right hand predicted by the round's render,
-      gated by size and by agreement between cameras (a failing gate: weight 0). The skin
-      colour is ``make_params``'s ``skin_colour`` (scribbles) or the garment's skin albedo
-      (:func:`~jaxmocap.trackers.shirt.skin.skin_colour_from_garment`).
+      :mod:`jaxmocap.trackers.shirt.skin`): on a frame after a valid one every round's IK also
+      fits the centroids of the skin pixels near each of head, left and right hand predicted
+      by the round's render, gated by size and by agreement between cameras (a failing gate:
+      weight 0). The skin colour is ``make_params``'s ``skin_colour`` (scribbles) or the
+      garment's skin albedo (:func:`~jaxmocap.trackers.shirt.skin.skin_colour_from_garment`).
+      On the dev split with the skin scribbled (world2_shirt_skin.toml) 15.60 -> 14.90 cm
+      over all frames (head 10.1 -> 9.1, hands 26.3 -> 25.6; shirt_13 30.3 -> 35.0;
+      docs/results/shirt_skin.md). Off by default: the albedo's skin, what a capture without
+      skin scribbles gets, is not measured.
     """
 
     ik_passes: int = eqx.field(static=True, default=IK_PASSES)

@@ -7,8 +7,11 @@ the colour model, :func:`skin_colour_from_garment`). Every frame each crop is cl
 the shirt's colours plus skin under the camera's current white balance (the adaptive ``W`` of
 step 5, :func:`skin_maps`): a pixel is skin where skin is its nearest class within ``T``.
 
-In every round of steps 3-4 the model is rendered at the round's start pose ``q`` (the render
-the patch terms use): the rendered skin pixels of head, left hand and right hand (the skin geoms
+On a frame after a valid one (after a loss the starts are tens of cm off and the windows around
+their prediction catch the wrong skin: on the DEV split skin terms on every frame measured 15.6
+-> 17.1 cm, only after a valid frame 15.6 -> 14.9; docs/results/shirt_skin.md), in every round
+of steps 3-4 the model is rendered at the round's start pose ``q`` (the render the patch terms
+use): the rendered skin pixels of head, left hand and right hand (the skin geoms
 on each role's link and the links below it: found by ``model.roles``, never by name) give each
 part's expected centroid and projected size in every camera. The observed skin pixels near
 each prediction (within :data:`WINDOW_RADII` blob radii plus :data:`WINDOW_MARGIN` of the crop
