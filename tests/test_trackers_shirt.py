@@ -462,3 +462,135 @@ def test_patch_colours_follow_a_lamp_change(setup):
     assert not bool(out.valid)
     for a, b in zip(jax.tree.leaves(before)[:5], jax.tree.leaves(state.look)[:5], strict=True):
         np.testing.assert_array_equal(a, np.asarray(b))
+
+
+@pytest.fixture(scope="module")
+def skin_setup(setup):
+    """The tracker with ``skin_terms`` (skin colour from the garment's albedo) and one frame's
+    round inputs at the true pose."""
+    p, model = setup["params"], setup["model"]
+    ps = shirt.make_params(p.color, model, p.garment, p.cams, p.anchors, p.cov, p.db,
+                           search=p.search, rounds=shirt.Rounds(skin_terms=True))
+    state = shirt.init(ps, setup["W0"], jnp.zeros(model.n_dof))
+    state = dataclasses.replace(state, valid=jnp.array(True))  # a tracked frame
+    q = setup["q_true"]
+    views = shirt_frame.locate_and_classify(ps, state, jnp.asarray(setup["frames"]), None)
+    ctx = shirt_frame.round_context(ps, state, views, views.found, q)
+    hits = shirt_frame.render_views(ps, ctx, q)
+    return dict(ps=ps, state=state, ctx=ctx, hits=hits, q=q)
+
+
+def _observe(ps, ctx, hits, q, observed=None):
+    from jaxmocap.trackers.shirt.skin import observe_skin
+
+    return observe_skin(ps.skin, ps.body.chain, ps.cams, q, hits.geom, hits.point, ctx.uvs,
+                        ctx.views.windows, ctx.skin if observed is None else observed, ctx.okq)
+
+
+def test_skin_centroids_observed_at_the_rendered_skin(setup, skin_setup):
+    """At the true pose every camera sees head and both hands: each observed skin centroid
+    (the pixels classified as skin near the prediction) lies within 1.5 px of the centroid of
+    the part's skin in an independent full-frame render (NumPy over the ray caster's geom ids,
+    here the skin geoms on the part's role link and below), and the per-view anchors predict
+    the rendered centroid exactly at that pose."""
+    from jaxmocap.ik import project_anchors
+    from jaxmocap.render import render_ids
+    from jaxmocap.trackers.shirt.skin import SKIN_PARTS
+
+    ps, ctx, hits, q = (skin_setup[k] for k in ("ps", "ctx", "hits", "q"))
+    ob = _observe(ps, ctx, hits, q)
+    assert np.asarray(ob.valid).all()
+    model = setup["model"]
+    roles, chain = model.roles, model.chain
+    parents = np.asarray(chain.parents)
+    for k, role in enumerate(SKIN_PARTS):
+        below = {chain.link_index(roles.link(role))}
+        for j in range(len(parents)):
+            if parents[j] in below:
+                below.add(j)
+        geoms = np.flatnonzero(np.asarray(ps.garment.skin)
+                               & np.isin(np.asarray(model.geometry.link), sorted(below)))
+        for c in range(ps.n_cams):
+            cam = jax.tree.map(lambda a, c=c: a[c], ps.cams)
+            g = np.asarray(render_ids(model, ps.garment, q, cam).geom)
+            yy, xx = np.nonzero(np.isin(g, geoms))
+            truth = np.array([xx.mean(), yy.mean()])
+            np.testing.assert_allclose(np.asarray(ob.xy[c, k]), truth, atol=1.5)
+    pred = project_anchors(ps.cams, ps.body.chain, ob.anchors, q)
+    np.testing.assert_allclose(np.asarray(pred), np.asarray(ob.predicted), atol=1e-6)
+
+
+def test_skin_gate_drops_a_hidden_hand_and_no_skin_leaves_the_ik_unchanged(skin_setup):
+    """A hand whose skin is not seen (its pixels removed from the skin map) fails the size
+    gate (weight 0) while the others stay; with no skin seen at all the round's IK result is
+    the one without skin terms; after a loss no skin is observed."""
+    import dataclasses as dc
+
+    ps, ctx, hits, q = (skin_setup[k] for k in ("ps", "ctx", "hits", "q"))
+    ob = _observe(ps, ctx, hits, q)
+    # erase the left hand's observed skin: every skin pixel within 12 px of its centroid
+    d = jnp.linalg.norm(ctx.uvs - ob.xy[:, 1][:, None, None], axis=-1)
+    hidden = _observe(ps, ctx, hits, q, ctx.skin & (d > 12.0))
+    np.testing.assert_array_equal(np.asarray(hidden.valid),
+                                  np.array([[True, False, True]] * ps.n_cams))
+    q0 = q + 0.05 * jnp.ones_like(q).at[:6].set(0.0)  # a round started off the truth
+    hits0 = shirt_frame.render_views(ps, ctx, q0)
+    none = ctx._replace(skin=jnp.zeros_like(ctx.skin))
+    off = dc.replace(ps, skin=None, rounds=dc.replace(ps.rounds, skin_terms=False))
+    with_terms = shirt_frame.ik_round(ps, none, q0, hits0)[0]
+    without = shirt_frame.ik_round(off, ctx._replace(skin=None), q0, hits0)[0]
+    np.testing.assert_allclose(np.asarray(with_terms), np.asarray(without), atol=1e-9)
+    # and with the skin seen, the terms move the result (they are in the IK)
+    seen = shirt_frame.ik_round(ps, ctx, q0, hits0)[0]
+    assert float(jnp.max(jnp.abs(seen - without))) > 1e-4
+    # after a loss (the previous frame invalid) no skin is observed: no terms
+    lost = dc.replace(skin_setup["state"], valid=jnp.array(False))
+    ctx_lost = shirt_frame.round_context(ps, lost, ctx.views, ctx.okq, q)
+    assert not bool(jnp.any(ctx_lost.skin)) and bool(jnp.any(ctx.skin))
+
+
+def test_skin_terms_residual_jit_vmap_grad(skin_setup):
+    """The IK energy with the skin terms appended (ik.append_anchors,
+    append_centroid_covariances): its gradient in q matches central finite differences, and
+    jit / vmap over poses give the unbatched values."""
+    from jaxmocap.ik import append_anchors, append_centroid_covariances, ik_residuals
+
+    ps, ctx, hits, q = (skin_setup[k] for k in ("ps", "ctx", "hits", "q"))
+    ob = _observe(ps, ctx, hits, q)
+    P = ps.garment.n_patches
+    anchors = append_anchors(ps.anchors, ob.anchors, ps.n_cams)
+    assert anchors.offset.shape == (ps.n_cams, P + 3, 3)
+    cov = append_centroid_covariances(ps.cov, P, ps.skin.cov)
+    c = jnp.concatenate([jnp.zeros((ps.n_cams, P, 2)), ob.xy], axis=1)
+    v = jnp.concatenate([jnp.zeros((ps.n_cams, P), bool), ob.valid], axis=1)
+    chain = ps.body.chain
+
+    def energy(x):
+        r = ik_residuals(x, chain, ps.cams, anchors, c, v, q, q, cov)
+        return jnp.sum(r**2)
+
+    x = q + 0.02 * jnp.arange(q.shape[0]) / q.shape[0]
+    g = jax.jit(jax.grad(energy))(x)
+    eps = 1e-6
+    fd = np.array([(energy(x.at[i].add(eps)) - energy(x.at[i].add(-eps))) / (2 * eps)
+                   for i in range(x.shape[0])])
+    np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-5)
+    assert float(jnp.linalg.norm(g[6:])) > 0
+    xs = jnp.stack([x, q, 2 * x - q])
+    np.testing.assert_allclose(np.asarray(jax.vmap(energy)(xs)),
+                               [float(energy(y)) for y in xs], rtol=1e-10)
+
+
+def test_skin_parts_found_by_role_under_other_names():
+    """The observed parts are found by the body's roles: a body with other link and geom
+    names (mixamo's) gets the same parts and links as the bundled one."""
+    from jaxmocap.body.scale import rename_body
+    from jaxmocap.trackers.shirt.skin import skin_parts
+
+    model = default_body()
+    other = rename_body(model, "mixamo")
+    assert other.chain.link_names != model.chain.link_names
+    a, b = skin_parts(model, default_garment(model)), skin_parts(other, default_garment(other))
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert set(a[0].tolist()) == {-1, 0, 1, 2}  # head and both hands have skin

@@ -280,7 +280,8 @@ def query(dataset: str, out: str, maps_dir: str | None, only=None, hypotheses: b
 
 
 def speed(out: str, option: str = "own_start", reps: int = 20) -> dict:
-    """The tracked frame's step time with ``rounds.<option>`` off and on, alternated in one run
+    """The tracked frame's step time with ``rounds.<option>`` off and on (``own_start``,
+    ``orientation_hypotheses`` = 2, ``skin_terms``), alternated in one run
     (``benchmarks/bench_shirt.py``'s set-up: two 640x480 cameras, its database, the tracker
     as shipped; ``JAXMOCAP_BENCH_QUICK=1``: its quick set-up). The state is the one after the
     first (valid) frame, so every timed frame is a tracked one."""
@@ -293,8 +294,14 @@ def speed(out: str, option: str = "own_start", reps: int = 20) -> dict:
     width, height = sized(full=(640, 480), quick=(320, 240))
     s = bench_shirt.setup(width, height, sized(full=bench_shirt.DB_SIZE, quick=500))
     base = s["params"]
-    value = True if option == "own_start" else 2
+    value = True if option in ("own_start", "skin_terms") else 2
     other = dataclasses.replace(base, rounds=dataclasses.replace(base.rounds, **{option: value}))
+    if option == "skin_terms":  # the skin class from the garment's albedo (no scribbles here)
+        from jaxmocap.trackers.shirt.skin import make_skin_terms
+
+        other = dataclasses.replace(other, skin=make_skin_terms(
+            base.body, base.garment, base.color, None, base.colours.scene_colors,
+            base.colours.shading))
     runs = {}
     for name, prm in (("off", base), ("on", other)):
         st = shirt.init(prm, s["state"].W, s["state"].q)

@@ -130,6 +130,29 @@ def _scribbled_color_model(seq, garment, n_frames: int = SCRIBBLE_FRAMES, gain=N
     return fit_color_model(images, labels, garment.n_colours, garment.colour_names, gain=gain)
 
 
+def _scribbled_skin_colour(seq, body, garment, n_frames: int = SCRIBBLE_FRAMES, gain=None):
+    """The shirt tracker's skin class (``skin_terms``) from a user's scribbles on the capture's
+    first frames: the body's skin (the garment's skin geoms, the ray caster's ids at the true
+    pose: the ground truth labels no skin) eroded by ``shirt.scribbles`` as the shirt's
+    colours are, one Gaussian (``gain``: fitted for the shading-invariant distance)."""
+    import jax.numpy as jnp
+
+    from jaxmocap.color import fit_color_model
+    from jaxmocap.render import render_ids
+    from jaxmocap.trackers import shirt
+
+    skin = np.asarray(garment.skin)
+    images, labels = [], []
+    for t in range(min(n_frames, seq.frames.shape[0])):
+        q = jnp.asarray(seq.groundtruth["q"][t])
+        for c, cam in enumerate(seq.cameras):
+            g = np.asarray(render_ids(body, garment, q, cam).geom)
+            m = (g >= 0) & skin[np.maximum(g, 0)]
+            images.append(np.asarray(seq.frames[t, c]))
+            labels.append(shirt.scribbles(m.astype(np.int32)))
+    return fit_color_model(images, labels, 1, ("skin",), gain=gain)
+
+
 def _scene_colors(seq, W0, n_clusters: int, n_frames: int = SCRIBBLE_FRAMES):
     """Gaussians of the room a user scribbles beside the shirt: the pixels of the first frames
     that are not shirt, ``SCRIBBLE_EROSION`` pixels away from it, white-balanced by ``W0``."""
@@ -205,10 +228,14 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
     names = list(seq.camera_names)
     shading = opts.get("shading")
     scene_clusters = int(opts.pop("scene_clusters", 0))
+    skin_colour = None
     if opts.get("colors") == "scribbles":
         opts.pop("colors")
         color = _scribbled_color_model(seq, garment, gain=None if shading is None else
                                        tuple(shading))
+        if opts.get("skin_terms"):  # the skin scribbled too
+            skin_colour = _scribbled_skin_colour(seq, body, garment, gain=None if shading is
+                                                 None else tuple(shading))
     elif "colors" in opts:
         from jaxmocap.color import load_color_model
 
@@ -231,6 +258,8 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         settings["colours"] = dataclasses.replace(settings.get("colours", shirt.Colours()),
                                                   scene_colors=_scene_colors(seq, W0,
                                                                              scene_clusters))
+    if skin_colour is not None:
+        settings["skin_colour"] = skin_colour
     params = shirt_params(color, body, garment, list(seq.cameras), db, cov, announce=False,
                           **settings)
     tracker = ShirtFrameTracker(params, W0, list(seq.cameras), names, background=background,

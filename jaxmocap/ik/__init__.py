@@ -45,6 +45,7 @@ from jaxmocap.ik.anchors import (
     anchor_positions,
     anchors_from_garment,
     anchors_from_samples,
+    append_anchors,
     project_anchors,
     view_anchors,
 )
@@ -57,6 +58,7 @@ from jaxmocap.ik.covariances import (
     ROBUST_ITERATIONS,
     CovarianceFileError,
     IKCovariances,
+    append_centroid_covariances,
     estimate_covariances,
 )
 from jaxmocap.ik.global_pose import (
@@ -102,6 +104,8 @@ __all__ = [
     "anchor_positions",
     "anchors_from_garment",
     "anchors_from_samples",
+    "append_anchors",
+    "append_centroid_covariances",
     "estimate_covariances",
     "ik_residuals",
     "initial_root",

@@ -183,3 +183,25 @@ def view_anchors(
     X = jnp.einsum("pij,cpj->cpi", T[:, :3, :3], off) + T[None, :, :3, 3]
     shift = jnp.where(use[..., None], c2d - jax.vmap(project)(cams, X), 0.0)
     return jax.lax.stop_gradient(PatchAnchors(anchors.link, off, shift))
+
+
+def append_anchors(anchors: PatchAnchors, more: PatchAnchors, n_cams: int) -> PatchAnchors:
+    """``anchors`` followed by ``more`` (e.g. the shirt's patches and the skin terms of
+    :mod:`jaxmocap.trackers.shirt.skin`): per-view (C, P + K, 3) with shifts where either is
+    per-view or shifted, else shared (P + K, 3)."""
+    if not (anchors.per_view or more.per_view or anchors.shift is not None
+            or more.shift is not None):
+        return PatchAnchors(jnp.concatenate([anchors.link, more.link]),
+                            jnp.concatenate([anchors.offset, more.offset.astype(
+                                anchors.offset.dtype)]))
+
+    def views(a: PatchAnchors):
+        off = a.offset if a.per_view else jnp.broadcast_to(a.offset, (n_cams,) + a.offset.shape)
+        sh = jnp.zeros(off.shape[:-1] + (2,), off.dtype) if a.shift is None else a.shift
+        return off, jnp.broadcast_to(sh, off.shape[:-1] + (2,))
+
+    (o1, s1), (o2, s2) = views(anchors), views(more)
+    dt = o1.dtype
+    return PatchAnchors(jnp.concatenate([anchors.link, more.link]),
+                        jnp.concatenate([o1, o2.astype(dt)], axis=1),
+                        jnp.concatenate([s1.astype(dt), s2.astype(dt)], axis=1))

@@ -262,3 +262,14 @@ def estimate_covariances(
     if diagonal:
         blend, prior = jnp.diagonal(blend), jnp.diagonal(prior)
     return IKCovariances(centroid=sigma_c, blend=blend, prior=prior)
+
+
+def append_centroid_covariances(cov: IKCovariances, n_patches: int,
+                                more: Float[Array, "k 2 2"]) -> IKCovariances:
+    """``cov`` with ``more`` (k, 2, 2) appended to Sigma_c after its ``n_patches`` patches (a
+    shared (2, 2) Sigma_c repeated per patch): the covariances of extra 2D terms solved beside
+    the patch centroids (:func:`jaxmocap.ik.append_anchors`)."""
+    c = cov.centroid
+    c = jnp.broadcast_to(c, (n_patches, 2, 2)) if c.ndim == 2 else c
+    return eqx.tree_at(lambda x: x.centroid, cov,
+                       jnp.concatenate([c, more.astype(c.dtype)], axis=0))

@@ -35,6 +35,8 @@ from jaxmocap.color.pose_assisted import (
 )
 from jaxmocap.ik import (
     IKCovariances,
+    append_anchors,
+    append_centroid_covariances,
     initial_root,
     solve_global,
     solve_ik,
@@ -75,6 +77,7 @@ from jaxmocap.trackers.shirt.params import (
     ShirtParams,
     ShirtState,
 )
+from jaxmocap.trackers.shirt.skin import observe_skin, skin_maps
 
 
 def _root_guess(
@@ -150,6 +153,7 @@ class RoundContext(NamedTuple):
     hyps: Array | None = None
     n_hyps: Array | None = None
     lost: Array | None = None
+    skin: Array | None = None  # with ``rounds.skin_terms``: the crops' skin pixels (skin_maps)
 
 
 def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -> Views:
@@ -278,6 +282,11 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
     extra = {}
     if hyps is not None:
         extra = dict(hyps=hyps[0], n_hyps=hyps[1], lost=~state.valid)
+    if params.skin is not None:
+        # only after a valid frame: after a loss the starts are tens of cm off and the windows
+        # around their prediction catch the wrong skin (docs/results/shirt_skin.md)
+        extra["skin"] = skin_maps(params.color, params.skin, views.cls.W, views.crops, views.fgs,
+                                  params.colours.shading) & state.valid
     if params.colours.patch_colours:
         return RoundContext(views, okq, q_g, q_h, cov, uvs, rays, state.look, state.look_W,
                             **extra)
@@ -350,7 +359,15 @@ def ik_round(params: ShirtParams, ctx: RoundContext, q, hits: Hits, plain=False,
                                 ctx.uvs)  # fmt: skip
     else:
         anchors = params.anchors
-    sol = solve_ik(chain, params.cams, anchors, c_obs, v_obs, ctx.q_g, ctx.q_h, ctx.cov, q,
+    c_ik, v_ik, cov = c_obs, v_obs, ctx.cov
+    if ctx.skin is not None:  # head and hands observed as skin (issue 38 item 1)
+        sk = observe_skin(params.skin, chain, params.cams, q, hits.geom, hits.point, ctx.uvs,
+                          ctx.views.windows, ctx.skin, ctx.okq)  # fmt: skip
+        anchors = append_anchors(anchors, sk.anchors, params.n_cams)
+        c_ik = jnp.concatenate([c_obs, sk.xy.astype(c_obs.dtype)], axis=1)
+        v_ik = jnp.concatenate([v_obs, sk.valid], axis=1)
+        cov = append_centroid_covariances(cov, params.garment.n_patches, params.skin.cov)
+    sol = solve_ik(chain, params.cams, anchors, c_ik, v_ik, ctx.q_g, ctx.q_h, cov, q,
                    robust=params.rounds.robust)  # fmt: skip
     return sol.q, c_obs, v_obs
 
