@@ -642,6 +642,7 @@ def pf_loss(
 # ----------------------------------------------------------------------------- optimiser
 
 OPTIMISERS = ("adam", "lbfgs")
+ADAM_LEARNING_RATE = 0.05  # Adam's step in the log-Cholesky / log parameters (tuning.md's runs)
 
 
 def make_optimiser(name: str, learning_rate: float | None = None) -> optax.GradientTransformation:
@@ -678,7 +679,7 @@ def fit(
     loss: Callable,
     theta,
     steps: int,
-    learning_rate: float | None = 0.05,
+    learning_rate: float | None = ADAM_LEARNING_RATE,
     callback: Callable | None = None,
     value_and_grad: bool = False,
     optimiser: str | optax.GradientTransformation = "adam",

@@ -24,6 +24,8 @@ def test_refusals_before_any_work(tmp_path, capsys):
                    str(two), "--name", "b", leaves=[out])
     assert_refused(capsys, "no configuration 'c'", *base, "--config", str(two), "--name", "c",
                    leaves=[out])
+    assert_refused(capsys, "--optimiser lbfgs takes its step from the linesearch", *base,
+                   "--optimiser", "lbfgs", "--learning-rate", "0.1", leaves=[out])
     assert_refused(capsys, "not a dataset folder", *base, leaves=[out])
     assert_refused(capsys, "not both", *base, "--workers", "1", "--scheduler", "tcp://x:1",
                    leaves=[out])

@@ -49,8 +49,9 @@ def add_parser(sub) -> None:
                    "only) (default: %(default)s)")
     p.add_argument("--steps", type=int, default=20, help="optimiser steps (default: "
                    "%(default)s)")
-    p.add_argument("--learning-rate", type=float, default=0.05, metavar="LR",
-                   help="Adam's step size (default: %(default)s)")
+    p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
+                   help="Adam's step size (default: jaxmocap.tune.ADAM_LEARNING_RATE, "
+                   "0.05); L-BFGS takes its step from the linesearch and refuses one")
     p.add_argument("--every", type=int, default=5, metavar="N",
                    help="write a checkpoint every N steps (default: %(default)s)")
     p.add_argument("--out", default="tune_out", metavar="FOLDER",
@@ -69,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.scheduler is not None and args.workers is not None:
         raise ExperimentError("give --workers (a local cluster) or --scheduler, not both")
+    if args.optimiser == "lbfgs" and args.learning_rate is not None:
+        raise ExperimentError("--learning-rate is Adam's step size; --optimiser lbfgs takes its "
+                              "step from the linesearch: drop --learning-rate")
     doc = tune_dataset(args.dataset, args.config, args.out, split=args.split,
                        subset=args.subset, name=args.name, tracker=args.tracker,
                        optimiser=args.optimiser, steps=args.steps,

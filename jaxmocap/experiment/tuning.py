@@ -483,11 +483,13 @@ def _view_anchors_at(setup, garment, q, work_size: int, margin: float = 1.3):
 
 def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str | None = None,
                  name: str | None = None, tracker: str | None = None,
-                 optimiser: str = "adam", steps: int = 20, learning_rate: float = 0.05,
+                 optimiser: str = "adam", steps: int = 20, learning_rate: float | None = None,
                  workers: int = 0, scheduler: str | None = None, every: int = CHECKPOINT_EVERY,
                  progress: bool = True) -> dict:
     """Tune (or resume tuning) a tracker configuration on ``dataset``'s sequences (module
-    docstring); writes ``out/tuned.json`` and returns its content (plus ``wall_s``)."""
+    docstring); writes ``out/tuned.json`` and returns its content (plus ``wall_s``).
+    ``learning_rate``: Adam's step (None: :data:`jaxmocap.tune.ADAM_LEARNING_RATE`); L-BFGS
+    takes its step from the linesearch and ignores it."""
     import jax
 
     from jaxmocap import tune
@@ -496,6 +498,8 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     from jaxmocap.io.preflight import check_outputs
     from jaxmocap.tuned import TunedParameters
 
+    if learning_rate is None:
+        learning_rate = tune.ADAM_LEARNING_RATE
     if optimiser not in tune.OPTIMISERS:
         raise ExperimentError(f"--optimiser: expected one of {', '.join(tune.OPTIMISERS)}, "
                               f"got {optimiser!r}")
