@@ -13,7 +13,13 @@ a loss (issue 38 items 2-3; DEV split only).
   database blend ``q_blend`` (step 2's start of every lost frame);
 * ``true_start``: every frame starts from the ground truth of the frame before (state ``q``
   the true pose, ``valid`` and tracked): what the tracker does when it is never lost, i.e.
-  how much of the all-frames error re-acquisition could win back.
+  how much of the all-frames error re-acquisition could win back;
+* ``true_colours`` (``--rungs``): the capture with every shirt pixel (ground-truth colour id
+  > 0) painted with its colour's median RGB over the sequence in that camera
+  (:func:`paint_true_colours`), the rest of the image as it is, set-up and tracking alike:
+  the shirt's appearance without shading, lamps or mixed pixels, so that step 1 classifies
+  the shirt as well as the colour model can separate its colours -- what a colour layer that
+  gives every shirt pixel its right label (issue 37) would leave.
 
 Per frame it also keeps each camera's classified tiny map (step 1 on the tracker's own crop
 and white balance). ``query`` then scores the database query (:func:`jaxmocap.posedb.
@@ -60,9 +66,24 @@ def torso_yaw(kp: np.ndarray, names: list[str], cams) -> np.ndarray:
                         kp[:, names.index("neck")], centres)
 
 
+def paint_true_colours(frames: np.ndarray, colour_ids: np.ndarray, stride: int = 5
+                       ) -> np.ndarray:
+    """``frames`` (T, n_cams, H, W, 3) uint8 with each pixel of colour id k > 0 (``colour_ids``
+    (T, n_cams, H, W)) replaced by the median RGB of colour k's pixels in that camera (over
+    every ``stride``-th frame); a colour never seen in a camera keeps its pixels."""
+    out = np.array(frames, copy=True)
+    for c in range(frames.shape[1]):
+        ids, px = colour_ids[::stride, c], frames[::stride, c]
+        for k in np.unique(colour_ids[:, c]):
+            if k == 0 or not (ids == k).any():
+                continue
+            out[:, c][colour_ids[:, c] == k] = np.median(px[ids == k], axis=0).astype(np.uint8)
+    return out
+
+
 def _track(seq, folder, cfg, mode, tiny_maps):
-    """One tracker run; ``mode`` "tracker" or "true_start". Returns per-frame q, q_blend,
-    valid (and fills ``tiny_maps`` with the classified tiny maps when given a list)."""
+    """One tracker run; ``mode`` "tracker", "true_start" or "true_colours". Returns per-frame
+    q, q_blend, valid (and fills ``tiny_maps`` with the classified tiny maps when given a list)."""
     import jax
     import jax.numpy as jnp
 
@@ -70,6 +91,9 @@ def _track(seq, folder, cfg, mode, tiny_maps):
     from jaxmocap.trackers.shirt.frame import locate_and_classify
 
     gq = np.asarray(seq.groundtruth["q"])
+    if mode == "true_colours":
+        seq = seq._replace(frames=paint_true_colours(np.asarray(seq.frames),
+                                                     np.asarray(seq.groundtruth["colour_ids"])))
     rec = []
 
     def tiny_of(params, state, frames):
