@@ -594,3 +594,31 @@ def test_skin_parts_found_by_role_under_other_names():
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     assert set(a[0].tolist()) == {-1, 0, 1, 2}  # head and both hands have skin
+
+
+@pytest.mark.parametrize("name", ["gym_humanoid", "cmu"])
+def test_skin_parts_of_package_bodies_lie_at_their_keypoints(name):
+    """Bodies designed elsewhere: gymnasium's humanoid hangs its head sphere on the torso link
+    and its hand spheres on the forearm links, the CMU body has finger links below moving
+    joints. Every skin geom given to a part has its centre (forward kinematics at rest) nearer
+    that part's keypoint than the other parts' (geometry as the oracle), and each part has
+    one."""
+    from jaxmocap.body import fk
+    from jaxmocap.body.packages import package_body
+    from jaxmocap.garment import default_skin_geoms, make_garment
+    from jaxmocap.trackers.shirt.skin import SKIN_PARTS, skin_parts
+
+    model = package_body(name)
+    garment = make_garment(model, [], [], default_skin_geoms(model))  # skin only
+    part_geom, _ = skin_parts(model, garment)
+    T = np.asarray(fk(model.chain, jnp.zeros(model.n_dof)))
+    g = model.geometry
+    centre = np.einsum("gij,gj->gi", T[np.asarray(g.link)], np.asarray(g.pose)[:, :, 3])[:, :3]
+    kp = np.asarray(keypoints(model, jnp.zeros(model.n_dof)))
+    names = list(model.keypoint_names)
+    parts = kp[[names.index(k) for k in SKIN_PARTS]]
+    for k in range(len(SKIN_PARTS)):
+        mine = np.flatnonzero(part_geom == k)
+        assert mine.size, SKIN_PARTS[k]
+        d = np.linalg.norm(centre[mine, None] - parts[None], axis=-1)
+        assert (d.argmin(1) == k).all(), (SKIN_PARTS[k], [g.names[i] for i in mine])

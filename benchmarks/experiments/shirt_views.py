@@ -319,13 +319,14 @@ def speed(out: str, option: str = "own_start", reps: int = 20) -> dict:
     s = bench_shirt.setup(width, height, sized(full=bench_shirt.DB_SIZE, quick=500))
     base = s["params"]
     value = True if option in ("own_start", "skin_terms") else 2
-    other = dataclasses.replace(base, rounds=dataclasses.replace(base.rounds, **{option: value}))
+    extra = {}
     if option == "skin_terms":  # the skin class from the garment's albedo (no scribbles here)
         from jaxmocap.trackers.shirt.skin import make_skin_terms
 
-        other = dataclasses.replace(other, skin=make_skin_terms(
-            base.body, base.garment, base.color, None, base.colours.scene_colors,
-            base.colours.shading))
+        extra["skin"] = make_skin_terms(base.body, base.garment, base.color, None,
+                                        base.colours.scene_colors, base.colours.shading)
+    other = dataclasses.replace(base, rounds=dataclasses.replace(base.rounds, **{option: value}),
+                                **extra)
     runs = {}
     for name, prm in (("off", base), ("on", other)):
         st = shirt.init(prm, s["state"].W, s["state"].q)

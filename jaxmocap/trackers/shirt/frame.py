@@ -282,7 +282,7 @@ def round_context(params: ShirtParams, state: ShirtState, views: Views, okq, q_g
     extra = {}
     if hyps is not None:
         extra = dict(hyps=hyps[0], n_hyps=hyps[1], lost=~state.valid)
-    if params.skin is not None:
+    if params.rounds.skin_terms:
         # only after a valid frame: after a loss the starts are tens of cm off and the windows
         # around their prediction catch the wrong skin (docs/results/shirt_skin.md)
         extra["skin"] = skin_maps(params.color, params.skin, views.cls.W, views.crops, views.fgs,

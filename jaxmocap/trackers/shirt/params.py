@@ -318,6 +318,13 @@ class ShirtParams(eqx.Module):
     geom_kinds: tuple[int, ...] = eqx.field(static=True, default=())  # body's, for renders
     skin: SkinTerms | None = None  # with ``rounds.skin_terms`` (:mod:`.skin`)
 
+    def __check_init__(self):
+        # one switch: the program reads ``rounds.skin_terms``, the terms must come with it
+        if self.rounds.skin_terms != (self.skin is not None):
+            raise ValueError("ShirtParams: rounds.skin_terms and skin go together (skin terms "
+                             f"on: {self.rounds.skin_terms}, skin given: {self.skin is not None})"
+                             "; make_params builds both")
+
     @property
     def n_cams(self) -> int:
         return self.cams.K.shape[0]

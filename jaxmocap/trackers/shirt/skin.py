@@ -44,7 +44,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxmocap.body import BodyModel, fk
-from jaxmocap.body.roles import require_roles
+from jaxmocap.body.roles import geom_roles, require_roles
 from jaxmocap.camera import pixel_rays, project
 from jaxmocap.color import ColorModel, classify
 from jaxmocap.color.classify import THRESHOLD, nearest_sq
@@ -84,24 +84,31 @@ class SkinTerms(eqx.Module):
 
 def skin_parts(body: BodyModel, garment: Garment) -> tuple[np.ndarray, np.ndarray]:
     """``(part_geom, link)``: per geom the index of the part of :data:`SKIN_PARTS` whose skin
-    it is (a skin geom of the garment on the part's role link or a link below it; -1 else),
-    and each part's link index. Found by the body's roles."""
+    it is (a skin geom of the garment that belongs to the part's role by
+    :func:`jaxmocap.body.roles.geom_roles`: on its role link, a fixed child or a link below it
+    that plays no other role, or the part's geom on a link shared with other roles, e.g. a
+    head sphere on the torso link; -1 else), and each part's link index. Found by the body's
+    roles."""
     roles = require_roles(body, "the skin terms (head and hands observed)")
-    chain = body.chain
-    parents = np.asarray(chain.parents)
-    glink = np.asarray(body.geometry.link)
+    by_role = geom_roles(body.chain, body.geometry, dict(roles.links))
     skin = np.asarray(garment.skin)
-    part_geom = np.full(glink.shape[0], -1, np.int32)
-    links = []
+    part_geom = np.full(skin.shape[0], -1, np.int32)
     for k, role in enumerate(SKIN_PARTS):
-        li = chain.link_index(roles.link(role))
-        links.append(li)
-        below = {li}
-        for j in range(li + 1, parents.shape[0]):  # topological order: parents first
-            if int(parents[j]) in below:
-                below.add(j)
-        mine = skin & np.isin(glink, sorted(below)) & (part_geom < 0)
+        mine = [g for g in by_role.get(role, []) if skin[g]]
         part_geom[mine] = k
+    links = [body.chain.link_index(roles.link(role)) for role in SKIN_PARTS]
+    # skin below a moving joint that plays no role (fingers) belongs to the nearest role link
+    # above it, when that is a part's link
+    parents = np.asarray(body.chain.parents)
+    role_links = {body.chain.link_index(li) for li in dict(roles.links).values()}
+    owned = {g for gs in by_role.values() for g in gs}
+    for g, li in enumerate(np.asarray(body.geometry.link).tolist()):
+        if not skin[g] or g in owned:
+            continue
+        while li >= 0 and li not in role_links:
+            li = int(parents[li])
+        if li in links:
+            part_geom[g] = links.index(li)
     return part_geom, np.asarray(links, np.int32)
 
 
