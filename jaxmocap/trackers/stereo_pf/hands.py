@@ -72,10 +72,11 @@ from jaxmocap import blobs as bloblib
 from jaxmocap.body import BodyModel, keypoint_index, keypoints
 from jaxmocap.errors import InputError
 from jaxmocap.pf.cues import Observation
-from jaxmocap.trackers.stereo_pf.checks import NECK_FRACTION, REACH_MARGIN, hand_reach
+from jaxmocap.trackers.stereo_pf.checks import REACH_MARGIN, hand_reach
 from jaxmocap.trackers.stereo_pf.filter import compile_step, online_frame
 from jaxmocap.trackers.stereo_pf.observation import _segment, observe
 from jaxmocap.trackers.stereo_pf.params import BLOB_PARAMS, HAND_KEYPOINTS, HandParams
+from jaxmocap.trackers.stereo_pf.search import _project_both
 
 __all__ = ["ArmReach", "HandParams", "arm_reach", "cloud_prediction", "gated_hands",
            "hand_gates", "motion_map", "observe_hands"]
@@ -110,10 +111,8 @@ def arm_reach(model: BodyModel, margin: float = REACH_MARGIN) -> ArmReach:
     for chain in ARM_CHAINS:
         pts = kp[[names.index(k) for k in chain if k in names]]
         reach.append(margin * float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
-    mid = 0.5 * (kp[names.index("l_shoulder")] + kp[names.index("r_shoulder")])
-    near = NECK_FRACTION * float(np.linalg.norm(kp[names.index("head")] - mid))
     index = tuple(int(keypoint_index(model, k)[0]) for k in CLOUD_KEYPOINTS)
-    far = hand_reach(model, margin)[1]
+    near, far = hand_reach(model, margin)
     return ArmReach(index, jnp.asarray(reach, jnp.float32), jnp.asarray(near, jnp.float32),
                     jnp.asarray(far, jnp.float32))
 
@@ -181,15 +180,6 @@ def motion_map(
     return cv2.dilate(m, k, anchor=(1, 1)) > 0
 
 
-@jax.jit
-def _project(cams, X: Float[Array, "k 3"]):
-    from jaxmocap import camera as camlib
-
-    uv = jax.vmap(camlib.project, in_axes=(0, None))(cams, X)
-    depth = jax.vmap(camlib.to_camera, in_axes=(0, None))(cams, X)[..., 2]
-    return uv, depth
-
-
 def _disc_box(u, v, r, h, w):
     x0, x1 = max(int(np.floor(u - r)), 0), min(int(np.ceil(u + r)) + 1, w)
     y0, y1 = max(int(np.floor(v - r)), 0), min(int(np.ceil(v + r)) + 1, h)
@@ -224,14 +214,15 @@ def gated_hands(
     spread: Float[np.ndarray, " 5"],
     blob_points: Float[np.ndarray, "3 3"],
     blob_valid: Bool[np.ndarray, " 3"],
-    hp: HandParams = HandParams(),
+    hp: HandParams | None = None,
 ) -> tuple[Float[np.ndarray, "2 3"], Bool[np.ndarray, " 2"], dict]:
     """The hands of one stereo frame (module docstring, steps 2-5): ``masks`` the candidate
     pixels of each view (skin, or skin | motion), ``predicted`` / ``spread`` the
     :func:`cloud_prediction` (velocity already added), ``blob_points`` / ``blob_valid`` the
     blob line's (head, left hand, right hand). Returns the hands' points (2, 3) (0 where
     missing), their valid flags and a log (``source``: per hand 0 missing, 1 blob line,
-    2 window search)."""
+    2 window search); ``hp`` the thresholds (default :class:`HandParams`)."""
+    hp = HandParams() if hp is None else hp
     cams = params.likelihood.cams
     predicted = np.asarray(predicted, np.float64)
     spread = np.asarray(spread, np.float64)
@@ -250,7 +241,7 @@ def gated_hands(
     if not np.all(np.isfinite(predicted)):
         return out, found, log
     f = np.asarray(cams.K, np.float64)[:, 0, 0]
-    uv, depth = (np.asarray(x, np.float64) for x in _project(
+    uv, depth = (np.asarray(x, np.float64) for x in _project_both(
         cams, jnp.asarray(np.vstack([predicted[3:5], *heads, *necks]), jnp.float32)))
     radii = [hp.head_exclude_m] * len(heads) + [hp.neck_exclude_m] * len(necks)
     cuts = [[], []]
