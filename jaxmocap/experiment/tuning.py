@@ -246,6 +246,7 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
     """(per-sequence :class:`jaxmocap.tune.IKSetup`, per-sequence windows, the start theta,
     the file's transfer mode, body digest, dof names, garment digest, per-sequence body
     digests)."""
+    import equinox as eqx
     import jax.numpy as jnp
 
     from jaxmocap import tune
@@ -256,6 +257,7 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
     from jaxmocap.ik import IKCovariances, anchors_from_garment
     from jaxmocap.io.cameras import load_cameras
     from jaxmocap.trackers.shirt import covariances as shc
+    from jaxmocap.trackers.shirt.params import WORK_SIZE
 
     c = cfg.to_dict()
     loaded = []
@@ -323,14 +325,15 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
         clip = tune.ik_observations(
             [(o["centroids"][:n], o["visible"][:n], o["q_blend"][:n], o["q_gt"][:n],
               o["valid"][:n], o["q_tracker"][:n])], WINDOW, dtype)
-        if opt.get("view_anchors", True):  # the tracker's per-view anchors (its default)
-            off, sh = _view_anchors_at(setups[-1], garment, clip.q_start.reshape(
-                -1, clip.q_start.shape[-1]), int(opt.get("work_size", 128)))
+        clip = _scored_windows(clip)  # before the renders: a dropped window needs none
+        if opt.get("view_anchors", True) and clip.q_b.shape[0]:  # the tracker's per-view
+            off, sh = _view_anchors_at(setups[-1], garment, clip.q_start.reshape(  # anchors
+                -1, clip.q_start.shape[-1]), int(opt.get("work_size", WORK_SIZE)))
             w = clip.q_b.shape[:2]
-            clip = type(clip)(clip.centroids, clip.visible, clip.q_b, clip.q_gt, clip.scored,
-                              clip.q_start, off.reshape(w + off.shape[1:]),
-                              sh.reshape(w + sh.shape[1:]))
-        clips.append(_scored_windows(clip))
+            clip = eqx.tree_at(lambda o: (o.view_offset, o.view_shift), clip,
+                               (off.reshape(w + off.shape[1:]), sh.reshape(w + sh.shape[1:])),
+                               is_leaf=lambda x: x is None)
+        clips.append(clip)
     # a sequence without any scored frame adds 0 / 0: no gradient to compile for it
     keep = [i for i, c in enumerate(clips) if c.q_b.shape[0]]
     if not keep:
@@ -437,10 +440,10 @@ def _scored_windows(obs):
     such a window adds 0 to both sums of :func:`jaxmocap.tune.ik_loss_parts`, so dropping it
     leaves the loss and its gradient unchanged and saves its LM solves (on the test world's
     dev split the tracker reports ~40% of frames valid; whole sequences have none)."""
+    import jax
+
     keep = np.flatnonzero(np.asarray(obs.scored).any(axis=1))
-    return type(obs)(*(None if a is None else a[keep] for a in
-                       (obs.centroids, obs.visible, obs.q_b, obs.q_gt, obs.scored,
-                        obs.q_start, obs.view_offset, obs.view_shift)))
+    return jax.tree.map(lambda a: a[keep], obs)  # None fields stay None
 
 
 def _view_anchors_at(setup, garment, q, work_size: int, margin: float = 1.3):
