@@ -13,6 +13,11 @@ With M_g = (limbs x 2 lines x M) samples g_m per camera:
 * distance cue (§III-D):       log p_d' = -1 / (2 sigma_d^2) sum_i valid_i |f_i(s) - c_i|^2
   for i = head, left hand, right hand (the triangulated skin blobs of :mod:`jaxmocap.blobs`;
   Azad mark a missing c_i by c_i = 0, we carry an explicit ``valid`` mask instead);
+  with ``sigma_depth`` (ours, not in the paper) the residual's component along the line of
+  sight u_i (from the cameras' midpoint to c_i) has the width sigma_depth instead:
+  log p_d' = -sum_i valid_i [|r_i - (r_i . u_i) u_i|^2 / (2 sigma_d^2)
+  + (r_i . u_i)^2 / (2 sigma_depth^2)], r_i = f_i(s) - c_i -- a triangulated point on a short
+  baseline is far coarser in depth (disparity) than across (:data:`DEPTH_RATIO`);
 * hand-support cue (ours, not in the paper; ``use_support``): a hand is either seen as a skin
   blob or hidden behind the shirt / another skin region, or outside the image -- it never lies
   on plain background. With S the observation's ``support`` map (skin or shirt, dilated by
@@ -41,7 +46,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxmocap.body import BodyModel, fk, keypoint_index
-from jaxmocap.camera import Camera, project
+from jaxmocap.camera import Camera, camera_center, project
 from jaxmocap.pf.contours import (
     POINTS_PER_LINE,
     REGION_ACROSS,
@@ -63,6 +68,7 @@ from jaxmocap.rotations import so3_left_jacobian
 from jaxmocap.sampling import sample_bilinear, sample_nearest
 
 __all__ = [
+    "DEPTH_RATIO",
     "DISTANCE_NAMES",
     "EDGE_OUTSIDE",
     "POINTS_PER_LINE",
@@ -103,6 +109,11 @@ SIGMA_G = 0.2
 # 4 cm gives a hand 10 cm off a weight exp(-0.1^2 / (2 * 0.04^2)) = e^-3.1.
 SIGMA_D = 0.04
 SIGMA_R = 0.1  # region cue, same role as sigma_g
+# sigma_depth / sigma_d of a triangulated point on the test world's 11 cm baseline at 1.9-3 m:
+# the 683 measured heads and hands of the dev split (pf_00/03/06/09/12/13, the blob line of
+# world_pf.toml's `jaxmocap` set-up, points within 30 cm of the nearer true part) are off by an
+# RMS of 7.7 cm along the line of sight and 3.9 cm across it (docs/results/stereo_pf_depth.md)
+DEPTH_RATIO = 2.0
 # Hand-support cue (ours): a hand on plain background in one camera costs 1 / (2 sigma_s^2) =
 # 2 nats, about a 0.16 lower mean edge value in that camera (sigma_g = 0.2).
 SIGMA_S = 0.5
@@ -264,6 +275,9 @@ class StereoLikelihood(eqx.Module):
     use_support: bool = eqx.field(static=True, default=False)
     support_all: bool = eqx.field(static=True, default=False)
     edge_outside: Float[Array, ""] | None = eqx.field(converter=_optional_array, default=None)
+    # the distance cue's width along each target's line of sight (m; None: sigma_d, isotropic
+    # as Azad's; module docstring)
+    sigma_depth: Float[Array, ""] | None = eqx.field(converter=_optional_array, default=None)
     # hands by nearest assignment (not in the paper): each particle's hands take the two
     # triangulated hands in the pairing of least squared distance, so a blob tracker that
     # swapped the hands' identities (40-47% of the measured hands on two dev sequences of the
@@ -301,13 +315,37 @@ class StereoLikelihood(eqx.Module):
     def full_q(self, s: Float[Array, " d"]) -> Float[Array, " n_dof"]:
         return self.default_q.astype(s.dtype).at[np.asarray(self.dofs)].set(s)
 
+    def _depth_shrink(self, c: Float[Array, "k 3"]) -> tuple[Float[Array, "k 3"], Array] | None:
+        """The lines of sight u_i (unit, from the cameras' midpoint to the targets ``c``) and
+        the factor 1 - sigma_d / sigma_depth by which a residual's component along them is
+        shrunk so that |r_w|^2 / sigma_d^2 is the anisotropic cue's (module docstring); None
+        without ``sigma_depth``."""
+        if self.sigma_depth is None:
+            return None
+        origin = jnp.mean(jax.vmap(camera_center)(self.cams), axis=0).astype(c.dtype)
+        u = c - origin[None, :]
+        norm = jnp.sqrt(jnp.maximum(_dot(u, u), jnp.asarray(1e-12, c.dtype)))
+        a = 1 - self.sigma_d.astype(c.dtype) / self.sigma_depth.astype(c.dtype)
+        return u / norm[:, None], a
+
+    def _whiten(self, r: Float[Array, "k 3"], c: Float[Array, "k 3"]) -> Float[Array, "k 3"]:
+        """The residuals ``r`` with their components along the lines of sight to ``c`` scaled
+        by sigma_d / sigma_depth (unchanged without ``sigma_depth``)."""
+        got = self._depth_shrink(c)
+        if got is None:
+            return r
+        u, a = got
+        return r - a * _dot(r, u)[:, None] * u
+
     def distance_residual(self, s: Float[Array, " d"], z: Observation) -> Float[Array, " k3"]:
         """The distance cue's residuals valid_i (f_i(s) - c_i), flattened (3 k,) in m (zero
-        for a missing c_i): log p_d' = -|r|^2 / (2 sigma_d^2). The residual of the guided
-        proposal (:class:`jaxmocap.pf.guided.GuidedProposal`)."""
+        for a missing c_i; with ``sigma_depth`` their components along the lines of sight scaled
+        by sigma_d / sigma_depth): log p_d' = -|r|^2 / (2 sigma_d^2). The residual of the
+        guided proposal (:class:`jaxmocap.pf.guided.GuidedProposal`), which therefore closes
+        a point's depth only as far as the cue trusts it."""
         f = distance_points(self.model, pose_transforms(self.model, self.full_q(s)))
         c, v = self._targets(f, z)
-        r = f - c
+        r = self._whiten(f - c, c)
         return jnp.where(v[:, None], r, jnp.zeros_like(r)).reshape(-1)
 
     def distance_linearize(
@@ -348,7 +386,11 @@ class StereoLikelihood(eqx.Module):
                 cols.append(jnp.where(below[:, None], col, 0.0))
         jac = jnp.stack(cols, axis=-1)  # (k, 3, d)
         c, v = self._targets(f, z)
-        r = f - c
+        r = self._whiten(f - c, c)
+        got = self._depth_shrink(c)
+        if got is not None:  # the same linear map on the Jacobian's columns
+            u, a = got
+            jac = jac - a * u[:, :, None] * jnp.einsum("ki,kid->kd", u, jac)[:, None, :]
         r = jnp.where(v[:, None], r, jnp.zeros_like(r)).reshape(-1)
         jac = jnp.where(v[:, None, None], jac, jnp.zeros_like(jac))
         return r, jac.reshape(-1, len(self.dofs))
@@ -383,6 +425,8 @@ class StereoLikelihood(eqx.Module):
         if self.use_distance:
             f = distance_points(self.model, tr)
             c, v = self._targets(f, z)
+            if self.sigma_depth is not None:
+                f = c + self._whiten(f - c, c)
             ll = ll + distance_loglik(f, c, v, self.sigma_d.astype(s.dtype))
         if self.use_support:
             if z.support is None:

@@ -183,7 +183,13 @@ class Cues(eqx.Module):
       every hand with ``support_all``; :func:`observe` then adds the support map to the
       observation;
     * ``hand_swap`` (static; not in the paper): each particle pairs its hands with the
-      triangulated ones in the nearer pairing, robust to swapped blob identities.
+      triangulated ones in the nearer pairing, robust to swapped blob identities;
+    * ``sigma_depth`` (traced; ``None``, static: ``sigma_d`` in every direction, as Azad's): the
+      distance cue's width along each triangulated point's line of sight (not in the paper;
+      :mod:`jaxmocap.pf.cues`): a short baseline measures depth coarsely, so depth is left to
+      the edge cue and the body's bone lengths as far as the point does not hold it
+      (``sigma_d * cuelib.DEPTH_RATIO``: the dev split's measured ratio; issue 39 decision 3,
+      docs/results/stereo_pf_depth.md).
     """
 
     use_distance: bool = eqx.field(static=True, default=True)
@@ -198,6 +204,7 @@ class Cues(eqx.Module):
     use_support: bool = eqx.field(static=True, default=USE_SUPPORT)
     support_all: bool = eqx.field(static=True, default=False)
     hand_swap: bool = eqx.field(static=True, default=False)
+    sigma_depth: float | None = None
 
 
 class Proposals(eqx.Module):
@@ -411,6 +418,9 @@ def make_params(
                          f"{adapt_shirt_rate} / {adapt_spread}")
     if n_particles < 2:
         raise InputError(f"stereo_pf.make_params: n_particles: expected >= 2, got {n_particles}")
+    if cues.sigma_depth is not None and not float(cues.sigma_depth) > 0:
+        raise InputError(f"stereo_pf.make_params: sigma_depth: expected > 0 (m) or None, got "
+                         f"{cues.sigma_depth}")
     default_q = (
         jnp.zeros(model.n_dof, dtype) if default_q is None else jnp.asarray(default_q, dtype)
     )
@@ -428,6 +438,7 @@ def make_params(
         sigma_s=jnp.asarray(cues.sigma_s, dtype), use_support=cues.use_support,
         support_all=cues.support_all, hand_swap=cues.hand_swap,
         edge_outside=None if cues.edge_outside is None else jnp.asarray(cues.edge_outside, dtype),
+        sigma_depth=None if cues.sigma_depth is None else jnp.asarray(cues.sigma_depth, dtype),
     )  # fmt: skip
     lower = np.asarray(model.chain.lower, np.float64)[dofs]
     upper = np.asarray(model.chain.upper, np.float64)[dofs]
