@@ -1,0 +1,284 @@
+"""Depth on a short baseline (issue 39 decision 3): where the stereo filter's error lies, in
+depth (along the line of sight from the cameras' midpoint) and across it, and what holding or
+freeing the triangulated points' depth does -- an oracle ladder on the test world's dev split.
+
+Each configuration runs :func:`jaxmocap.trackers.driver.stereo_offline` on the sequence with
+the set-up of ``world_pf.toml``'s ``jaxmocap`` configuration (the capture's colours from
+scribbles, blob plausibility, hand swap) and one change:
+
+* ``base``: as it is;
+* ``depth``: the distance cue's width along each point's line of sight ``Cues.sigma_depth =
+  DEPTH_RATIO x sigma_d`` (:mod:`jaxmocap.pf.cues`): depth left to the edge cue and the body's
+  bone lengths as far as the triangulation does not hold it;
+* ``oracle_depth``: the blob line's points (same ones, same frames) moved along their own line
+  of sight to the depth of the nearest true part of their role (head; either hand): perfect
+  disparity, the lateral error kept;
+* ``oracle_rays``: the true head and hands wherever they are visible in both cameras
+  (:func:`benchmarks.experiments.world_pf_parts.visibility`), with ``sigma_depth`` = 100 m:
+  each found part as a line of sight only -- whether the edge cue and the body place its
+  depth;
+* ``oracle_points``: the true head and hands where visible, isotropic: the ceiling.
+
+The oracles only replace the *points* the distance cue reads (the image line, edges and
+support map are the tracker's).
+
+    python -m benchmarks.experiments.pf_depth run OUT CONFIG SEQ_FOLDER... [--seed 0] [--set K=V]
+    python -m benchmarks.experiments.pf_depth report OUT [--md X.md --json X.json]
+    python -m benchmarks.experiments.pf_depth timing SEQ_FOLDER   # the step with / without
+
+``OUT`` holds one ``CONFIG_SEQ_sSEED.npz`` per run in the format of ``world_pf_parts`` (whose
+``base`` runs can be copied in); the report adds the mean joint error over all frames split
+into depth and lateral (:func:`jaxmocap.metrics.depth_lateral`) and the measured points'
+depth / lateral error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.experiments.world_pf_parts import CONFIGS as PARTS_CONFIGS
+from benchmarks.experiments.world_pf_parts import metrics as parts_metrics
+from benchmarks.experiments.world_pf_parts import visibility
+
+FREE_DEPTH_M = 100.0  # sigma_depth of the ``oracle_rays`` rung: the depth held by nothing
+CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points")
+ROLES = ("head", "l_hand", "r_hand")  # the distance cue's points (jaxmocap.blobs order)
+
+
+def _origin(cams) -> np.ndarray:
+    from jaxmocap.camera import camera_center
+
+    return np.mean([np.asarray(camera_center(c), np.float64) for c in cams], axis=0)
+
+
+def _true_parts(seq) -> np.ndarray:
+    """(T, 3, 3) the true head, left and right hand keypoints."""
+    g = seq.groundtruth
+    names = [str(n) for n in g["keypoint_names"]]
+    return np.stack([g["keypoints"][:, names.index(n)] for n in ROLES], axis=1)
+
+
+def oracle_depth_points(points: np.ndarray, valid: np.ndarray, truth: np.ndarray,
+                        origin: np.ndarray) -> np.ndarray:
+    """Each valid point moved along its line of sight (from ``origin``) to the depth of the
+    nearest true part of its role (the head for the head, the nearer hand for a hand)."""
+    out = np.array(points, np.float64, copy=True)
+    for t, k in zip(*np.nonzero(valid), strict=True):
+        cands = truth[t, :1] if k == 0 else truth[t, 1:]
+        near = cands[np.argmin(np.linalg.norm(cands - points[t, k], axis=-1))]
+        u = points[t, k] - origin
+        u /= np.linalg.norm(u)
+        out[t, k] = origin + u * float((near - origin) @ u)
+    return out
+
+
+def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | None = None
+        ) -> None:
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.experiment.cell import pf_setup
+    from jaxmocap.pf.cues import DEPTH_RATIO, SIGMA_D
+    from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.driver import stereo_offline
+
+    out.mkdir(parents=True, exist_ok=True)
+    for folder in folders:
+        name = Path(folder).name
+        dest = out / f"{config}_{name}_s{seed}.npz"
+        if dest.exists():
+            continue
+        seq = load_dataset(folder)
+        opts = dict(PARTS_CONFIGS["base"])
+        if config == "depth":
+            opts["sigma_depth"] = DEPTH_RATIO * SIGMA_D
+        elif config == "oracle_rays":
+            opts["sigma_depth"] = FREE_DEPTH_M
+        opts.update(extra or {})
+        cfg = {"name": config, "method": "pf", "body": "sequence", "options": opts}
+        params, blob, lag, _, _, heads = pf_setup(seq, cfg, folder)
+        vis_file = out / f"visible_{name}.npy"
+        if not vis_file.exists():
+            np.save(vis_file, visibility(seq, params.model))
+        vis = np.load(vis_file)
+        truth, origin = _true_parts(seq), _origin(seq.cameras)
+
+        def observe(params=params, blob=blob, seq=seq, vis=vis, truth=truth, origin=origin):
+            obs = sp.observe_sequence(params, seq.frames, blob)
+            if not config.startswith("oracle"):
+                return obs
+            dt = obs.points.dtype
+            if config == "oracle_depth":
+                pts = oracle_depth_points(np.asarray(obs.points, np.float64),
+                                          np.asarray(obs.valid), truth, origin)
+                return dataclasses.replace(obs, points=jnp.asarray(pts, dt))
+            return dataclasses.replace(obs, points=jnp.asarray(np.where(vis[..., None], truth, 0),
+                                                               dt), valid=jnp.asarray(vis))
+
+        t0 = time.perf_counter()
+        res = stereo_offline(params, jax.random.key(seed), seq.frames, observe, lag,
+                             start_from_head=heads)
+        wall = time.perf_counter() - t0
+        est = jax.device_get(res.estimate)
+        obs = res.observations
+        q = np.asarray(est.q, np.float64)
+        valid = sp.frame_validity(params, q, np.asarray(obs.points), np.asarray(obs.valid))
+        np.savez(dest, q=q, valid=valid,
+                 times=np.full(len(est.q), wall / len(est.q)), points=np.asarray(obs.points),
+                 blob_valid=np.asarray(obs.valid), visible=vis, wall_s=wall, folder=str(folder))
+        print(f"{dest.name}: {wall:.0f} s", flush=True)
+
+
+def depth_metrics(path: Path) -> dict:
+    """``world_pf_parts.metrics`` plus the joint error (all frames, the experiment's joints)
+    split into depth and lateral, and the measured points' depth / lateral error (points
+    within 30 cm of the nearest true part of their role)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.experiment.cell import _body
+    from jaxmocap.metrics import depth_lateral
+    from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers.driver import PF_JOINTS
+
+    row = parts_metrics(path)
+    z = np.load(path)
+    folder = str(z["folder"])
+    seq = load_dataset(folder)
+    origin = _origin(seq.cameras)
+    body = _body({"body": "sequence"}, folder)
+    g = seq.groundtruth
+    gnames = [str(n) for n in g["keypoint_names"]]
+    q = np.asarray(z["q"])
+    kp = np.asarray(jax.vmap(lambda x: keypoints(body, x))(jnp.asarray(np.nan_to_num(q))))
+    names = list(body.keypoint_names)
+    pred = kp[:, [names.index(j) for j in PF_JOINTS]]
+    true = g["keypoints"][:, [gnames.index(j) for j in PF_JOINTS]]
+    d, lat = depth_lateral(pred, true, origin)
+    row["depth_cm"], row["lateral_cm"] = float(100 * d.mean()), float(100 * lat.mean())
+    truth = _true_parts(seq)
+    pts, ok = z["points"], z["blob_valid"]
+    dd, ll = [], []
+    for t, k in zip(*np.nonzero(ok), strict=True):
+        cands = truth[t, :1] if k == 0 else truth[t, 1:]
+        near = cands[np.argmin(np.linalg.norm(cands - pts[t, k], axis=-1))]
+        if np.linalg.norm(near - pts[t, k]) < 0.3:
+            a, b = depth_lateral(pts[t, k], near, origin)
+            dd.append(float(a))
+            ll.append(float(b))
+    row["points_rms_depth_cm"] = float(100 * np.sqrt(np.mean(np.square(dd)))) if dd else None
+    row["points_rms_lateral_cm"] = float(100 * np.sqrt(np.mean(np.square(ll)))) if ll else None
+    row["points_near"] = len(dd)
+    row["config"], row["sequence"] = path.stem.split("_pf_")[0], "pf_" + \
+        path.stem.split("_pf_")[1].rsplit("_s", 1)[0]
+    row["seed"] = int(path.stem.rsplit("_s", 1)[1])
+    return row
+
+
+def report(out: Path, md: str | None, js: str | None) -> None:
+    rows = [depth_metrics(p) for p in sorted(out.glob("*_pf_*_s*.npz"))]
+    configs = [c for c in CONFIGS if any(r["config"] == c for r in rows)]
+    seqs = sorted({r["sequence"] for r in rows})
+    lines = ["| config | " + " | ".join(seqs) + " | mean | depth / lateral cm |",
+             "|---|" + "---|" * (len(seqs) + 2)]
+    summary = {}
+    for c in configs:
+        cells, allr = [], [r for r in rows if r["config"] == c]
+        for s in seqs:
+            v = [r["mean_joint_cm"] for r in allr if r["sequence"] == s]
+            cells.append(f"{np.mean(v):.1f} ({len(v)})" if v else "-")
+        seeds = sorted({r["seed"] for r in allr})
+        # the mean over the sequences per seed, then over the seeds (as `jaxmocap experiment`)
+        per_seed = [np.mean([r["mean_joint_cm"] for r in allr if r["seed"] == k]) for k in seeds]
+        dl = (np.mean([r["depth_cm"] for r in allr]), np.mean([r["lateral_cm"] for r in allr]))
+        summary[c] = {"mean_cm": float(np.mean(per_seed)), "seed_means": per_seed,
+                      "depth_cm": float(dl[0]), "lateral_cm": float(dl[1])}
+        lines.append(f"| {c} | " + " | ".join(cells) + f" | {np.mean(per_seed):.2f} "
+                     f"({min(per_seed):.2f}-{max(per_seed):.2f}) | {dl[0]:.1f} / {dl[1]:.1f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if md:
+        Path(md).write_text(text)
+    if js:
+        Path(js).write_text(json.dumps({"summary": summary, "runs": rows}, indent=1) + "\n")
+
+
+def timing(folder: str, calls: int, rounds: int) -> dict:
+    """The compiled filter step (``compile_step``, N = 1000) with and without ``sigma_depth``
+    on the sequence's observations, ``rounds`` interleaved rounds of ``calls`` frames each
+    (this machine's speed drifts: only interleaved runs compare); median ms per step."""
+    import jax
+
+    from jaxmocap.experiment.cell import pf_setup
+    from jaxmocap.pf.cues import DEPTH_RATIO, SIGMA_D
+    from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers import stereo_pf as sp
+
+    seq = load_dataset(folder)
+    variants, blob = {}, None
+    for k, extra in (("isotropic", {}), ("sigma_depth", {"sigma_depth": DEPTH_RATIO * SIGMA_D})):
+        cfg = {"name": k, "method": "pf", "body": "sequence",
+               "options": {**PARTS_CONFIGS["base"], **extra}}
+        variants[k], blob, *_ = pf_setup(seq, cfg, folder)
+    obs = sp.observe_sequence(variants["isotropic"], seq.frames, blob)
+    frames = [jax.tree.map(lambda a, t=t: a[t], obs) for t in range(obs.points.shape[0])]
+    steps, states = {}, {}
+    for k, p in variants.items():
+        steps[k] = sp.compile_step(p)
+        states[k], _ = sp.init_top_level(p, jax.random.key(0), frames[0])
+        jax.block_until_ready(steps[k](states[k], frames[0]))
+    ms = {k: [] for k in variants}
+    for _ in range(rounds):
+        for k in variants:
+            st = states[k]
+            for i in range(calls):
+                t0 = time.perf_counter()
+                st, est = steps[k](st, frames[i % len(frames)])
+                jax.block_until_ready(est)
+                ms[k].append(1e3 * (time.perf_counter() - t0))
+    out = {k: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v))}
+           for k, v in ms.items()}
+    print(json.dumps(out, indent=1))
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("out")
+    r.add_argument("config", choices=CONFIGS)
+    r.add_argument("folders", nargs="+")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--set", action="append", default=[], metavar="OPTION=JSON",
+                   help="a further experiment option of the configuration (e.g. init_yaw=3.1416)")
+    t = sub.add_parser("timing")
+    t.add_argument("folder")
+    t.add_argument("--calls", type=int, default=60)
+    t.add_argument("--rounds", type=int, default=4)
+    p = sub.add_parser("report")
+    p.add_argument("out")
+    p.add_argument("--md")
+    p.add_argument("--json")
+    a = ap.parse_args()
+    if a.cmd == "timing":
+        timing(a.folder, a.calls, a.rounds)
+    elif a.cmd == "run":
+        extra = {k: json.loads(v) for k, v in (x.split("=", 1) for x in a.set)}
+        run(Path(a.out), a.config, a.folders, a.seed, extra)
+    else:
+        report(Path(a.out), a.md, a.json)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
