@@ -17,7 +17,10 @@ scribbles, blob plausibility, hand swap) and one change:
   (:func:`benchmarks.experiments.world_pf_parts.visibility`), with ``sigma_depth`` = 100 m:
   each found part as a line of sight only -- whether the edge cue and the body place its
   depth;
-* ``oracle_points``: the true head and hands where visible, isotropic: the ceiling.
+* ``oracle_points``: the true head and hands where visible, isotropic: the ceiling;
+* ``oracle_identity``: the blob line's points (same ones, same frames), each measured hand
+  named by the nearer true hand (a pair named alike keeps the nearer one), without the hand
+  swap: the identities right, the points as measured.
 
 The oracles only replace the *points* the distance cue reads (the image line, edges and
 support map are the tracker's).
@@ -46,7 +49,7 @@ from benchmarks.experiments.world_pf_parts import metrics as parts_metrics
 from benchmarks.experiments.world_pf_parts import visibility
 
 FREE_DEPTH_M = 100.0  # sigma_depth of the ``oracle_rays`` rung: the depth held by nothing
-CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points")
+CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points", "oracle_identity")
 ROLES = ("head", "l_hand", "r_hand")  # the distance cue's points (jaxmocap.blobs order)
 
 
@@ -77,6 +80,24 @@ def oracle_depth_points(points: np.ndarray, valid: np.ndarray, truth: np.ndarray
     return out
 
 
+def oracle_identity_points(points: np.ndarray, valid: np.ndarray, truth: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """The measured hands renamed by the nearer true hand (module docstring): (points, valid)."""
+    pts, ok = np.array(points, copy=True), np.array(valid, copy=True)
+    for t in range(len(pts)):
+        got = {}
+        for k in (1, 2):
+            if valid[t, k]:
+                d = np.linalg.norm(truth[t, 1:] - points[t, k], axis=-1)
+                role = 1 + int(np.argmin(d))
+                if role not in got or d[role - 1] < got[role][1]:
+                    got[role] = (points[t, k], d[role - 1])
+        ok[t, 1:] = False
+        for role, (p, _) in got.items():
+            pts[t, role], ok[t, role] = p, True
+    return pts, ok
+
+
 def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | None = None
         ) -> None:
     import dataclasses
@@ -102,6 +123,8 @@ def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | Non
             opts["sigma_depth"] = DEPTH_RATIO * SIGMA_D
         elif config == "oracle_rays":
             opts["sigma_depth"] = FREE_DEPTH_M
+        elif config == "oracle_identity":
+            opts["hand_swap"] = False
         opts.update(extra or {})
         cfg = {"name": config, "method": "pf", "body": "sequence", "options": opts}
         params, blob, lag, _, _, heads = pf_setup(seq, cfg, folder)
@@ -120,6 +143,11 @@ def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | Non
                 pts = oracle_depth_points(np.asarray(obs.points, np.float64),
                                           np.asarray(obs.valid), truth, origin)
                 return dataclasses.replace(obs, points=jnp.asarray(pts, dt))
+            if config == "oracle_identity":
+                pts, ok = oracle_identity_points(np.asarray(obs.points), np.asarray(obs.valid),
+                                                 truth)
+                return dataclasses.replace(obs, points=jnp.asarray(pts, dt),
+                                           valid=jnp.asarray(ok))
             return dataclasses.replace(obs, points=jnp.asarray(np.where(vis[..., None], truth, 0),
                                                                dt), valid=jnp.asarray(vis))
 
