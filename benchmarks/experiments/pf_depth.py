@@ -20,7 +20,11 @@ scribbles, blob plausibility, hand swap) and one change:
 * ``oracle_points``: the true head and hands where visible, isotropic: the ceiling;
 * ``oracle_identity``: the blob line's points (same ones, same frames), each measured hand
   named by the nearer true hand (a pair named alike keeps the nearer one), without the hand
-  swap: the identities right, the points as measured.
+  swap: the identities right, the points as measured;
+* ``oracle_candidates``: each hand the blob line's stereo-matched candidate (every triangulated
+  skin-blob pair of the frame that passed the plausibility gate, ``BlobState.candidates``)
+  nearest its true position if within 8 cm, else missing, without the hand swap: a perfect
+  association of the candidates the blob line already has.
 
 The oracles only replace the *points* the distance cue reads (the image line, edges and
 support map are the tracker's).
@@ -28,6 +32,7 @@ support map are the tracker's).
     python -m benchmarks.experiments.pf_depth run OUT CONFIG SEQ_FOLDER... [--seed 0] [--set K=V]
     python -m benchmarks.experiments.pf_depth report OUT [--md X.md --json X.json]
     python -m benchmarks.experiments.pf_depth timing SEQ_FOLDER   # the step with / without
+    python -m benchmarks.experiments.pf_depth skin OUT SEQ_FOLDER...  # where visible hands go
 
 ``OUT`` holds one ``CONFIG_SEQ_sSEED.npz`` per run in the format of ``world_pf_parts`` (whose
 ``base`` runs can be copied in); the report adds the mean joint error over all frames split
@@ -49,7 +54,9 @@ from benchmarks.experiments.world_pf_parts import metrics as parts_metrics
 from benchmarks.experiments.world_pf_parts import visibility
 
 FREE_DEPTH_M = 100.0  # sigma_depth of the ``oracle_rays`` rung: the depth held by nothing
-CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points", "oracle_identity")
+CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points", "oracle_identity",
+           "oracle_candidates")
+ASSOCIATE_M = 0.08  # oracle_candidates: a candidate within this of a true hand is that hand
 ROLES = ("head", "l_hand", "r_hand")  # the distance cue's points (jaxmocap.blobs order)
 
 
@@ -98,6 +105,31 @@ def oracle_identity_points(points: np.ndarray, valid: np.ndarray, truth: np.ndar
     return pts, ok
 
 
+def _candidate_observations(params, blob, frames, truth):
+    """``observe_sequence`` with each hand replaced by the frame's blob candidate nearest its
+    true position within :data:`ASSOCIATE_M` (else missing); the head as the blob line's."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap import blobs as bloblib
+    from jaxmocap.trackers import stereo_pf as sp
+
+    state, out = bloblib.init(blob), []
+    for t in range(len(frames)):
+        obs, state = sp.observe(params, frames[t], state)
+        pts, ok = np.array(obs.points, np.float64), np.array(obs.valid)
+        cand = np.asarray(state.candidates, np.float64).reshape(-1, 3)
+        for k in (1, 2):
+            d = np.linalg.norm(cand - truth[t, k], axis=-1) if len(cand) else np.zeros(0)
+            ok[k] = bool(len(d)) and d.min() <= ASSOCIATE_M
+            pts[k] = cand[np.argmin(d)] if ok[k] else 0.0
+        out.append(dataclasses.replace(obs, points=jnp.asarray(pts, obs.points.dtype),
+                                       valid=jnp.asarray(ok)))
+    return jax.tree.map(lambda *a: jnp.stack(a), *out)
+
+
 def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | None = None
         ) -> None:
     import dataclasses
@@ -123,7 +155,7 @@ def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | Non
             opts["sigma_depth"] = DEPTH_RATIO * SIGMA_D
         elif config == "oracle_rays":
             opts["sigma_depth"] = FREE_DEPTH_M
-        elif config == "oracle_identity":
+        elif config in ("oracle_identity", "oracle_candidates"):
             opts["hand_swap"] = False
         opts.update(extra or {})
         cfg = {"name": config, "method": "pf", "body": "sequence", "options": opts}
@@ -135,6 +167,8 @@ def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | Non
         truth, origin = _true_parts(seq), _origin(seq.cameras)
 
         def observe(params=params, blob=blob, seq=seq, vis=vis, truth=truth, origin=origin):
+            if config == "oracle_candidates":
+                return _candidate_observations(params, blob, seq.frames, truth)
             obs = sp.observe_sequence(params, seq.frames, blob)
             if not config.startswith("oracle"):
                 return obs
@@ -279,6 +313,113 @@ def timing(folder: str, calls: int, rounds: int) -> dict:
     return out
 
 
+HAND_DISC_M = 0.05  # skin diagnostic: the disc searched around a true hand (m at its depth)
+
+
+def skin_diagnostic(out: Path, folders: list[str]) -> dict:
+    """Where the blob line loses the visible hands (``base`` runs of seed 0 in ``out`` and their
+    visibility): per hand visible in both cameras, whether the skin map (the tracker's own
+    segmentation) has >= 3 px in a :data:`HAND_DISC_M` disc around the projected true hand in
+    each view, whether the blob line measured it within 8 cm, and -- for a hand with skin in
+    both views but not measured -- the first of the blob line's checks its connected component
+    fails (another hand's projection in it, < ``MIN_BLOB_AREA`` px, cut by the border, area /
+    aspect ratio, epipolar distance of the centroids; else it would pair) and, for those that
+    would pair, the triangulated centroid's distance to the true hand."""
+    from collections import Counter
+
+    import cv2
+    import jax.numpy as jnp
+
+    from jaxmocap import blobs as bloblib
+    from jaxmocap.camera import (
+        epipolar_distance,
+        fundamental_matrix,
+        project,
+        stack_cameras,
+        to_camera,
+        triangulate,
+    )
+    from jaxmocap.experiment.cell import pf_setup
+    from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers.stereo_pf.observation import _segment
+
+    counts, reasons, pair_cm = Counter(), Counter(), []
+    for folder in folders:
+        name = Path(folder).name
+        seq = load_dataset(folder)
+        cfg = {"name": "base", "method": "pf", "body": "sequence",
+               "options": dict(PARTS_CONFIGS["base"])}
+        params, *_ = pf_setup(seq, cfg, folder)
+        z = np.load(out / f"base_{name}_s0.npz")
+        vis, truth = z["visible"], _true_parts(seq)
+        cams = list(seq.cameras)
+        fmat = fundamental_matrix(cams[0], cams[1])
+        for t in range(len(truth)):
+            seg = [_segment(params, seq.frames[t, v]) for v in range(2)]
+            comps = [cv2.connectedComponentsWithStats(np.asarray(sg.skin).astype(np.uint8), 8)
+                     for sg in seg]
+            for k in (1, 2):
+                if not vis[t, k]:
+                    continue
+                counts["visible"] += 1
+                measured = any(z["blob_valid"][t, j] and
+                               np.linalg.norm(z["points"][t, j] - truth[t, k]) < 0.08
+                               for j in (1, 2))
+                info = []
+                for v, cam in enumerate(cams):
+                    _, lab, st, cen = comps[v]
+                    uv = np.asarray(project(cam, jnp.asarray(truth[t, k])))
+                    r = max(2.0, float(cam.K[0, 0]) * HAND_DISC_M / float(
+                        np.asarray(to_camera(cam, jnp.asarray(truth[t, k])))[2]))
+                    h, w = lab.shape
+                    yy, xx = np.mgrid[0:h, 0:w]
+                    m = ((xx - uv[0]) ** 2 + (yy - uv[1]) ** 2 <= r * r) & (lab > 0)
+                    if m.sum() < 3:
+                        break
+                    c = Counter(lab[m].tolist()).most_common(1)[0][0]
+                    ouv = np.round(np.asarray(project(cam, jnp.asarray(truth[t, 3 - k]))))
+                    ouv = ouv.astype(int)
+                    other = 0 <= ouv[0] < w and 0 <= ouv[1] < h and lab[ouv[1], ouv[0]] == c
+                    x, y, bw, bh, a = st[c]
+                    info.append({"area": int(a), "other": bool(other), "aspect": bh / max(bw, 1),
+                                 "border": bool(x == 0 or y == 0 or x + bw == w or y + bh == h),
+                                 "centroid": cen[c]})
+                both = len(info) == 2
+                counts["skin in both views"] += both
+                counts["measured within 8 cm"] += measured
+                counts["measured, skin in both"] += measured and both
+                if measured or not both:
+                    continue
+                a = [i["area"] for i in info]
+                asp = [i["aspect"] for i in info]
+                if any(i["other"] for i in info):
+                    why = "merged with the other hand"
+                elif min(a) < bloblib.MIN_BLOB_AREA:
+                    why = f"< {bloblib.MIN_BLOB_AREA} px"
+                elif any(i["border"] for i in info):
+                    why = "cut by the border"
+                elif min(a) / max(a) < bloblib.MIN_AREA_RATIO:
+                    why = "area ratio"
+                elif min(asp) / max(asp) < bloblib.MIN_ASPECT_RATIO:
+                    why = "aspect ratio"
+                elif float(epipolar_distance(fmat, jnp.asarray(info[0]["centroid"]),
+                                             jnp.asarray(info[1]["centroid"]))) > \
+                        bloblib.MAX_EPIPOLAR_PX:
+                    why = "epipolar distance"
+                else:
+                    why = "would pair"
+                    x3 = np.asarray(triangulate(stack_cameras(cams), jnp.asarray(np.stack(
+                        [info[0]["centroid"], info[1]["centroid"]]))))
+                    pair_cm.append(float(100 * np.linalg.norm(x3 - truth[t, k])))
+                reasons[why] += 1
+        print(name, dict(counts), flush=True)
+    res = {"counts": dict(counts), "skin in both, not measured: first check failed": dict(reasons),
+           "would pair: centroid to true hand cm, quartiles": np.percentile(
+               pair_cm, [25, 50, 75]).tolist() if pair_cm else None}
+    print(json.dumps(res, indent=1))
+    return res
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -289,6 +430,9 @@ def main() -> int:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--set", action="append", default=[], metavar="OPTION=JSON",
                    help="a further experiment option of the configuration (e.g. init_yaw=3.1416)")
+    k = sub.add_parser("skin")
+    k.add_argument("out")
+    k.add_argument("folders", nargs="+")
     t = sub.add_parser("timing")
     t.add_argument("folder")
     t.add_argument("--calls", type=int, default=60)
@@ -298,7 +442,9 @@ def main() -> int:
     p.add_argument("--md")
     p.add_argument("--json")
     a = ap.parse_args()
-    if a.cmd == "timing":
+    if a.cmd == "skin":
+        skin_diagnostic(Path(a.out), a.folders)
+    elif a.cmd == "timing":
         timing(a.folder, a.calls, a.rounds)
     elif a.cmd == "run":
         extra = {k: json.loads(v) for k, v in (x.split("=", 1) for x in a.set)}
