@@ -50,8 +50,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.experiments.world_pf_parts import CONFIGS as PARTS_CONFIGS
+from benchmarks.experiments.world_pf_parts import estimate_keypoints, pending, visibility
 from benchmarks.experiments.world_pf_parts import metrics as parts_metrics
-from benchmarks.experiments.world_pf_parts import visibility
 
 FREE_DEPTH_M = 100.0  # sigma_depth of the ``oracle_rays`` rung: the depth held by nothing
 CONFIGS = ("base", "depth", "oracle_depth", "oracle_rays", "oracle_points", "oracle_identity",
@@ -139,17 +139,11 @@ def run(out: Path, config: str, folders: list[str], seed: int, extra: dict | Non
 
     from jaxmocap.experiment.cell import pf_setup
     from jaxmocap.pf.cues import DEPTH_RATIO, SIGMA_D
-    from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers import stereo_pf as sp
     from jaxmocap.trackers.driver import stereo_offline
 
-    out.mkdir(parents=True, exist_ok=True)
-    for folder in folders:
+    for folder, dest, seq in pending(out, config, folders, seed):
         name = Path(folder).name
-        dest = out / f"{config}_{name}_s{seed}.npz"
-        if dest.exists():
-            continue
-        seq = load_dataset(folder)
         opts = dict(PARTS_CONFIGS["base"])
         if config == "depth":
             opts["sigma_depth"] = DEPTH_RATIO * SIGMA_D
@@ -203,26 +197,14 @@ def depth_metrics(path: Path) -> dict:
     """``world_pf_parts.metrics`` plus the joint error (all frames, the experiment's joints)
     split into depth and lateral, and the measured points' depth / lateral error (points
     within 30 cm of the nearest true part of their role)."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxmocap.body import keypoints
-    from jaxmocap.experiment.cell import _body
     from jaxmocap.metrics import depth_lateral
     from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers.driver import PF_JOINTS
 
     row = parts_metrics(path)
-    z = np.load(path)
-    folder = str(z["folder"])
-    seq = load_dataset(folder)
+    z, _, g, gnames, kp, names = estimate_keypoints(path)
+    seq = load_dataset(str(z["folder"]))
     origin = _origin(seq.cameras)
-    body = _body({"body": "sequence"}, folder)
-    g = seq.groundtruth
-    gnames = [str(n) for n in g["keypoint_names"]]
-    q = np.asarray(z["q"])
-    kp = np.asarray(jax.vmap(lambda x: keypoints(body, x))(jnp.asarray(np.nan_to_num(q))))
-    names = list(body.keypoint_names)
     pred = kp[:, [names.index(j) for j in PF_JOINTS]]
     true = g["keypoints"][:, [gnames.index(j) for j in PF_JOINTS]]
     d, lat = depth_lateral(pred, true, origin)

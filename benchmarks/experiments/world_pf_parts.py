@@ -75,17 +75,40 @@ def visibility(seq, body) -> np.ndarray:
     return vis & clear[:, None]
 
 
-def run(out: Path, config: str, folders: list[str], seed: int) -> None:
-    from jaxmocap.experiment.cell import _track_pf
+def pending(out: Path, config: str, folders: list[str], seed: int):
+    """``(folder, dest, sequence)`` of each folder whose run ``CONFIG_SEQ_sSEED.npz`` is not in
+    ``out`` yet (created)."""
     from jaxmocap.synth.dataset import load_dataset
 
     out.mkdir(parents=True, exist_ok=True)
     for folder in folders:
-        name = Path(folder).name
-        dest = out / f"{config}_{name}_s{seed}.npz"
-        if dest.exists():
-            continue
-        seq = load_dataset(folder)
+        dest = out / f"{config}_{Path(folder).name}_s{seed}.npz"
+        if not dest.exists():
+            yield folder, dest, load_dataset(folder)
+
+
+def estimate_keypoints(path: Path):
+    """A run file's ``(npz, body, groundtruth, its keypoint names, the estimate's keypoints
+    (T, K, 3) over every frame, the body's keypoint names)``."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.experiment.cell import _body
+
+    z = np.load(path)
+    folder = str(z["folder"])
+    body = _body({"body": "sequence"}, folder)
+    g = np.load(Path(folder) / "groundtruth.npz")
+    q = np.asarray(z["q"])
+    kp = np.asarray(jax.vmap(lambda x: keypoints(body, x))(jnp.asarray(np.nan_to_num(q))))
+    return z, body, g, [str(n) for n in g["keypoint_names"]], kp, list(body.keypoint_names)
+
+
+def run(out: Path, config: str, folders: list[str], seed: int) -> None:
+    from jaxmocap.experiment.cell import _track_pf
+
+    for folder, dest, seq in pending(out, config, folders, seed):
         cfg = {"name": config, "method": "pf", "body": "sequence",
                "options": dict(CONFIGS[config])}
         t0 = time.perf_counter()
@@ -99,22 +122,10 @@ def run(out: Path, config: str, folders: list[str], seed: int) -> None:
 
 
 def metrics(path: Path) -> dict:
-    import jax
-    import jax.numpy as jnp
-
-    from jaxmocap.body import keypoints
-    from jaxmocap.experiment.cell import _body
     from jaxmocap.trackers.driver import PF_JOINTS
 
-    z = np.load(path)
-    folder = str(z["folder"])
-    body = _body({"body": "sequence"}, folder)
-    g = np.load(Path(folder) / "groundtruth.npz")
-    gnames = [str(n) for n in g["keypoint_names"]]
-    q = np.asarray(z["q"])
-    kp = np.asarray(jax.vmap(lambda x: keypoints(body, x))(jnp.asarray(np.nan_to_num(q))))
-    names = list(body.keypoint_names)
-    row = {"file": path.name, "frames": int(q.shape[0])}
+    z, _, g, gnames, kp, names = estimate_keypoints(path)
+    row = {"file": path.name, "frames": int(kp.shape[0])}
     for k, (part, lim) in enumerate((("head", HEAD_CM), ("l_hand", HAND_CM),
                                      ("r_hand", HAND_CM))):
         e = 100 * np.linalg.norm(kp[:, names.index(part)] - g["keypoints"][:, gnames.index(part)],
