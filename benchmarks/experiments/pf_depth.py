@@ -32,7 +32,7 @@ support map are the tracker's).
     python -m benchmarks.experiments.pf_depth run OUT CONFIG SEQ_FOLDER... [--seed 0] [--set K=V]
     python -m benchmarks.experiments.pf_depth report OUT [--md X.md --json X.json]
     python -m benchmarks.experiments.pf_depth timing SEQ_FOLDER   # the step with / without
-    python -m benchmarks.experiments.pf_depth skin OUT SEQ_FOLDER...  # where visible hands go
+    python -m benchmarks.experiments.pf_depth skin OUT SEQ_FOLDER... [--figure X.png]
 
 ``OUT`` holds one ``CONFIG_SEQ_sSEED.npz`` per run in the format of ``world_pf_parts`` (whose
 ``base`` runs can be copied in); the report adds the mean joint error over all frames split
@@ -47,6 +47,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from benchmarks.experiments.world_pf_parts import CONFIGS as PARTS_CONFIGS
@@ -298,7 +299,24 @@ def timing(folder: str, calls: int, rounds: int) -> dict:
 HAND_DISC_M = 0.05  # skin diagnostic: the disc searched around a true hand (m at its depth)
 
 
-def skin_diagnostic(out: Path, folders: list[str]) -> dict:
+FIGURE_CROP_PX = 64  # the skin diagnostic's figure: crops of this side around the true hand
+FIGURE_EXAMPLES = 8
+
+
+def _figure_crop(frame: np.ndarray, component: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """The image around ``uv`` beside the same with ``component`` (bool) in magenta and the
+    true hand as a green circle (RGB), or None near the border."""
+    h = FIGURE_CROP_PX // 2
+    x, y = int(round(uv[0])), int(round(uv[1]))
+    if not (h <= x < frame.shape[1] - h and h <= y < frame.shape[0] - h):
+        return None
+    over = frame.copy()
+    over[component] = (255, 0, 255)
+    cv2.circle(over, (x, y), 4, (0, 255, 0), 1)
+    return np.concatenate([frame[y - h:y + h, x - h:x + h], over[y - h:y + h, x - h:x + h]], 1)
+
+
+def skin_diagnostic(out: Path, folders: list[str], figure: str | None = None) -> dict:
     """Where the blob line loses the visible hands (``base`` runs of seed 0 in ``out`` and their
     visibility): per hand visible in both cameras, whether the skin map (the tracker's own
     segmentation) has >= 3 px in a :data:`HAND_DISC_M` disc around the projected true hand in
@@ -325,7 +343,7 @@ def skin_diagnostic(out: Path, folders: list[str]) -> dict:
     from jaxmocap.synth.dataset import load_dataset
     from jaxmocap.trackers.stereo_pf.observation import _segment
 
-    counts, reasons, pair_cm = Counter(), Counter(), []
+    counts, reasons, pair_cm, crops = Counter(), Counter(), [], []
     for folder in folders:
         name = Path(folder).name
         seq = load_dataset(folder)
@@ -365,7 +383,7 @@ def skin_diagnostic(out: Path, folders: list[str]) -> dict:
                     x, y, bw, bh, a = st[c]
                     info.append({"area": int(a), "other": bool(other), "aspect": bh / max(bw, 1),
                                  "border": bool(x == 0 or y == 0 or x + bw == w or y + bh == h),
-                                 "centroid": cen[c]})
+                                 "centroid": cen[c], "component": lab == c, "uv": uv})
                 both = len(info) == 2
                 counts["skin in both views"] += both
                 counts["measured within 8 cm"] += measured
@@ -393,12 +411,19 @@ def skin_diagnostic(out: Path, folders: list[str]) -> dict:
                     x3 = np.asarray(triangulate(stack_cameras(cams), jnp.asarray(np.stack(
                         [info[0]["centroid"], info[1]["centroid"]]))))
                     pair_cm.append(float(100 * np.linalg.norm(x3 - truth[t, k])))
+                    if figure and len(crops) < FIGURE_EXAMPLES:
+                        crop = _figure_crop(np.asarray(seq.frames[t, 0]), info[0]["component"],
+                                            info[0]["uv"])
+                        crops += [] if crop is None else [crop]
                 reasons[why] += 1
         print(name, dict(counts), flush=True)
     res = {"counts": dict(counts), "skin in both, not measured: first check failed": dict(reasons),
            "would pair: centroid to true hand cm, quartiles": np.percentile(
                pair_cm, [25, 50, 75]).tolist() if pair_cm else None}
     print(json.dumps(res, indent=1))
+    if figure and crops:
+        rows = [np.concatenate(crops[i:i + 2], 1) for i in range(0, len(crops) - 1, 2)]
+        cv2.imwrite(figure, cv2.cvtColor(np.concatenate(rows, 0), cv2.COLOR_RGB2BGR))
     return res
 
 
@@ -415,6 +440,7 @@ def main() -> int:
     k = sub.add_parser("skin")
     k.add_argument("out")
     k.add_argument("folders", nargs="+")
+    k.add_argument("--figure", help="PNG of examples that would pair (camera 0)")
     t = sub.add_parser("timing")
     t.add_argument("folder")
     t.add_argument("--calls", type=int, default=60)
@@ -425,7 +451,7 @@ def main() -> int:
     p.add_argument("--json")
     a = ap.parse_args()
     if a.cmd == "skin":
-        skin_diagnostic(Path(a.out), a.folders)
+        skin_diagnostic(Path(a.out), a.folders, a.figure)
     elif a.cmd == "timing":
         timing(a.folder, a.calls, a.rounds)
     elif a.cmd == "run":
