@@ -386,10 +386,11 @@ class StereoLikelihood(eqx.Module):
                 cols.append(jnp.where(below[:, None], col, 0.0))
         jac = jnp.stack(cols, axis=-1)  # (k, 3, d)
         c, v = self._targets(f, z)
-        r = self._whiten(f - c, c)
+        r = f - c
         got = self._depth_shrink(c)
-        if got is not None:  # the same linear map on the Jacobian's columns
+        if got is not None:  # :meth:`_whiten`'s linear map on the residual and the Jacobian
             u, a = got
+            r = r - a * _dot(r, u)[:, None] * u
             jac = jac - a * u[:, :, None] * jnp.einsum("ki,kid->kd", u, jac)[:, None, :]
         r = jnp.where(v[:, None], r, jnp.zeros_like(r)).reshape(-1)
         jac = jnp.where(v[:, None, None], jac, jnp.zeros_like(jac))
