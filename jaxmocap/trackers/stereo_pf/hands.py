@@ -284,19 +284,21 @@ def gated_hands(
         keep = (src == 1) | ~near_blob
         Xc, src = Xc[keep], src[keep]
         cand_hand = list(np.asarray(cand_hand)[keep])
-    pred = np.vstack([predicted[:1], shoulders, predicted[3:5]])
-    C = jnp.asarray(Xc, jnp.float32)
+    pred = jnp.asarray(np.vstack([predicted[:1], shoulders, predicted[3:5]]), jnp.float32)
+    # fixed shapes for the jitted gates (one compilation, not one per candidate count): the
+    # candidates padded with NaN (not finite: never pass), the heads with the first again (the
+    # nearest head is the same)
+    n_c = len(Xc)
+    C = jnp.asarray(np.vstack([Xc, np.full((MAX_CANDIDATES - n_c, 3), np.nan)]), jnp.float32)
+    H = jnp.asarray(np.asarray(heads + heads[:1])[:2], jnp.float32)
     costs = []
     for hand in range(2):
-        gate = hp.gate_m + hp.gate_k * spread[3 + hand]
-        ok, c = _gates_jit(arms, C, hand, jnp.asarray(pred, jnp.float32),
-                           jnp.asarray(np.asarray(heads), jnp.float32), jnp.float32(gate))
-        c = np.asarray(c, np.float64)
+        gate = jnp.float32(hp.gate_m + hp.gate_k * spread[3 + hand])
+        _, c = _gates_jit(arms, C, hand, pred, H, gate)
+        c = np.asarray(c, np.float64)[:n_c]
         if len(blob_pts):  # the blob line's hands: reach from a head (hand_gates' reach)
-            _, c_neck = _gates_jit(arms, C, hand, jnp.asarray(pred, jnp.float32),
-                                   jnp.asarray(np.asarray(heads), jnp.float32),
-                                   jnp.float32(gate), False)
-            c = np.where(src == 1, np.asarray(c_neck, np.float64), c)
+            _, c_neck = _gates_jit(arms, C, hand, pred, H, gate, False)
+            c = np.where(src == 1, np.asarray(c_neck, np.float64)[:n_c], c)
         costs.append(c)
     cost = np.stack(costs)  # (2, c)
     # a window candidate within the gate of the prediction; the blob line's own hands only by
@@ -331,6 +333,9 @@ def gated_hands(
 
 
 _gates_jit = jax.jit(hand_gates, static_argnums=(2, 6))
+# the most candidates of a frame: the blob line's two hands and, per hand, every pair of the two
+# views' window components (at most MAX_BLOBS each)
+MAX_CANDIDATES = 2 + 2 * bloblib.MAX_BLOBS**2
 SAME_POINT_M = 0.05  # two candidates closer than this are one point (the blob line's, a window's)
 
 
