@@ -33,6 +33,7 @@ from jaxmocap.errors import InputError, UsageError
 SUBCOMMANDS = (
     "jaxmocap.commands.demo",
     "jaxmocap.commands.build_db",
+    "jaxmocap.commands.learn",
     "jaxmocap.commands.synth",
     "jaxmocap.commands.calibrate",
     "jaxmocap.commands.colors",

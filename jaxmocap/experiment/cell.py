@@ -197,6 +197,17 @@ def _scribbled_capture_colors(seq, n_frames: int = SCRIBBLE_FRAMES):
 # ----------------------------------------------------------------------------- the trackers
 
 
+def _observer(option, body, garment):
+    """The ``observer`` option: ``"learn"`` trains (or loads from the cache) the default model
+    for the sequence's own body and shirt (``jaxmocap learn``); a path loads that file
+    (refused if trained for another body or shirt)."""
+    from jaxmocap.observe import fit, load
+
+    if option == "learn":
+        return fit(body, garment, progress=False)[0]
+    return load(option, body, garment)[0]
+
+
 def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
 
     from jaxmocap.ik import IKCovariances
@@ -253,7 +264,11 @@ def _track_shirt(seq, cfg: dict, seed: int, folder=None) -> dict:
         labels = np.stack([shirt.scribbles(m) for m in seq.groundtruth["colour_ids"][0]])
         W0 = shirt.initial_white_balance(color, seq.frames[0], labels)
     background = opts.pop("background", False)
+    observer = opts.pop("observer", None)
     settings = tracker_settings("shirt", opts)
+    if observer is not None:  # the learned observation (issue 49): trained for this body + shirt
+        settings["colours"] = dataclasses.replace(
+            settings.get("colours", shirt.Colours()), observer=_observer(observer, body, garment))
     if scene_clusters:
         settings["colours"] = dataclasses.replace(settings.get("colours", shirt.Colours()),
                                                   scene_colors=_scene_colors(seq, W0,

@@ -101,12 +101,13 @@ CONFIG_KEYS = {"name", "method", "seeds", "body", "garment", "joints", "options"
 # options the experiment interprets itself (beside the trackers' make_params keywords)
 SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors": (str,),
                "white_balance": (str,), "background": (bool,), "scene_clusters": (int,),
-               "tuned": (str,)}
+               "tuned": (str,), "observer": (str,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,), "validity": (bool,), "search": (str,),
             "start_from_head": (bool,), "tuned": (str,)}
 PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
-SHIRT_RESERVED = {"scene_colors", "dtype"}  # set by the experiment (scene_clusters) / the cameras
+SHIRT_RESERVED = {"scene_colors", "dtype", "observer"}  # set by the experiment (scene_clusters,
+# observer: "learn" or a model file) / the cameras
 PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin)
 PF_SKINS = ("synth", "default", "scribbles", "auto")
 PATH_OPTIONS = ("covariances", "db", "colors", "white_balance", "tuned")

@@ -118,6 +118,7 @@ class Views(NamedTuple):
     s_found: Float[Array, " n_cams"]
     found: Bool[Array, " n_cams"]
     cls: ReferenceClassification
+    logp: Float[Array, "n_cams n n c"] | None = None  # the learned model's (colours.observer)
 
 
 class DatabasePose(NamedTuple):
@@ -173,6 +174,10 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
         windows.append(win), s_found.append(res.s.astype(dt)), found.append(res.found)
     crops = jnp.stack(crops)
     fgs = None if masks is None else jnp.stack(fgs)
+    if params.colours.observer is not None:
+        logp, cls = learned_classification(params, state, crops, fgs)
+        return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls,
+                     logp)
     if params.colours.patch_colours:
         cls = classify_by_patch(params, state, crops, fgs)
         return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
@@ -182,6 +187,44 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
         gain=params.colours.shading, background=params.colours.scene_colors,
     )  # fmt: skip
     return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
+
+
+def learned_classification(params: ShirtParams, state: ShirtState, crops, fgs):
+    """Step 1 on the learned model (``colours.observer``, issue 49): per camera the
+    log-probabilities of every crop pixel and the colour ids of the most probable class (skin
+    and background: 0; outside the foreground mask: 0). ``fraction`` is the share of the
+    crop's (foreground) pixels given a shirt colour; the white balance stays ``state.W``."""
+    from jaxmocap.observe import log_probs
+
+    K = params.garment.n_colours
+    logp = jax.vmap(lambda c: log_probs(params.colours.observer, c))(crops)
+    best = jnp.argmax(logp, -1)
+    ids = jnp.where(best <= K, best, 0)
+    if fgs is not None:
+        ids = jnp.where(fgs, ids, 0)
+    dt = state.W.dtype
+    n_px = jnp.ones(ids.shape[1:], dt).sum() if fgs is None else jnp.maximum(
+        fgs.sum((1, 2)), 1).astype(dt)
+    fraction = ((ids > 0).sum((1, 2)) / n_px).astype(dt)
+    cls = ReferenceClassification(ids=ids.astype(jnp.int32),
+                                  distance=-jnp.max(logp, -1).astype(dt), W=state.W,
+                                  fraction=fraction,
+                                  used_reference=jnp.zeros(params.n_cams, bool))
+    return logp, cls
+
+
+def learned_pose_assisted(params: ShirtParams, logp, dist, weight, fg):
+    """Step 3 on the learned model: the patch minimising ``-log p(colour(p)) + weight d_p``
+    unless ``-log p(not shirt)`` (background or skin) is lower; patch ids (0 none)."""
+    K = params.garment.n_colours
+    pc = jnp.asarray(params.garment.patch_colour, jnp.int32)
+    cost = -logp[..., pc] + weight * jnp.moveaxis(dist, 0, -1).astype(logp.dtype)
+    p_shirt = jnp.sum(jnp.exp(logp[..., 1:K + 1]), -1)
+    not_shirt = -jnp.log(jnp.maximum(1 - p_shirt, 1e-12))
+    keep = jnp.min(cost, -1) < not_shirt
+    if fg is not None:
+        keep = keep & fg
+    return jnp.where(keep, jnp.argmin(cost, -1) + 1, 0)
 
 
 def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
@@ -313,8 +356,16 @@ def pose_assisted_centroids(
     v = ctx.views
     patch_colour = params.garment.patch_colour
 
-    def one(patch_map, W, crop, fg, s_found, window, look, W_look):
+    def one(patch_map, W, crop, fg, s_found, window, look, W_look, logp):
         dist = patch_distance_maps(patch_map, P, dt)
+        if logp is not None:  # the learned model (colours.observer)
+            w = PRIOR_SCALE / s_found * (window[2] / n) * params.colours.observer_prior
+            if params.ablations.pose_prior:
+                w = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), w)
+            else:
+                w = jnp.asarray(TIE_BREAK_WEIGHT, dt)
+            patch = learned_pose_assisted(params, logp, dist, w, fg)
+            return patch_centroids(patch, P, window, dtype=dt)
         if params.ablations.pose_prior:
             weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
             weight = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), weight)
@@ -337,8 +388,9 @@ def pose_assisted_centroids(
     fg_ax = None if v.fgs is None else 0
     look, look_W = ctx.look, ctx.look_W
     l_ax = None if look is None else 0
-    c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0, l_ax, l_ax))(
-        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows, look, look_W
+    p_ax = None if v.logp is None else 0
+    c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0, l_ax, l_ax, p_ax))(
+        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows, look, look_W, v.logp
     )
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
 
@@ -553,7 +605,7 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
     one pixel), joining the reference illuminations when new. Returns ``(W, refs, added)``
     stacked over cameras."""
     v = ctx.views
-    if not params.ablations.adaptive_white_balance:
+    if not params.ablations.adaptive_white_balance or params.colours.observer is not None:
         return state.W, state.refs, jnp.zeros(params.n_cams, bool)
 
     def one(refs_i, colour, crop, W_i, fg, ok_cam):

@@ -23,6 +23,7 @@ from jaxmocap.color import (
 )
 from jaxmocap.color.model import shading_problem
 from jaxmocap.garment import Garment
+from jaxmocap.observe import Observer
 from jaxmocap.ik import (
     IKCovariances,
     PatchAnchors,
@@ -63,6 +64,9 @@ REFERENCE_PIXELS = 30  # colour-id pixels of r* a colour needs to enter the W* r
 # >= 31% of the rendered shirt pixels classified as their colour in step 1 (the reported
 # validity calibrated on the dev split's ground truth, world_shirt.toml "validated"). States
 # that learn from a wrong pose learn the wrong patches and lead the next frames there.
+# issue 49: the step-3 prior's weight on the learned model's -log p, a multiple of Wang's C = 6/s
+# (dev split, learned_ladder.py --prior-scale: docs/results/learned.md)
+OBSERVER_PRIOR = 1.0
 COLOUR_MAX_RESIDUAL = 0.053
 COLOUR_MIN_RECALL = 0.31
 
@@ -194,6 +198,16 @@ class Colours(eqx.Module):
       (:func:`jaxmocap.color.fit_scene_colors`); a pixel nearer one of them than every shirt
       colour is background in steps 1 and 3.
 
+    The learned observation (issue 49, :mod:`jaxmocap.observe`):
+
+    * ``observer``: a model trained on our own renders (``jaxmocap learn``) gives every crop
+      pixel a probability over background, the garment's colours and skin. Step 1's colour ids
+      are its most probable class (skin and background: 0); step 3 gives a pixel to the patch
+      ``p`` minimising ``-log p(colour(p)) + observer_prior * C d(r^b, p)`` unless ``-log
+      p(not shirt)`` is lower (Wang's cost with the model's negative log-probability in place
+      of the Mahalanobis distance); the white balance is neither used nor re-fitted. It
+      replaces ``shading``, ``scene_colors`` and ``patch_colours`` (refused together).
+
     Colour states per patch (issue 37):
 
     * ``patch_colours`` (static): a colour state per patch and camera
@@ -218,6 +232,8 @@ class Colours(eqx.Module):
 
     shading: tuple[float, float] | None = eqx.field(static=True, default=None)
     scene_colors: ColorModel | None = None
+    observer: Observer | None = None
+    observer_prior: Float[ArrayLike, ""] = OBSERVER_PRIOR
     patch_colours: bool = eqx.field(static=True, default=False)
     follow_light: bool = eqx.field(static=True, default=False)
     learn_max_residual: Float[ArrayLike, ""] = COLOUR_MAX_RESIDUAL
@@ -473,8 +489,21 @@ def make_params(
         reacquire_passes=int(rounds.reacquire_passes),
         reacquire_frames=int(rounds.reacquire_frames),
         orientation_hypotheses=int(rounds.orientation_hypotheses))
+    if colours.observer is not None:
+        mixed = [n for n, on in (("shading", shading is not None),
+                                 ("scene_colors", colours.scene_colors is not None),
+                                 ("patch_colours", colours.patch_colours)) if on]
+        if mixed:
+            raise ValueError(f"make_params: colours.observer replaces colours.{mixed[0]} "
+                             "(the learned model classifies the pixels); give one of them")
+        want = garment.n_colours + 4
+        if colours.observer.n_classes != want:
+            raise ValueError(f"make_params: colours.observer gives {colours.observer.n_classes} "
+                             f"classes, this garment needs {want} (background, its "
+                             f"{garment.n_colours} colours, head, two hands)")
     colours = dataclasses.replace(
         colours, shading=shading, learn_max_residual=floats(colours.learn_max_residual),
+        observer_prior=floats(colours.observer_prior),
         learn_min_recall=floats(colours.learn_min_recall))
     validity = dataclasses.replace(
         validity, min_agreement=floats(validity.min_agreement),

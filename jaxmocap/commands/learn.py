@@ -1,0 +1,56 @@
+"""``jaxmocap learn``: train (or find in the cache) the learned observation model for a body and
+shirt (:mod:`jaxmocap.observe`): our own renders of the body in pose-database poses under
+randomised light, a small network trained with optax; a progress bar, resumable after a kill,
+cached by the inputs' digests. ``track --observer FILE`` reads the file it writes."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from jaxmocap.commands._body import add_body_args, body_from_args, garment_from_args, inputs_of
+from jaxmocap.errors import UsageError
+from jaxmocap.io.atomic import check_output_file
+from jaxmocap.io.preflight import check_outputs, int_range
+
+
+
+def add_parser(sub) -> None:
+    from jaxmocap.observe import Settings
+
+    d = Settings()
+    p = sub.add_parser("learn", help="train the learned observation model (pixels -> shirt "
+                       "colours, head and hand skin, background) for a body and shirt")
+    p.add_argument("--out", default=None, help="also write the model here (.eqx; default: only "
+                   "the user's cache folder)")
+    p.add_argument("--poses", type=int_range(8, 100_000), default=d.poses, metavar="N",
+                   help="rendered training crops (default: %(default)s)")
+    p.add_argument("--steps", type=int_range(1, 1_000_000), default=d.steps, metavar="N",
+                   help="training steps (default: %(default)s; ~8 min in all on 2 cores)")
+    p.add_argument("--seed", type=int_range(0, 2**31 - 1), default=d.seed,
+                   help="seed of poses, cameras, lamps and every batch (default: %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_body_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from jaxmocap.observe import Settings, cache_key, fit
+    from jaxmocap.observe.fit import cache_path
+
+    if args.out is not None:
+        if Path(args.out).suffix != ".eqx":
+            raise UsageError(f"--out {args.out}: expected a path ending in .eqx")
+        check_output_file(args.out)
+        check_outputs([Path(args.out)], inputs_of(args))
+    model = body_from_args(args)
+    garment = garment_from_args(args, model)
+    settings = Settings(poses=args.poses, steps=args.steps, seed=args.seed)
+    check_output_file(cache_path(cache_key(model, garment, settings)))
+    _, head, path = fit(model, garment, settings, out=args.out, progress=not args.quiet)
+    rec = head["record"]
+    curve = rec["loss_every_10"]
+    print(f"observation model: {len(head['classes'])} classes, key {head['key']}, "
+          f"loss {curve[0]:.3f} -> {curve[-1]:.3f} over {rec['steps']} steps, {path}"
+          + (f", also {args.out}" if args.out else ""))
+    return 0
