@@ -49,10 +49,15 @@ class Settings(NamedTuple):
     seed: int = 0
 
 
+TRAINING_SOURCES = ("classes.py", "scenes.py", "model.py", "train.py")  # what the weights depend on
+
+
 def _source_digest() -> str:
+    """Digest of the modules that decide the trained weights (not of the file format's or this
+    module's bookkeeping, whose edits leave a cached model valid)."""
     h = hashlib.sha256()
-    for f in sorted(Path(__file__).parent.glob("*.py")):
-        h.update(f.read_bytes())
+    for name in TRAINING_SOURCES:
+        h.update((Path(__file__).parent / name).read_bytes())
     return h.hexdigest()[:16]
 
 
