@@ -622,3 +622,52 @@ def test_skin_parts_of_package_bodies_lie_at_their_keypoints(name):
         assert mine.size, SKIN_PARTS[k]
         d = np.linalg.norm(centre[mine, None] - parts[None], axis=-1)
         assert (d.argmin(1) == k).all(), (SKIN_PARTS[k], [g.names[i] for i in mine])
+
+
+def test_step_on_the_learned_observation(setup, monkeypatch):
+    """``colours.observer`` (issue 49): steps 1 and 3 read the model's probabilities. With an
+    oracle in the model's place (each crop pixel's nearest rendered albedo, camera gamma:
+    the scene's white light and grey background make that nearly the truth), the step recovers
+    the pose as the paper's path does, traced once for two frames; the white balance is left
+    alone; make_params refuses the model beside shading / room colours and a model of another
+    class count."""
+    from jaxmocap import observe
+    from jaxmocap.observe import Observer, classes_of
+
+    p, model = setup["params"], setup["model"]
+    garment = p.garment
+    classes = classes_of(model, garment)
+    albedo = np.concatenate([[[0.5, 0.5, 0.5]], np.asarray(garment.colours),
+                             np.tile(np.asarray(garment.skin_rgb), (3, 1))])
+    from jaxmocap.render._shade import AMBIENT, FILL_INTENSITY, KEY_INTENSITY
+
+    lit = AMBIENT + 0.6 * (KEY_INTENSITY + FILL_INTENSITY)
+    ref = np.clip(albedo * lit, 0, 1) ** (1 / 2.2) * 255
+    ref[0] = 128.0  # the background image
+
+    def oracle(_model, crop):
+        d2 = jnp.sum((crop.astype(jnp.float32)[..., None, :] - jnp.asarray(ref, jnp.float32)[None, None]) ** 2,
+                     -1)
+        return jax.nn.log_softmax(-d2 / 200.0, -1)
+
+    monkeypatch.setattr(observe, "log_probs", oracle)
+    obs = Observer(classes.n, jax.random.key(0), width=4, context=4)
+    q = dataclasses.replace(p, colours=shirt.Colours(observer=obs))
+    state = shirt.init(q, setup["W0"], jnp.zeros(model.n_dof))
+    before = shirt.TRACE_COUNT["step"]
+    state, out = shirt.step(q, state, setup["frames"])
+    state2, out2 = shirt.step(q, state, setup["frames"])
+    assert shirt.TRACE_COUNT["step"] == before + 1
+    kp = jax.jit(lambda x: keypoints(model, x))
+    truth = np.asarray(kp(setup["q_true"]))
+    for o in (out, out2):
+        err = np.linalg.norm(np.asarray(kp(o.q)) - truth, axis=-1)
+        assert bool(o.valid) and err.mean() < 0.08, err
+        assert np.asarray(o.visible).sum() >= 2 * 10
+    np.testing.assert_array_equal(np.asarray(state2.W), np.asarray(setup["W0"]))
+    for bad in (shirt.Colours(observer=obs, shading=(0.5, 4.0)),
+                shirt.Colours(observer=Observer(classes.n + 1, jax.random.key(0), width=4,
+                                                context=4))):
+        with pytest.raises(ValueError, match="observer"):
+            shirt.make_params(p.color, model, garment, p.cams, p.anchors, p.cov, p.db,
+                              colours=bad)

@@ -211,8 +211,11 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
                                     cue_widths=None if tuned is None else tuned.cue_widths())
     from jaxmocap.color import load_color_model
 
+    if args.observer:
+        return _learned_shirt_tracker(args, body, cams, names, tuned)
     if not args.colors:
-        raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`)")
+        raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`) "
+                         "or --observer MODEL.eqx (from `jaxmocap learn`)")
     color = load_color_model(args.colors)
     garment = garment_from_args(args, body, color if args.garment else None)
     if tuned is not None:
@@ -260,6 +263,57 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
                           colours=Colours(shading=color.shading, scene_colors=room))
     return ShirtFrameTracker(params, W0, cams, names, color, room)
+
+
+def _shirt_database(args, body, garment):
+    from jaxmocap.posedb import DatabaseError, load_database, load_or_build
+
+    if args.db:
+        try:
+            return load_database(args.db, model=body, garment=garment)
+        except FileNotFoundError:
+            raise InputError(f"{args.db}: no such pose database (build one with `jaxmocap "
+                             "build-db --out FILE.npz`)") from None
+        except DatabaseError as e:
+            raise InputError(str(e)) from None
+    return load_or_build(model=body, garment=garment, progress=not args.quiet)
+
+
+def _learned_shirt_tracker(args, body, cams, names, tuned):
+    """The shirt tracker on the learned observation (``--observer``, issue 49): steps 1 and 3
+    read the model; no colour model or white balance is needed (the garment's albedo stands
+    as the colour model the paper's structures carry, never read on this path)."""
+    import jax.numpy as jnp
+
+    from jaxmocap.color import ColorModel
+    from jaxmocap.observe import load as load_observer
+    from jaxmocap.trackers.driver import ShirtFrameTracker, shirt_params
+    from jaxmocap.trackers.shirt import Colours, Search
+
+    for flag, given in (("--colors", args.colors), ("--white-balance", args.white_balance)):
+        if given:
+            raise InputError(f"--observer classifies the pixels; leave out {flag} (Wang's "
+                             "colour model and white balance are the paper's path)")
+    garment = garment_from_args(args, body)
+    if tuned is not None:
+        tuned.check_for("shirt", body, garment)
+    observer, _ = load_observer(args.observer, body, garment)
+    color = ColorModel(jnp.asarray(garment.colours) * 255,
+                       jnp.tile(jnp.eye(3) * 100.0, (garment.n_colours, 1, 1)),
+                       names=garment.colour_names)
+    cov = None if tuned is None else tuned.ik_covariances(body)
+    if args.ik_cov:
+        from jaxmocap.ik import IKCovariances
+
+        try:
+            cov = IKCovariances.load(args.ik_cov)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+    db = _shirt_database(args, body, garment)
+    search = Search() if args.work_size is None else Search(work_size=args.work_size)
+    params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
+                          colours=Colours(observer=observer))
+    return ShirtFrameTracker(params, None, cams, names, color, None)
 
 
 def add_parser(sub) -> None:
@@ -317,6 +371,9 @@ def add_parser(sub) -> None:
     g = p.add_argument_group("shirt (--method shirt)")
     g.add_argument("--colors", metavar="COLORS_JSON",
                    help="the shirt's colour model (from `jaxmocap colors`)")
+    g.add_argument("--observer", metavar="MODEL_EQX",
+                   help="the learned observation model (from `jaxmocap learn` for this body "
+                   "and shirt): it classifies the pixels instead of --colors / --white-balance")
     g.add_argument("--white-balance", metavar="WB_JSON",
                    help="initial white balance per camera (`jaxmocap colors --white-balance`); "
                    "default: identity")
@@ -366,7 +423,7 @@ def _inputs(args) -> list:
     """Every file or folder the command reads (camera indices are not paths)."""
     srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
     return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
-            getattr(args, "tuned", None),
+            getattr(args, "tuned", None), getattr(args, "observer", None),
             getattr(args, "body", None), getattr(args, "garment", None),
             None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
                                                                             None)]
@@ -420,6 +477,9 @@ def run(args: argparse.Namespace) -> int:
     if args.smooth_hz is not None and not args.smooth:
         raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
                          "--smooth")
+    if args.method == "pf" and args.observer:
+        raise InputError("--observer is read by the shirt tracker (--method shirt); the particle "
+                         "filter does not read it yet")
     if args.method == "pf" and args.validity != "paper":
         raise InputError(f"--validity {args.validity} is the shirt tracker's rule; the particle "
                          "filter (--method pf) has its own (stereo_pf.frame_validity)")

@@ -196,21 +196,22 @@ def learned_classification(params: ShirtParams, state: ShirtState, crops, fgs):
     crop's (foreground) pixels given a shirt colour; the white balance stays ``state.W``."""
     from jaxmocap.observe import log_probs
 
-    K = params.garment.n_colours
-    logp = jax.vmap(lambda c: log_probs(params.colours.observer, c))(crops)
-    best = jnp.argmax(logp, -1)
-    ids = jnp.where(best <= K, best, 0)
-    if fgs is not None:
-        ids = jnp.where(fgs, ids, 0)
-    dt = state.W.dtype
-    n_px = jnp.ones(ids.shape[1:], dt).sum() if fgs is None else jnp.maximum(
-        fgs.sum((1, 2)), 1).astype(dt)
-    fraction = ((ids > 0).sum((1, 2)) / n_px).astype(dt)
-    cls = ReferenceClassification(ids=ids.astype(jnp.int32),
-                                  distance=-jnp.max(logp, -1).astype(dt), W=state.W,
-                                  fraction=fraction,
-                                  used_reference=jnp.zeros(params.n_cams, bool))
-    return logp, cls
+    K, dt = params.garment.n_colours, state.W.dtype
+
+    def one(crop, fg, W):
+        logp = log_probs(params.colours.observer, crop)
+        best = jnp.argmax(logp, -1)
+        ids = jnp.where(best <= K, best, 0).astype(jnp.int32)
+        n_px = jnp.asarray(ids.size, dt)
+        if fg is not None:
+            ids = jnp.where(fg, ids, 0)
+            n_px = jnp.maximum(jnp.sum(fg), 1).astype(dt)
+        fraction = (jnp.sum(ids > 0) / n_px).astype(dt)
+        return logp, ReferenceClassification(ids=ids, distance=-jnp.max(logp, -1).astype(dt),
+                                             W=W, fraction=fraction,
+                                             used_reference=jnp.array(False))
+
+    return jax.vmap(one, in_axes=(0, None if fgs is None else 0, 0))(crops, fgs, state.W)
 
 
 def learned_pose_assisted(params: ShirtParams, logp, dist, weight, fg):
