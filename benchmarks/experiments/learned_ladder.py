@@ -7,8 +7,8 @@ ground-truth bounding box, every ``--every``-th frame, both cameras).
         [--every 3] [--prior-scale 3] [--out ladder.json] [--figure labels.png]
 
 Per sequence the model is trained (or loaded from the cache) for the sequence's own body and
-garment files with the default :class:`jaxmocap.observe.Settings` (no scribbles, nothing of the
-sequence's pixels). Rungs:
+garment files as ``jaxmocap learn`` does by default (:func:`jaxmocap.observe.learn`: fine-tuned
+from the bundled model; no scribbles, nothing of the sequence's pixels). Rungs:
 
 * ``learned``: each pixel its most probable class (step 1 of the shirt tracker on the model);
 * ``learned + true pose prior``: Wang's step 3 on the model, with the true patch map's distance
@@ -49,13 +49,13 @@ def run_sequence(folder: Path, every: int, prior_scale: float, model_path: str |
     import jax.numpy as jnp
 
     from jaxmocap.color.pose_assisted import patch_distance_maps
-    from jaxmocap.observe import classes_of, fit, load, log_probs, skin_label_map
+    from jaxmocap.observe import classes_of, learn, load, log_probs, skin_label_map
 
     seq, body, garment = sequence_inputs(folder)
     if model_path:
         obs, _ = load(model_path)
     else:
-        obs, _, _ = fit(body, garment, progress=False)
+        obs, _, _ = learn(body, garment, progress=False)
     classes = classes_of(body, garment)
     K, P = garment.n_patches and classes.n_colours, garment.n_patches
     pc = jnp.asarray(garment.patch_colour, jnp.int32)

@@ -1,7 +1,12 @@
 """``jaxmocap learn``: train (or find in the cache) the learned observation model for a body and
 shirt (:mod:`jaxmocap.observe`): our own renders of the body in pose-database poses under
 randomised light, a small network trained with optax; a progress bar, resumable after a kill,
-cached by the inputs' digests. ``track --observer FILE`` reads the file it writes."""
+cached by the inputs' digests. ``track --observer FILE`` reads the file it writes.
+
+By default the bundled body and shirt get the shipped model; a body or shirt of your own with
+as many colours is fine-tuned from it (``observe.FINE_TUNE``: fewer renders and steps), any
+other from scratch (``observe.Settings``). ``--start``, ``--poses``, ``--steps`` choose
+otherwise."""
 
 from __future__ import annotations
 
@@ -14,20 +19,19 @@ from jaxmocap.io.atomic import check_output_file
 from jaxmocap.io.preflight import check_outputs, int_range
 
 
-
 def add_parser(sub) -> None:
-    from jaxmocap.observe import Settings
-
-    d = Settings()
     p = sub.add_parser("learn", help="train the learned observation model (pixels -> shirt "
                        "colours, head and hand skin, background) for a body and shirt")
     p.add_argument("--out", default=None, help="also write the model here (.eqx; default: only "
                    "the user's cache folder)")
-    p.add_argument("--poses", type=int_range(8, 100_000), default=d.poses, metavar="N",
-                   help="rendered training crops (default: %(default)s)")
-    p.add_argument("--steps", type=int_range(1, 1_000_000), default=d.steps, metavar="N",
-                   help="training steps (default: %(default)s; ~8 min in all on 2 cores)")
-    p.add_argument("--seed", type=int_range(0, 2**31 - 1), default=d.seed,
+    p.add_argument("--start", metavar="MODEL_EQX", help="start from this trained model (any "
+                   "body, as many shirt colours; default: the bundled model where it fits)")
+    p.add_argument("--poses", type=int_range(8, 100_000), metavar="N",
+                   help="rendered training crops (default: 600 from scratch, 300 fine-tuning)")
+    p.add_argument("--steps", type=int_range(1, 1_000_000), metavar="N",
+                   help="training steps (default: 1200 from scratch, ~8 min on 2 cores; 400 "
+                   "fine-tuning)")
+    p.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
                    help="seed of poses, cameras, lamps and every batch (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_body_args(p)
@@ -35,19 +39,31 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxmocap.observe import Settings, cache_key, fit
-    from jaxmocap.observe.fit import cache_path
+    from jaxmocap.observe import FINE_TUNE, Settings, fit, learn
+    from jaxmocap.observe.classes import classes_of
+    from jaxmocap.observe.fit import start_model
 
     if args.out is not None:
         if Path(args.out).suffix != ".eqx":
             raise UsageError(f"--out {args.out}: expected a path ending in .eqx")
         check_output_file(args.out)
-        check_outputs([Path(args.out)], inputs_of(args))
+        check_outputs([Path(args.out)], [*inputs_of(args), args.start])
     model = body_from_args(args)
     garment = garment_from_args(args, model)
-    settings = Settings(poses=args.poses, steps=args.steps, seed=args.seed)
-    check_output_file(cache_path(cache_key(model, garment, settings)))
-    _, head, path = fit(model, garment, settings, out=args.out, progress=not args.quiet)
+    if args.start:
+        start_model(args.start, classes_of(model, garment))  # refused before any work
+    chosen = args.poses is not None or args.steps is not None or args.seed != 0
+    settings = None
+    if chosen or args.start:
+        base = FINE_TUNE if args.start else Settings()
+        settings = base._replace(**{k: v for k, v in (("poses", args.poses),
+                                                      ("steps", args.steps),
+                                                      ("seed", args.seed)) if v is not None})
+    if args.start:
+        _, head, path = fit(model, garment, settings, out=args.out, progress=not args.quiet,
+                            start=args.start)
+    else:
+        _, head, path = learn(model, garment, settings, out=args.out, progress=not args.quiet)
     rec = head["record"]
     curve = rec["loss_every_10"]
     print(f"observation model: {len(head['classes'])} classes, key {head['key']}, "

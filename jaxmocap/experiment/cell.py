@@ -201,10 +201,10 @@ def _observer(option, body, garment):
     """The ``observer`` option: ``"learn"`` trains (or loads from the cache) the default model
     for the sequence's own body and shirt (``jaxmocap learn``); a path loads that file
     (refused if trained for another body or shirt)."""
-    from jaxmocap.observe import fit, load
+    from jaxmocap.observe import learn, load
 
     if option == "learn":
-        return fit(body, garment, progress=False)[0]
+        return learn(body, garment, progress=False)[0]
     return load(option, body, garment)[0]
 
 

@@ -34,7 +34,9 @@ from .scenes import Geometry, palette_of, render_geometry
 from .train import TrainConfig, optimiser, train
 
 CHECKPOINT_EVERY = 100
-GEOMETRY_VERSION = 1
+# the model shipped for the bundled body and shirt (``jaxmocap learn`` with the defaults); other
+# bodies and shirts with as many colours start from it (:func:`learn`)
+BUNDLED = Path(__file__).parent / "data" / "bundled.eqx"
 
 
 class Settings(NamedTuple):
@@ -49,6 +51,12 @@ class Settings(NamedTuple):
     seed: int = 0
 
 
+# a body or shirt of its own, starting from the bundled model: fewer renders and steps (the
+# colours, skin and the light are learned already; the body's shapes and the shirt's layout
+# are what is new)
+FINE_TUNE = Settings(poses=300, steps=400)
+
+
 TRAINING_SOURCES = ("classes.py", "scenes.py", "model.py", "train.py")  # what the weights depend on
 
 
@@ -61,10 +69,12 @@ def _source_digest() -> str:
     return h.hexdigest()[:16]
 
 
-def cache_key(model: BodyModel, garment: Garment, settings: Settings) -> str:
-    """Digest of everything the trained weights depend on."""
+def cache_key(model: BodyModel, garment: Garment, settings: Settings,
+              start_key: str | None = None) -> str:
+    """Digest of everything the trained weights depend on (``start_key``: the key of the model
+    training starts from, if any)."""
     text = json.dumps([body_digest(model), garment_digest(garment), list(settings),
-                       _source_digest()])
+                       _source_digest()] + ([start_key] if start_key else []))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -108,25 +118,70 @@ def _load_partial(path: Path, like, key: str):
         return None
 
 
+def start_model(path: str | Path, classes) -> tuple[Observer, dict]:
+    """A trained model to start from (any body), refused in one line when its classes are not
+    as many as ``classes``' (another number of shirt colours)."""
+    obs, head = obs_io.load(path)
+    if obs.n_classes != classes.n:
+        raise obs_io.ObserverFileError(
+            f"{path}: gives {obs.n_classes} classes, this shirt needs {classes.n} (background, "
+            f"{classes.n_colours} colours, head, two hands); train from scratch (no --start)")
+    return obs, head
+
+
+def learn(model: BodyModel, garment: Garment, settings: Settings | None = None,
+          out: str | Path | None = None, cache: str | Path | None = None,
+          progress: bool = True, log=print) -> tuple[Observer, dict, Path]:
+    """What ``jaxmocap learn`` trains by default: for the bundled body and shirt the bundled
+    model's settings from scratch (a cache hit where the shipped file's key matches); for a
+    body or shirt of their own with as many colours, :data:`FINE_TUNE` from the bundled model;
+    else the default :class:`Settings` from scratch. ``settings`` overrides the choice of
+    settings (not of the start)."""
+    classes = classes_of(model, garment)
+    start = None
+    if BUNDLED.exists():
+        head = obs_io.read_header(BUNDLED)
+        own = (head.get("body_digest"), head.get("garment_digest")) == (
+            body_digest(model), garment_digest(garment))
+        if own:
+            obs, head = obs_io.load(BUNDLED, model, garment)
+            if settings is None or Settings(**head["settings"]) == settings:
+                if out is not None:
+                    obs_io.save(out, obs, _header_of(head))
+                return obs, head, BUNDLED
+        elif head["hyper"]["n_classes"] == classes.n:
+            start = BUNDLED
+    if settings is None:
+        settings = FINE_TUNE if start is not None else Settings()
+    return fit(model, garment, settings, out, cache, progress, log, start=start)
+
+
+def _header_of(head: dict) -> dict:
+    return {k: v for k, v in head.items() if k not in ("format", "version", "hyper")}
+
+
 def fit(model: BodyModel, garment: Garment, settings: Settings = Settings(), out: str | Path |
         None = None, cache: str | Path | None = None, progress: bool = True,
-        log=print) -> tuple[Observer, dict, Path]:
+        log=print, start: str | Path | None = None) -> tuple[Observer, dict, Path]:
     """Train (or load from the cache) the observation model of ``model`` + ``garment``;
-    returns ``(observer, header, path)``. ``out``: also write the file there."""
+    returns ``(observer, header, path)``. ``out``: also write the file there. ``start``: a
+    model file (any body, as many classes) whose weights training starts from."""
     from tqdm.auto import tqdm
 
-    key = cache_key(model, garment, settings)
+    classes = classes_of(model, garment)
+    start_obs = start_head = None
+    if start is not None:
+        start_obs, start_head = start_model(start, classes)
+    key = cache_key(model, garment, settings, None if start_head is None else start_head["key"])
     path = cache_path(key, cache)
     if path.exists():
         try:
             obs, head = obs_io.load(path, model, garment)
             if out is not None and Path(out).resolve() != path.resolve():
-                obs_io.save(out, obs, {k: v for k, v in head.items()
-                                       if k not in ("format", "version", "hyper")})
+                obs_io.save(out, obs, _header_of(head))
             return obs, head, path
         except obs_io.ObserverFileError as e:
             log(f"jaxmocap learn: cached model damaged ({e}); training it again")
-    classes = classes_of(model, garment)
     t0 = time.perf_counter()
     poses = training_poses(model, settings)
     bar = tqdm(total=settings.poses, desc="rendering training scenes", disable=not progress,
@@ -138,6 +193,8 @@ def fit(model: BodyModel, garment: Garment, settings: Settings = Settings(), out
     t_geo = time.perf_counter() - t0
     config = TrainConfig(steps=settings.steps, batch=settings.batch, seed=settings.seed)
     obs = Observer(classes.n, jax.random.fold_in(jax.random.key(settings.seed), 1))
+    if start_obs is not None:
+        obs = start_obs
     partial = path.with_suffix(".partial")
     path.parent.mkdir(parents=True, exist_ok=True)
     like = (obs, optimiser(config).init(eqx.filter(obs, eqx.is_array)))
@@ -167,6 +224,7 @@ def fit(model: BodyModel, garment: Garment, settings: Settings = Settings(), out
         classes=list(classes.names), settings=settings._asdict(),
         data=dict(renderer="jaxmocap.render (JAX ray caster)", crops=settings.poses,
                   pixels_per_class=pixels.tolist()),
+        start=None if start_head is None else dict(file=str(start), key=start_head["key"]),
         record=dict(steps=settings.steps, resumed_from=start,
                     loss_every_10=[float(np.mean(losses[i:i + 10]))
                                    for i in range(0, len(losses), 10)],
