@@ -234,3 +234,16 @@ def test_learn_command(tmp_path):
     r = subprocess.run([sys.executable, "-m", "jaxmocap.cli", "learn", "--out", "m.npz"],
                        capture_output=True, text=True, env=env)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and ".eqx" in r.stderr
+
+
+def test_part_maps_partition_the_probabilities():
+    """The interface the trackers read: shirt, head, hands and background sum to one and the
+    hands' planes are the model's hand classes."""
+    from jaxmocap.observe import part_maps
+
+    m = Observer(CLASSES.n, jax.random.key(0), width=4, context=4)
+    img = jax.random.uniform(jax.random.key(1), (16, 16, 3), maxval=255)
+    lp = log_probs(m, img)
+    pm = jax.jit(lambda x: part_maps(CLASSES, x))(lp)
+    np.testing.assert_allclose(sum(pm), 1, atol=1e-5)
+    np.testing.assert_allclose(pm.left_hand, jnp.exp(lp[..., CLASSES.hands[0]]), atol=1e-6)

@@ -14,7 +14,7 @@ set-up.
 This package imports the body, garment and renderer; the trackers import it, never the reverse.
 """
 
-from .classes import Classes, classes_of, labels_of, skin_label_map
+from .classes import Classes, PartMaps, classes_of, labels_of, part_maps, skin_label_map
 from .fit import BUNDLED, FINE_TUNE, Settings, cache_key, fit, learn
 from .io import ObserverFileError, load, read_header, save
 from .model import Observer, features, log_probs
@@ -22,8 +22,8 @@ from .scenes import Geometry, blackbody_rgb, render_geometry, shade
 from .train import TrainConfig, class_weights, loss_fn, make_step, train
 
 __all__ = [
-    "BUNDLED", "FINE_TUNE", "Classes", "Geometry", "Observer", "ObserverFileError", "Settings", "TrainConfig",
+    "BUNDLED", "FINE_TUNE", "Classes", "Geometry", "Observer", "ObserverFileError", "PartMaps", "Settings", "TrainConfig",
     "blackbody_rgb", "cache_key", "class_weights", "classes_of", "features", "fit", "labels_of",
-    "learn", "load", "log_probs", "loss_fn", "make_step", "read_header", "render_geometry", "save",
+    "learn", "load", "log_probs", "loss_fn", "make_step", "part_maps", "read_header", "render_geometry", "save",
     "shade", "skin_label_map", "train",
 ]  # fmt: skip

@@ -77,3 +77,25 @@ def skin_label_map(classes: Classes, labels: Int[Array, "*s"]) -> Int[Array, "*s
     """Skin part per pixel from class ids: 0 none, 1 head, 2 left hand, 3 right hand."""
     part = labels - classes.n_colours
     return jnp.where((part >= 1) & (part <= 3), part, 0)
+
+
+class PartMaps(NamedTuple):
+    """Per-pixel probabilities of the parts a tracker reads (the interface of the learned layer
+    to both trackers): the shirt (any of its colours), the head's skin, each hand's skin, and
+    the background (the rest). The planes sum to 1."""
+
+    shirt: Array
+    head: Array
+    left_hand: Array
+    right_hand: Array
+    background: Array
+
+
+def part_maps(classes: Classes, logp: Array) -> PartMaps:
+    """:class:`PartMaps` from a model's per-pixel log-probabilities (``(..., n_classes)``, e.g.
+    :func:`jaxmocap.observe.log_probs`): the stereo filter's skin blobs (head, left and right
+    hand, named by the model) and the shirt mask of its edge cue read these."""
+    p = jnp.exp(logp)
+    K = classes.n_colours
+    return PartMaps(shirt=jnp.sum(p[..., 1:K + 1], -1), head=p[..., K + 1],
+                    left_hand=p[..., K + 2], right_hand=p[..., K + 3], background=p[..., 0])

@@ -614,7 +614,10 @@ def white_balance_refit(params: ShirtParams, state: ShirtState, ctx: RoundContex
         W_star = white_balance_from_ids(
             params.color, crop, r_star, W_i, fg, min_pixels=REFERENCE_PIXELS
         )
-        ok = valid & ok_cam & jnp.all(jnp.isfinite(W_star))
+        # a camera's gain on each channel is positive: a W* with a non-positive diagonal (the
+        # linear fit after a lamp goes off gave e.g. -1.93, issue 49) explains the crop by
+        # inverting a channel, and is not adopted
+        ok = valid & ok_cam & jnp.all(jnp.isfinite(W_star)) & jnp.all(jnp.diagonal(W_star) > 0)
         W_star = jnp.where(ok, W_star, W_i)
         refs_i2, add = maybe_add_reference(refs_i, W_star)
         refs_i = jax.tree.map(lambda a, b: jnp.where(ok, a, b), refs_i2, refs_i)
