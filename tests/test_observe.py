@@ -247,3 +247,19 @@ def test_part_maps_partition_the_probabilities():
     pm = jax.jit(lambda x: part_maps(CLASSES, x))(lp)
     np.testing.assert_allclose(sum(pm), 1, atol=1e-5)
     np.testing.assert_allclose(pm.left_hand, jnp.exp(lp[..., CLASSES.hands[0]]), atol=1e-6)
+
+
+def test_learn_gives_the_bundled_model_and_refuses_a_start_of_other_classes(tmp_path):
+    """The bundled body and shirt get the shipped model without training; a model of another
+    class count is refused as a start in one line."""
+    from jaxmocap.garment import single_colour_garment
+    from jaxmocap.observe import BUNDLED, learn
+    from jaxmocap.observe.fit import start_model
+
+    obs, head, path = learn(BODY, GARMENT, cache=tmp_path, progress=False)
+    assert path == BUNDLED and obs.n_classes == CLASSES.n
+    assert head["settings"]["steps"] >= 1000 and len(head["record"]["loss_every_10"]) > 50
+    one = classes_of(BODY, single_colour_garment(BODY, (0.1, 0.2, 0.8)))
+    with pytest.raises(ObserverFileError, match="gives 14 classes, this shirt needs 5") as e:
+        start_model(BUNDLED, one)
+    assert "\n" not in str(e.value)
