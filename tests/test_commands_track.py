@@ -351,3 +351,46 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
     assert_refused(capsys, "--validity footage is the shirt tracker's rule", "track",
                    "--method", "pf", "--cameras", tmp_path / "cameras.json", "0", "1",
                    "--validity", "footage", "--out", tmp_path / "o")
+
+
+def test_observer_refusals(tmp_path, capsys):
+    """``--observer`` (issue 49): with Wang's colour model, with the particle filter, a file
+    trained for another shirt, and a file that is not a model: one line each, before any work."""
+    from jaxmocap.garment import default_garment
+    from jaxmocap.io.garment_file import save_garment
+    from jaxmocap.observe import BUNDLED
+
+    two = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-.1, .1)]
+    save_cameras(tmp_path / "two.json", two)
+    ins = []
+    for c in range(2):
+        d = tmp_path / f"cam{c}"
+        d.mkdir()
+        cv2.imwrite(str(d / "0.png"), np.zeros((H, W, 3), np.uint8))
+        ins.append(d)
+    out = tmp_path / "out"
+    base = ["track", "--cameras", tmp_path / "two.json", *ins, "--out", out, "--quiet",
+            "--observer", BUNDLED]
+    (tmp_path / "colors.json").write_text("{}")
+    assert_refused(capsys, "leave out --colors", *base, "--colors", tmp_path / "colors.json",
+                   leaves=[out])
+    assert_refused(capsys, "--observer is read by the shirt tracker", *base, "--method", "pf",
+                   leaves=[out])
+    body = default_body()
+    g = default_garment(body)
+    other = eqx_swap_colours(g)
+    save_garment(tmp_path / "garment.json", other, body)
+    assert_refused(capsys, "trained for another garment", *base, "--garment",
+                   tmp_path / "garment.json", leaves=[out])
+    (tmp_path / "bad.eqx").write_text("not a model\n")
+    assert_refused(capsys, "not a trained observation model", *base[:-1], tmp_path / "bad.eqx",
+                   leaves=[out])
+
+
+def eqx_swap_colours(g):
+    """The garment with its first two patches' colours swapped (another shirt, same colours)."""
+    import equinox as eqx
+
+    pc = np.asarray(g.patch_colour).copy()
+    pc[[0, 1]] = pc[[1, 0]]
+    return eqx.tree_at(lambda x: x.patch_colour, g, jnp.asarray(pc))

@@ -286,6 +286,7 @@ def _learned_shirt_tracker(args, body, cams, names, tuned):
     import jax.numpy as jnp
 
     from jaxmocap.color import ColorModel
+    from jaxmocap.commands._body import garment_from_args
     from jaxmocap.observe import load as load_observer
     from jaxmocap.trackers.driver import ShirtFrameTracker, shirt_params
     from jaxmocap.trackers.shirt import Colours, Search
