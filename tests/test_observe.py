@@ -148,7 +148,7 @@ def test_tiny_model_recovers_a_renders_labels(geometry):
     g = jax.tree.map(lambda a: jnp.asarray(a), geometry)
     right_c, n_c, right_g, n_g = 0, 0, 0, 0
     for i in range(8):
-        img, lab = shade(jax.random.key(100 + i), jax.tree.map(lambda a: a[i], g), pal)
+        img, lab = shade(jax.random.key(100 + i), jax.tree.map(lambda a, i=i: a[i], g), pal)
         pred, lab = np.asarray(jnp.argmax(log_probs(m, img), -1)), np.asarray(lab)
         group = lambda x: np.where(x == 0, 0, np.where(x <= CLASSES.n_colours, 1, 2))  # noqa
         right_g += np.sum(group(pred) == group(lab))
@@ -171,7 +171,7 @@ def test_resumed_training_equals_uninterrupted(geometry):
                              stop=lambda: seen.get("i") == 2)
     rest, _, l_rest = train(half, geometry, pal, cfg, start=3, opt_state=st)
     for a, b in zip(jax.tree.leaves(eqx.filter(full, eqx.is_array)),
-                    jax.tree.leaves(eqx.filter(rest, eqx.is_array))):
+                    jax.tree.leaves(eqx.filter(rest, eqx.is_array)), strict=True):
         np.testing.assert_array_equal(a, b)
     assert l_half + l_rest == l_full
 
@@ -184,7 +184,7 @@ def test_model_file_round_trip_and_refusals(tmp_path):
     path = save(tmp_path / "m.eqx", m, dict(body_digest=body_digest(BODY),
                                             garment_digest=garment_digest(GARMENT)))
     back, head = load(path, BODY, GARMENT)
-    for a, b in zip(jax.tree.leaves(m), jax.tree.leaves(back)):
+    for a, b in zip(jax.tree.leaves(m), jax.tree.leaves(back), strict=True):
         np.testing.assert_array_equal(a, b)
     other = single_colour_garment(BODY, (0.1, 0.2, 0.8))
     with pytest.raises(ObserverFileError, match="another garment") as e:

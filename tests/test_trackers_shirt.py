@@ -646,8 +646,8 @@ def test_step_on_the_learned_observation(setup, monkeypatch):
     ref[0] = 128.0  # the background image
 
     def oracle(_model, crop):
-        d2 = jnp.sum((crop.astype(jnp.float32)[..., None, :] - jnp.asarray(ref, jnp.float32)[None, None]) ** 2,
-                     -1)
+        ref_j = jnp.asarray(ref, jnp.float32)[None, None]
+        d2 = jnp.sum((crop.astype(jnp.float32)[..., None, :] - ref_j) ** 2, -1)
         return jax.nn.log_softmax(-d2 / 200.0, -1)
 
     monkeypatch.setattr(observe, "log_probs", oracle)

@@ -22,8 +22,8 @@ from .scenes import Geometry, blackbody_rgb, render_geometry, shade
 from .train import TrainConfig, class_weights, loss_fn, make_step, train
 
 __all__ = [
-    "BUNDLED", "FINE_TUNE", "Classes", "Geometry", "Observer", "ObserverFileError", "PartMaps", "Settings", "TrainConfig",
-    "blackbody_rgb", "cache_key", "class_weights", "classes_of", "features", "fit", "labels_of",
-    "learn", "load", "log_probs", "loss_fn", "make_step", "part_maps", "read_header", "render_geometry", "save",
-    "shade", "skin_label_map", "train",
+    "BUNDLED", "FINE_TUNE", "Classes", "Geometry", "Observer", "ObserverFileError", "PartMaps",
+    "Settings", "TrainConfig", "blackbody_rgb", "cache_key", "class_weights", "classes_of",
+    "features", "fit", "labels_of", "learn", "load", "log_probs", "loss_fn", "make_step",
+    "part_maps", "read_header", "render_geometry", "save", "shade", "skin_label_map", "train",
 ]  # fmt: skip

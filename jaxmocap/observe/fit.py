@@ -160,14 +160,15 @@ def _header_of(head: dict) -> dict:
     return {k: v for k, v in head.items() if k not in ("format", "version", "hyper")}
 
 
-def fit(model: BodyModel, garment: Garment, settings: Settings = Settings(), out: str | Path |
-        None = None, cache: str | Path | None = None, progress: bool = True,
+def fit(model: BodyModel, garment: Garment, settings: Settings | None = None,
+        out: str | Path | None = None, cache: str | Path | None = None, progress: bool = True,
         log=print, start: str | Path | None = None) -> tuple[Observer, dict, Path]:
     """Train (or load from the cache) the observation model of ``model`` + ``garment``;
     returns ``(observer, header, path)``. ``out``: also write the file there. ``start``: a
     model file (any body, as many classes) whose weights training starts from."""
     from tqdm.auto import tqdm
 
+    settings = Settings() if settings is None else settings
     classes = classes_of(model, garment)
     start_obs = start_head = None
     if start is not None:

@@ -23,11 +23,11 @@ from jaxmocap.color import (
 )
 from jaxmocap.color.model import shading_problem
 from jaxmocap.garment import Garment
-from jaxmocap.observe import Observer
 from jaxmocap.ik import (
     IKCovariances,
     PatchAnchors,
 )
+from jaxmocap.observe import Observer
 from jaxmocap.posedb._sample import canonical_camera
 from jaxmocap.posedb._search import PoseDB
 from jaxmocap.trackers.shirt.skin import SkinTerms, make_skin_terms
