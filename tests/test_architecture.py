@@ -162,3 +162,15 @@ def test_long_library_modules_say_why():
         if n > LONG_MODULE_LINES and "Why one file" not in text[:6000]:
             long.append(f"{mod} ({n} lines)")
     assert long == []
+
+
+def test_the_learned_observation_is_a_room_of_its_own():
+    """``jaxmocap.observe`` (issue 49 item 7): the trackers import it, never the reverse."""
+    graph = import_graph()
+    layer = [m for m in graph if m == "jaxmocap.observe" or m.startswith("jaxmocap.observe.")]
+    assert layer
+    for m in layer:
+        bad = [t for t in graph[m] if t.startswith(("jaxmocap.trackers", "jaxmocap.experiment",
+                                                    "jaxmocap.commands", "jaxmocap.cli"))]
+        assert not bad, (m, bad)
+    assert any(t.startswith("jaxmocap.observe") for t in graph["jaxmocap.trackers.shirt.params"])
