@@ -140,7 +140,8 @@ def run_sequence(folder: Path, every: int, prior_scale: float, model_path: str |
             skin_rows.append(np.asarray(parts))
             fs.append(float(f))
             if figure_frames is not None and len(pics) < 2:
-                pics.append((np.asarray(img, np.uint8), gtc[yy][:, xx], np.asarray(col)))
+                pics.append((np.asarray(img, np.uint8), gtc[yy][:, xx], np.asarray(col),
+                             np.asarray(garment.colours)))
     m = np.mean(rows, 0)
     sk = np.sum(skin_rows, 0)
     if figure_frames is not None:
@@ -155,12 +156,15 @@ def run_sequence(folder: Path, every: int, prior_scale: float, model_path: str |
             "false skin": round(float(np.mean(fs)), 4)}
 
 
-def colour_figure(frames: list, colours: np.ndarray, path: str) -> None:
-    """Rows of (crop, true colours, the model's colours) for a results record."""
+def colour_figure(frames: list, path: str) -> None:
+    """Rows of (crop, true colours, the model's colours) for a results record, each in its
+    sequence's shirt colours."""
     import cv2
 
-    pal = np.concatenate([[[40, 40, 40]], np.round(np.asarray(colours) * 255)]).astype(np.uint8)
-    rows = [np.concatenate([img, pal[gt], pal[pred]], 1) for img, gt, pred in frames]
+    def pal(colours):
+        return np.concatenate([[[40, 40, 40]], np.round(colours * 255)]).astype(np.uint8)
+
+    rows = [np.concatenate([img, pal(c)[gt], pal(c)[pred]], 1) for img, gt, pred, c in frames]
     cv2.imwrite(path, np.concatenate(rows, 0)[..., ::-1])
 
 
@@ -187,8 +191,6 @@ def main() -> None:
         table[name] = run_sequence(folder, a.every, a.prior_scale, a.model,
                                    pics if a.figure else None, poses)
         print(name, json.dumps(table[name]), flush=True)
-        if a.figure:
-            colours = sequence_inputs(folder)[2].colours
     keys = [k for k in table[a.sequences[0]] if k.startswith("learned")]
     table["mean"] = {k: [round(float(np.mean([table[s][k][i] for s in a.sequences])), 3)
                          for i in (0, 1)] for k in keys}
@@ -198,7 +200,7 @@ def main() -> None:
     if a.out:
         Path(a.out).write_text(json.dumps(table, indent=1))
     if a.figure:
-        colour_figure(pics, colours, a.figure)
+        colour_figure(pics, a.figure)
 
 
 if __name__ == "__main__":
