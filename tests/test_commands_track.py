@@ -231,7 +231,9 @@ def test_tracker_input_refusals(tmp_path, capsys):
     base = ["track", "--cameras", tmp_path / "one.json", d, "--out", out, "--quiet"]
     assert_refused(capsys, "--method pf needs exactly 2 cameras", *base, "--method", "pf",
                    leaves=[out])
-    assert_refused(capsys, "--method shirt needs --colors", *base, leaves=[out])
+    (tmp_path / "wb.json").write_text("{}")
+    assert_refused(capsys, "--white-balance goes with --colors", *base, "--white-balance",
+                   tmp_path / "wb.json", leaves=[out])
     two = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-.1, .1)]
     save_cameras(tmp_path / "two.json", two)
     from jaxmocap.body.packages import package_body_file

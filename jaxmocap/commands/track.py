@@ -211,11 +211,8 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
                                     cue_widths=None if tuned is None else tuned.cue_widths())
     from jaxmocap.color import load_color_model
 
-    if args.observer:
+    if args.observer or not args.colors:  # the learned observation: the default (issue 49)
         return _learned_shirt_tracker(args, body, cams, names, tuned)
-    if not args.colors:
-        raise InputError("--method shirt needs --colors colors.json (from `jaxmocap colors`) "
-                         "or --observer MODEL.eqx (from `jaxmocap learn`)")
     color = load_color_model(args.colors)
     garment = garment_from_args(args, body, color if args.garment else None)
     if tuned is not None:
@@ -280,9 +277,12 @@ def _shirt_database(args, body, garment):
 
 
 def _learned_shirt_tracker(args, body, cams, names, tuned):
-    """The shirt tracker on the learned observation (``--observer``, issue 49): steps 1 and 3
-    read the model; no colour model or white balance is needed (the garment's albedo stands
-    as the colour model the paper's structures carry, never read on this path)."""
+    """The shirt tracker on the learned observation (issue 49; the default, ``--colors`` is the
+    paper's set-up): steps 1 and 3 read the model of ``--observer``, or without it ``jaxmocap
+    learn``'s for this body and shirt (the bundled one, or fine-tuned from it and cached: a
+    progress bar the first time). No colour model or white balance is needed (the garment's
+    albedo stands as the colour model the paper's structures carry, never read on this
+    path)."""
     import jax.numpy as jnp
 
     from jaxmocap.color import ColorModel
@@ -293,12 +293,23 @@ def _learned_shirt_tracker(args, body, cams, names, tuned):
 
     for flag, given in (("--colors", args.colors), ("--white-balance", args.white_balance)):
         if given:
-            raise InputError(f"--observer classifies the pixels; leave out {flag} (Wang's "
+            raise InputError(f"the learned observation classifies the pixels; {flag} goes with "
+                             "--colors (Wang's colour model and white balance, the paper's "
+                             "set-up)" if not args.observer else
+                             f"--observer classifies the pixels; leave out {flag} (Wang's "
                              "colour model and white balance are the paper's path)")
     garment = garment_from_args(args, body)
     if tuned is not None:
         tuned.check_for("shirt", body, garment)
-    observer, _ = load_observer(args.observer, body, garment)
+    if args.observer:
+        observer, _ = load_observer(args.observer, body, garment)
+    else:
+        from jaxmocap.observe import learn
+
+        observer, _, path = learn(body, garment, progress=not args.quiet)
+        if not args.quiet:
+            print(f"jaxmocap track: pixels classified by the learned observation {path} "
+                  "(--colors COLORS_JSON for the paper's set-up)", file=sys.stderr)
     color = ColorModel(jnp.asarray(garment.colours) * 255,
                        jnp.tile(jnp.eye(3) * 100.0, (garment.n_colours, 1, 1)),
                        names=garment.colour_names)
