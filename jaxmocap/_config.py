@@ -17,14 +17,36 @@ def cache_dir() -> Path:
     return Path(env) if env else Path(platformdirs.user_cache_dir("jaxmocap"))
 
 
+def cache_folder(name: str) -> Path:
+    """``cache_dir() / name``, created, and tried for writing (a file is created and removed:
+    permission bits lie for root and read-only mounts); one :class:`InputError` line naming
+    the folder, the cause and ``JAXMOCAP_CACHE_DIR`` otherwise."""
+    import tempfile
+
+    from jaxmocap.errors import InputError
+    from jaxmocap.io.atomic import describe_os_error
+
+    folder = cache_dir() / name
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".jaxmocap-probe.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        where = f"{CACHE_ENV}={os.environ[CACHE_ENV]}" if os.environ.get(CACHE_ENV) else (
+            f"the default cache folder {cache_dir()}; {CACHE_ENV} is unset")
+        raise InputError(f"cache folder {describe_os_error(e, folder)} ({where}); set "
+                         f"{CACHE_ENV} to a folder you can write") from None
+    return folder
+
+
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache so a second run skips compilation.
 
     The cache lives in ``path``, else ``$JAXMOCAP_CACHE_DIR/jax``, else the user's cache dir
     (``~/.cache/jaxmocap/jax`` on Linux). Returns the folder used.
     """
-    folder = Path(path) if path is not None else cache_dir() / "jax"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = Path(path) if path is not None else cache_folder("jax")
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -296,6 +296,10 @@ def load_or_build(
     model = model or default_body()
     garment = garment or default_garment(model)
     key = database_key(config, model, garment)
+    if cache is None:  # the user's cache folder: created and tried, refused naming its variable
+        from .._config import cache_folder
+
+        cache = cache_folder("posedb")
     path = cache_path(key, cache)
     if path.exists():
         return load_database(path, key, model)

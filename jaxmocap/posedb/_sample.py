@@ -220,14 +220,14 @@ def source_pool(model: BodyModel, clips: tuple[str, ...], cache: str | None = No
     """Frames of ``clips`` retargeted to ``model`` (n_frames, n_dof), float32, within the
     limits. Cached as ``pool-<hash>.npz`` in ``cache`` (default: the jaxmocap cache dir), since
     retargeting all clips compiles a few programs."""
-    from .._config import cache_dir
+    from .._config import cache_folder
     from ..synth import clip_to_body_q, list_clips, load_deepmimic
 
     known = set(list_clips())
     bad = [c for c in clips if c not in known]
     if bad:
         raise SamplingError(f"SamplingConfig.clips: unknown clips {bad}; known: {sorted(known)}")
-    folder = cache_dir() / "posedb" if cache is None else Path(cache)
+    folder = cache_folder("posedb") if cache is None else Path(cache)
     key = hashlib.sha256((model_digest(model) + repr(clips) + "pool-v1").encode()).hexdigest()
     path = folder / f"pool-{key[:16]}.npz"
     if path.exists():
