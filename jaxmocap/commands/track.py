@@ -19,6 +19,13 @@ cameras the tracker cannot use.
 tracked so far are written as a complete result marked partial (``run.json`` ``complete``
 false, ``poses.npz`` ``complete`` False, the printed line) and the exit code is 130. An
 interrupt before the first frame was tracked (set-up, compilation) writes nothing (exit 130).
+
+**Nothing tracked is lost** (:mod:`jaxmocap.io.journal`): every frame goes to a journal beside
+``--out`` as it is tracked, with the tracker's state every ``--checkpoint`` seconds; the
+outputs are made from it at the end and the journal is removed once they are in place. After
+an interrupt, a ``kill -9``, a full disk or an output folder that became read-only the journal
+stays, the message says where, and ``track --resume OUT`` continues from the checkpoint with
+the interrupted run's settings (its outputs equal an uninterrupted run's).
 """
 
 from __future__ import annotations
@@ -26,7 +33,9 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import itertools
 import json
+import math
 import os
 import signal
 import sys
@@ -38,9 +47,22 @@ import numpy as np
 
 from jaxmocap.camera import Camera
 from jaxmocap.errors import InputError
-from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
+from jaxmocap.io.atomic import (
+    AtomicFiles,
+    OutputPathError,
+    check_output_folder,
+    describe_os_error,
+    output_folder_lock,
+)
 from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
+from jaxmocap.io.journal import (
+    CHECKPOINT_EVERY_S,
+    Journal,
+    input_stamps,
+    journal_path,
+    tracked_arrays,
+)
 from jaxmocap.io.preflight import (
     check_outputs,
     check_stale,
@@ -151,13 +173,30 @@ def _interrupt(err: BaseException) -> str | None:
 
 def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, out: Path,
                  fps: float, overlay: bool = False, show: bool = False,
-                 progress: bool = True) -> Tracked:
+                 progress: bool = True, journal: Journal | None = None,
+                 restore=None) -> Tracked:
     """:func:`jaxmocap.trackers.driver.drive` over ``reader``, with the overlay video (if
     asked, into ``files``) and the live window (``show``); an interrupt is read as the command
-    line reads it."""
+    line reads it. ``journal``: every instant is appended to it as it is tracked, with the
+    tracker's checkpoint when due; the instants it already holds (a resumed run) are read and
+    skipped, and the tracker continues from ``restore``."""
     state = {"writer": None, "size": None}
+    n_dof = tracker.body.n_dof
+    done = 0 if journal is None else len(journal.frames)
+    has_checkpoint = callable(getattr(tracker, "checkpoint", None))
+
+    def record(t, res):
+        if journal is None:
+            return
+        if res is None:
+            journal.append(t, False, False, np.full(n_dof, np.nan), {})
+        else:
+            journal.append(t, True, res.valid, res.q, res.diagnostics)
+        if has_checkpoint and journal.checkpoint_due():
+            journal.checkpoint(tracker.checkpoint())
 
     def on_frame(t, frames, res):
+        record(t, res)
         view = None
         if frames is not None and (overlay or show):
             view = np.concatenate(list(tracker.draw(frames, res)), axis=1)
@@ -177,12 +216,19 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 return True
         return None
 
+    frames = itertools.islice(iter(reader), done, None)  # a resumed run's: read, not stepped
+    prefix = None if journal is None else tracked_arrays(journal.frames, n_dof)
     try:
-        return drive(tracker, reader, n_frames=reader.n_frames, on_frame=on_frame,
-                     progress=progress, interrupt=_interrupt)
+        tracked = drive(tracker, frames, n_frames=reader.n_frames, on_frame=on_frame,
+                        progress=progress, interrupt=_interrupt, prefix=prefix,
+                        restore=restore)
     finally:
         if state["writer"] is not None:
             state["writer"].close()
+    if journal is not None and tracked.interrupted is None and has_checkpoint and \
+            journal.checkpointed < len(journal.frames) and len(journal.frames) > done:
+        journal.checkpoint(tracker.checkpoint())  # all tracked: a resume only writes
+    return tracked
 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
@@ -271,11 +317,11 @@ def add_parser(sub) -> None:
         "frames, or a camera index for live capture. Writes the poses (BVH, TRC, C3D, CSV, NPZ), "
         "per-frame diagnostics and optionally an overlay video into --out.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("inputs", nargs="+", metavar="INPUT",
+    p.add_argument("inputs", nargs="*", metavar="INPUT",
                    help="per camera: video file, folder of frames, or camera index (0, 1, ...)")
     p.add_argument("--method", choices=("shirt", "pf"), default="shirt",
                    help="tracker: shirt (Wang et al.) or pf (Azad et al.) (default: %(default)s)")
-    p.add_argument("--cameras", required=True, metavar="CAMERAS_JSON",
+    p.add_argument("--cameras", metavar="CAMERAS_JSON",
                    help="calibrated cameras (from `jaxmocap calibrate`), required")
     p.add_argument("--out", default="track_out", metavar="FOLDER",
                    help="output folder (default: %(default)s)")
@@ -307,6 +353,15 @@ def add_parser(sub) -> None:
                    f"amplitude (response 1/(1+(f/HZ)^4); below half the frame rate) "
                    f"(default: {DEFAULT_CUTOFF_HZ:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--resume", metavar="OUT",
+                   help="continue the interrupted run (Ctrl-C, kill -9, disk full, read-only "
+                   "folder) that wrote to OUT, from its last checkpoint, with its settings "
+                   "(from the journal beside OUT; give no other option but --quiet)")
+    p.add_argument("--checkpoint", type=_non_negative, default=CHECKPOINT_EVERY_S,
+                   metavar="SECONDS",
+                   help="save the tracker's state to the journal at most every SECONDS: at "
+                   "most that much tracking is done again after a kill (0: every frame) "
+                   "(default: %(default)s)")
     p.add_argument("--tuned", metavar="TUNED_JSON",
                    help="tuned parameters (from `jaxmocap tune`): the shirt tracker's IK "
                    "covariances (generalises --ik-cov) or the stereo filter's cue widths "
@@ -360,6 +415,69 @@ def add_parser(sub) -> None:
                    "lines each frame (elbow-swivel jumps, beyond Azad; default 0.1); 0 for a "
                    "body whose shoulder is not three x, y, z hinges (e.g. a clavicle + humerus)")
     p.set_defaults(func=run)
+
+
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not v >= 0 or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+    return v
+
+
+# the settings a journal keeps (the parsed command line but what only this invocation says)
+_NOT_RESUMED = ("resume", "quiet", "func", "command", "show")
+
+
+def _resumed_args(args: argparse.Namespace) -> argparse.Namespace:
+    """The interrupted run's settings from the journal beside ``--resume OUT``, refused in
+    one line when other options are given or the inputs changed since."""
+    from jaxmocap.cli import build_parser
+
+    defaults = vars(build_parser().parse_args(["track"]))
+    given = [k for k, v in vars(args).items()
+             if k not in _NOT_RESUMED and defaults.get(k) != v]
+    if given:
+        names = ", ".join("INPUT" if k == "inputs" else "--" + k.replace("_", "-")
+                          for k in given)
+        raise InputError(f"--resume {args.resume}: takes the interrupted run's settings from "
+                         f"its journal; leave out {names}")
+    out = Path(args.resume)
+    meta = Journal.read_meta(out)
+    now = input_stamps(p for p in _input_files(argparse.Namespace(**meta["args"])))
+    if now != meta.get("input_stamps"):
+        then = {d["path"]: d for d in meta.get("input_stamps", [])}
+        changed = next((d["path"] for d in now if then.get(d["path"]) != d), None) or next(
+            iter(set(then) - {d["path"] for d in now}), "an input")
+        raise InputError(f"--resume {out}: {changed} changed since the interrupted run (size "
+                         "or time); the journal is of other inputs: track again with "
+                         "--overwrite")
+    resumed = argparse.Namespace(**meta["args"])
+    resumed.resume, resumed.quiet, resumed.show, resumed.func = out, args.quiet, False, run
+    return resumed
+
+
+def _input_files(args) -> list:
+    """The input files and folders whose content a journal depends on."""
+    return [p for p in _inputs(args) if p is not None and os.path.exists(p)]
+
+
+_PATH_ARGS = ("out", "cameras", "colors", "white_balance", "db", "ik_cov", "tuned", "body",
+              "garment", "pf_colors")
+
+
+def _journal_meta(args) -> dict:
+    """The settings and inputs a journal keeps: paths made absolute (a resume may run from
+    another folder)."""
+    keep = {k: v for k, v in vars(args).items()
+            if k not in _NOT_RESUMED and isinstance(v, (str, int, float, bool, list, type(None)))}
+    for k in _PATH_ARGS:
+        if isinstance(keep.get(k), str) and (k == "out" or os.path.exists(keep[k])):
+            keep[k] = os.path.abspath(keep[k])
+    keep["inputs"] = [os.path.abspath(i) if os.path.exists(i) else i for i in args.inputs]
+    return {"args": keep, "input_stamps": input_stamps(_input_files(args))}
 
 
 def _inputs(args) -> list:
@@ -417,6 +535,14 @@ def _check_smooth(args, fps: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
+    if args.resume:
+        args = _resumed_args(args)
+        if any(str(i).isdigit() and not os.path.exists(i) for i in args.inputs):
+            raise InputError(f"--resume {args.resume}: a live capture (camera indices) cannot "
+                             "be resumed")
+    elif not args.inputs or not args.cameras:
+        raise InputError("give the inputs (one video, frame folder or camera index per "
+                         "camera) and --cameras CAMERAS_JSON, or --resume OUT")
     if args.smooth_hz is not None and not args.smooth:
         raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
                          "--smooth")
@@ -436,7 +562,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set[str]) -> int:
-    stale = check_stale(out, names_out, args.overwrite)
+    resume = bool(args.resume)
+    jdir = journal_path(out)
+    if not resume and jdir.exists() and not args.overwrite:
+        raise InputError(f"--out {out}: the journal of an interrupted run is beside it "
+                         f"({jdir}); resume it with `jaxmocap track --resume {out}`, or pass "
+                         "--overwrite to track again from the start")
+    # a resumed run replaces what its own interruption wrote there (marked partial)
+    stale = check_stale(out, names_out, args.overwrite or resume)
     cams, names = load_cameras(args.cameras)
     real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]
     dup = next((i for i, r in enumerate(real) if real.index(r) != i), None)
@@ -460,36 +593,74 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         fps = args.fps or reader.fps or DEFAULT_FPS
         _check_smooth(args, fps)
         tracker = _make_tracker(args, cams, names)
-        with AtomicFiles(out) as files:
-            files.replace_set(stale)
-            tracked = track_frames(tracker, reader, files, out, fps, args.overlay,
-                                   args.show, progress=not args.quiet)
-            if reader.n_read == 0:
-                raise InputError(f"no readable frames in the inputs: {reader.problems()}")
-            # a second Ctrl-C must not leave the set half renamed: the writing is short
-            handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
-            try:
-                names_d = tuple(tracker.diagnostic_names)
-                q, extra = tracked.q, {}
-                if args.smooth:  # the per-frame estimates stay in poses.npz
-                    q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
-                    extra["q_raw"] = tracked.q
-                table = diagnostics_table(tracked.rows, names_d)
-                track = pose_track(tracker.body, q, tracked.valid, fps, table, names_d)
-                write_exports(files, out, tracker.body, track, formats,
-                              complete=np.asarray(tracked.interrupted is None),
-                              frames_in_input=np.asarray(-1 if reader.n_frames is None
-                                                         else reader.n_frames, np.int64),
-                              **extra)
-                files.path(out / "diagnostics.csv").write_text(
-                    _diagnostics_csv(names_d, tracked.rows, table))
-                files.path(out / "run.json").write_text(
-                    _run_json(args, tracked, reader, reader.n_frames))
-                targets = files.targets
-                files.commit()  # while SIGINT is ignored
-            finally:
-                signal.signal(signal.SIGINT, handler)
-        problems = reader.problems()
+        restore = None
+        if resume:
+            journal, restore, note = Journal.resume(out, args.checkpoint)
+            if note:
+                print(f"jaxmocap track: note: {note}", file=sys.stderr)
+            if args.overlay:
+                args.overlay = False
+                print("jaxmocap track: note: the overlay video is not journalled; the resumed "
+                      "run writes none (track again with --overlay for one)", file=sys.stderr)
+            if not args.quiet:
+                print(f"jaxmocap track: resuming {out} after frame {len(journal.frames)} "
+                      f"(the journal's last checkpoint)", file=sys.stderr)
+        else:
+            journal = Journal.create(out, _journal_meta(args), args.checkpoint)
+        try:
+            return _track_and_write(args, out, formats, stale, reader, tracker, journal,
+                                    restore, fps)
+        except (OutputPathError, OSError) as e:  # the outputs were not written: it stays
+            if not journal.frames:
+                journal.remove()
+                raise
+            msg = str(e) if isinstance(e, InputError) else describe_os_error(e)
+            raise OutputPathError(f"{msg}; {journal.where(out)}") from None
+        except BaseException as e:  # nothing tracked (set-up, compiling), or no frame
+            if not journal.frames or (isinstance(e, InputError) and reader.n_read == 0):
+                journal.remove()
+            raise
+        finally:
+            journal.close()
+
+
+def _track_and_write(args, out: Path, formats: list[str], stale, reader: SyncReader,
+                     tracker: FrameTracker, journal: Journal, restore, fps: float) -> int:
+    """The frame loop and the outputs, promoted together; the journal removed once they are
+    in place (complete) and kept otherwise."""
+    with AtomicFiles(out) as files:
+        files.replace_set(stale)
+        tracked = track_frames(tracker, reader, files, out, fps, args.overlay,
+                               args.show, progress=not args.quiet, journal=journal,
+                               restore=restore)
+        if reader.n_read == 0:
+            raise InputError(f"no readable frames in the inputs: {reader.problems()}")
+        # a second Ctrl-C must not leave the set half renamed: the writing is short
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            names_d = tuple(tracker.diagnostic_names)
+            q, extra = tracked.q, {}
+            if args.smooth:  # the per-frame estimates stay in poses.npz
+                q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
+                extra["q_raw"] = tracked.q
+            table = diagnostics_table(tracked.rows, names_d)
+            track = pose_track(tracker.body, q, tracked.valid, fps, table, names_d)
+            write_exports(files, out, tracker.body, track, formats,
+                          complete=np.asarray(tracked.interrupted is None),
+                          frames_in_input=np.asarray(-1 if reader.n_frames is None
+                                                     else reader.n_frames, np.int64),
+                          **extra)
+            files.path(out / "diagnostics.csv").write_text(
+                _diagnostics_csv(names_d, tracked.rows, table))
+            files.path(out / "run.json").write_text(
+                _run_json(args, tracked, reader, reader.n_frames))
+            targets = files.targets
+            files.commit()  # while SIGINT is ignored
+        finally:
+            signal.signal(signal.SIGINT, handler)
+    problems = reader.problems()
+    if tracked.interrupted is None:
+        journal.remove()
     valid = tracked.valid
     summary = (f"tracked {int(valid.sum())} of {len(valid)} frames ({reader.n_read} readable) -> "
                + ", ".join(str(p) for p in targets))
@@ -498,7 +669,8 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         print(f"PARTIAL: interrupted ({tracked.interrupted}) after {len(valid)}{total} frames; "
               + summary)
         print(f"jaxmocap track: interrupted; wrote the {len(valid)} frames tracked so far, "
-              "marked partial (run.json, poses.npz 'complete')", file=sys.stderr)
+              f"marked partial (run.json, poses.npz 'complete'); {journal.where(out)}",
+              file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary)
     offsets = reader.motion_offsets()
