@@ -2,6 +2,7 @@
 are refused with an InputError naming the path."""
 
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -282,9 +283,19 @@ def test_track_disk_full_and_long_out_one_line_nothing_left(capture, capsys, mon
         m.setattr(track_cmd, "write_exports", full)
         rc, out, err = run_cli(capsys, *argv, "--out", k / "runs" / "a")
     assert rc == 2 and len(err) == 1, (rc, err)
+    journal = k / "runs" / ".a.jaxmocap-journal"  # the tracked frames stay (issue 52)
     assert err[0] == (f"jaxmocap track: error: {k / 'runs' / 'a'}: cannot write: no space left "
                       "on the device: free some, or write elsewhere (ENOSPC); nothing was "
-                      "written")
+                      f"written; 12 tracked frames are kept in {journal}; resume with "
+                      f"`jaxmocap track --resume {k / 'runs' / 'a'}`")
+    assert _leftovers(k) == sorted(before + ["runs", str(journal.relative_to(k)),
+                                             *(str((journal / n).relative_to(k)) for n in
+                                               ("frames.jsonl", "meta.json"))])
+    rc, out, err = run_cli(capsys, "track", "--resume", k / "runs" / "a", "--quiet")
+    assert rc == 0, err
+    assert sorted(p.name for p in (k / "runs" / "a").iterdir()) == [
+        "diagnostics.csv", "poses.csv", "poses.npz", "run.json"]
+    shutil.rmtree(k / "runs")
     rc, out, err = run_cli(capsys, *argv, "--out", k / ("y" * 240))
     assert rc == 2 and len(err) == 1 and "is 240 bytes; this file system allows" in err[0]
     assert _leftovers(k) == before

@@ -428,7 +428,7 @@ def _non_negative(text: str) -> float:
 
 
 # the settings a journal keeps (the parsed command line but what only this invocation says)
-_NOT_RESUMED = ("resume", "quiet", "func", "command", "show")
+_NOT_RESUMED = ("resume", "quiet", "func", "command", "show", "inputs_given")
 
 
 def _resumed_args(args: argparse.Namespace) -> argparse.Namespace:
@@ -477,6 +477,7 @@ def _journal_meta(args) -> dict:
         if isinstance(keep.get(k), str) and (k == "out" or os.path.exists(keep[k])):
             keep[k] = os.path.abspath(keep[k])
     keep["inputs"] = [os.path.abspath(i) if os.path.exists(i) else i for i in args.inputs]
+    keep["inputs_given"] = list(getattr(args, "inputs_given", None) or args.inputs)  # run.json
     return {"args": keep, "input_stamps": input_stamps(_input_files(args))}
 
 
@@ -516,7 +517,8 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
            "frames_estimated": int(np.isfinite(tracked.q).all(axis=1).sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
-           "method": args.method, "inputs": [str(i) for i in args.inputs],
+           "method": args.method,
+           "inputs": [str(i) for i in getattr(args, "inputs_given", None) or args.inputs],
            "sync": args.sync, "sync_report": reader.sync_report,
            "smooth_hz": _cutoff(args) if args.smooth else None,
            "motion_offsets": reader.motion_offsets()}

@@ -63,7 +63,8 @@ def input_stamps(paths) -> list[dict]:
         files = sorted(q for q in p.iterdir() if q.is_file()) if p.is_dir() else [p]
         for f in files:
             st = f.stat()
-            out.append({"path": str(f), "size": st.st_size, "mtime_ns": st.st_mtime_ns})
+            out.append({"path": os.path.abspath(f), "size": st.st_size,
+                        "mtime_ns": st.st_mtime_ns})
     return out
 
 
