@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
+import sys
+from glob import escape as glob_escape
 from pathlib import Path
 
 import jax
@@ -50,7 +54,51 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _repair_damaged_programs(folder)
     return folder
+
+
+# JAX's words when a cache entry does not decompress (a write cut short by a crash, a damaged
+# disk): it compiles the program again but leaves the entry, and says so on every run.
+_DAMAGED_ENTRY = re.compile(r"Error reading persistent compilation cache entry for '([^']+)'")
+
+
+def _repair_damaged_programs(folder: Path) -> None:
+    """Damaged compiled programs in ``folder`` are detected (JAX's entries carry a checksum:
+    zlib's Adler-32 or zstd's), removed so that JAX writes the program it compiles instead, and
+    reported in one line each (instead of JAX's warning on every run). Installed on
+    ``warnings.showwarning`` (the command line opts in through this function)."""
+    import warnings
+
+    previous = warnings.showwarning
+    if getattr(previous, "jaxmocap_cache", None) == folder:
+        return
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        m = _DAMAGED_ENTRY.match(str(message))
+        if m is None:
+            return previous(message, category, filename, lineno, file, line)
+        for entry in sorted(folder.glob(f"{glob_escape(m.group(1))}-*-cache")):
+            if not _entry_intact(entry):
+                with contextlib.suppress(OSError):
+                    entry.unlink()
+                print(f"jaxmocap: the compiled program {entry} in the cache was damaged; "
+                      "compiled again", file=sys.stderr)
+
+    showwarning.jaxmocap_cache = folder
+    warnings.showwarning = showwarning
+    warnings.filterwarnings("always", message=_DAMAGED_ENTRY.pattern)
+
+
+def _entry_intact(entry: Path) -> bool:
+    """Whether a JAX cache entry decompresses (its codec's checksum holds)."""
+    from jax._src import compilation_cache
+
+    try:
+        compilation_cache.decompress_executable(entry.read_bytes())
+    except Exception:  # noqa: BLE001 (zlib.error, zstd's errors: any failure is damage)
+        return False
+    return True
 
 
 SIDE_DEVICE_ENV = "JAXMOCAP_SIDE_DEVICE"
