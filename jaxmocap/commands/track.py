@@ -35,7 +35,6 @@ import csv
 import io
 import itertools
 import json
-import math
 import os
 import signal
 import sys
@@ -46,23 +45,19 @@ import cv2
 import numpy as np
 
 from jaxmocap.camera import Camera
-from jaxmocap.errors import InputError
-from jaxmocap.io.atomic import (
-    AtomicFiles,
-    OutputPathError,
-    check_output_folder,
-    describe_os_error,
-    output_folder_lock,
+from jaxmocap.commands._resume import (
+    input_paths,
+    keep_or_drop,
+    non_negative_seconds,
+    open_journal,
+    refuse_over_journal,
+    resumed_args,
 )
+from jaxmocap.errors import InputError
+from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
-from jaxmocap.io.journal import (
-    CHECKPOINT_EVERY_S,
-    Journal,
-    input_stamps,
-    journal_path,
-    tracked_arrays,
-)
+from jaxmocap.io.journal import CHECKPOINT_EVERY_S, Journal, tracked_arrays
 from jaxmocap.io.preflight import (
     check_outputs,
     check_stale,
@@ -357,7 +352,7 @@ def add_parser(sub) -> None:
                    help="continue the interrupted run (Ctrl-C, kill -9, disk full, read-only "
                    "folder) that wrote to OUT, from its last checkpoint, with its settings "
                    "(from the journal beside OUT; give no other option but --quiet)")
-    p.add_argument("--checkpoint", type=_non_negative, default=CHECKPOINT_EVERY_S,
+    p.add_argument("--checkpoint", type=non_negative_seconds, default=CHECKPOINT_EVERY_S,
                    metavar="SECONDS",
                    help="save the tracker's state to the journal at most every SECONDS: at "
                    "most that much tracking is done again after a kill (0: every frame) "
@@ -417,80 +412,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _non_negative(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not v >= 0 or not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
-    return v
-
-
-# the settings a journal keeps (the parsed command line but what only this invocation says)
-_NOT_RESUMED = ("resume", "quiet", "func", "command", "show", "inputs_given")
-
-
-def _resumed_args(args: argparse.Namespace) -> argparse.Namespace:
-    """The interrupted run's settings from the journal beside ``--resume OUT``, refused in
-    one line when other options are given or the inputs changed since."""
-    from jaxmocap.cli import build_parser
-
-    defaults = vars(build_parser().parse_args(["track"]))
-    given = [k for k, v in vars(args).items()
-             if k not in _NOT_RESUMED and defaults.get(k) != v]
-    if given:
-        names = ", ".join("INPUT" if k == "inputs" else "--" + k.replace("_", "-")
-                          for k in given)
-        raise InputError(f"--resume {args.resume}: takes the interrupted run's settings from "
-                         f"its journal; leave out {names}")
-    out = Path(args.resume)
-    meta = Journal.read_meta(out)
-    now = input_stamps(p for p in _input_files(argparse.Namespace(**meta["args"])))
-    if now != meta.get("input_stamps"):
-        then = {d["path"]: d for d in meta.get("input_stamps", [])}
-        changed = next((d["path"] for d in now if then.get(d["path"]) != d), None) or next(
-            iter(set(then) - {d["path"] for d in now}), "an input")
-        raise InputError(f"--resume {out}: {changed} changed since the interrupted run (size "
-                         "or time); the journal is of other inputs: track again with "
-                         "--overwrite")
-    resumed = argparse.Namespace(**meta["args"])
-    resumed.resume, resumed.quiet, resumed.show, resumed.func = out, args.quiet, False, run
-    return resumed
-
-
-def _input_files(args) -> list:
-    """The input files and folders whose content a journal depends on."""
-    return [p for p in _inputs(args) if p is not None and os.path.exists(p)]
-
-
-_PATH_ARGS = ("out", "cameras", "colors", "white_balance", "db", "ik_cov", "tuned", "body",
-              "garment", "pf_colors")
-
-
-def _journal_meta(args) -> dict:
-    """The settings and inputs a journal keeps: paths made absolute (a resume may run from
-    another folder)."""
-    keep = {k: v for k, v in vars(args).items()
-            if k not in _NOT_RESUMED and isinstance(v, (str, int, float, bool, list, type(None)))}
-    for k in _PATH_ARGS:
-        if isinstance(keep.get(k), str) and (k == "out" or os.path.exists(keep[k])):
-            keep[k] = os.path.abspath(keep[k])
-    keep["inputs"] = [os.path.abspath(i) if os.path.exists(i) else i for i in args.inputs]
-    keep["inputs_given"] = list(getattr(args, "inputs_given", None) or args.inputs)  # run.json
-    return {"args": keep, "input_stamps": input_stamps(_input_files(args))}
-
-
-def _inputs(args) -> list:
-    """Every file or folder the command reads (camera indices are not paths)."""
-    srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
-    return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
-            getattr(args, "tuned", None),
-            getattr(args, "body", None), getattr(args, "garment", None),
-            None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
-                                                                            None)]
-
-
 def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> None:
     """The stereo particle filter's needs: one image size (its blob and edge maps are stacked
     per camera) and two distinct centres (the baseline triangulates the head and hands)."""
@@ -538,7 +459,7 @@ def _check_smooth(args, fps: float) -> None:
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
     if args.resume:
-        args = _resumed_args(args)
+        args = resumed_args(args)
         if any(str(i).isdigit() and not os.path.exists(i) for i in args.inputs):
             raise InputError(f"--resume {args.resume}: a live capture (camera indices) cannot "
                              "be resumed")
@@ -558,18 +479,14 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--formats {args.formats!r}: expected a comma-separated subset of "
                          f"{','.join(FORMATS)}")
     names_out = result_names()
-    check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
+    check_outputs([out, *(out / n for n in sorted(names_out))], input_paths(args))
     with output_folder_lock(out):  # one run at a time writes --out
         return _run(args, out, formats, names_out)
 
 
 def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set[str]) -> int:
     resume = bool(args.resume)
-    jdir = journal_path(out)
-    if not resume and jdir.exists() and not args.overwrite:
-        raise InputError(f"--out {out}: the journal of an interrupted run is beside it "
-                         f"({jdir}); resume it with `jaxmocap track --resume {out}`, or pass "
-                         "--overwrite to track again from the start")
+    refuse_over_journal(out, args.overwrite, resume)
     # a resumed run replaces what its own interruption wrote there (marked partial)
     stale = check_stale(out, names_out, args.overwrite or resume)
     cams, names = load_cameras(args.cameras)
@@ -595,33 +512,12 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         fps = args.fps or reader.fps or DEFAULT_FPS
         _check_smooth(args, fps)
         tracker = _make_tracker(args, cams, names)
-        restore = None
-        if resume:
-            journal, restore, note = Journal.resume(out, args.checkpoint)
-            if note:
-                print(f"jaxmocap track: note: {note}", file=sys.stderr)
-            if args.overlay:
-                args.overlay = False
-                print("jaxmocap track: note: the overlay video is not journalled; the resumed "
-                      "run writes none (track again with --overlay for one)", file=sys.stderr)
-            if not args.quiet:
-                print(f"jaxmocap track: resuming {out} after frame {len(journal.frames)} "
-                      f"(the journal's last checkpoint)", file=sys.stderr)
-        else:
-            journal = Journal.create(out, _journal_meta(args), args.checkpoint)
+        journal, restore = open_journal(args, out)
         try:
             return _track_and_write(args, out, formats, stale, reader, tracker, journal,
                                     restore, fps)
-        except (OutputPathError, OSError) as e:  # the outputs were not written: it stays
-            if not journal.frames:
-                journal.remove()
-                raise
-            msg = str(e) if isinstance(e, InputError) else describe_os_error(e)
-            raise OutputPathError(f"{msg}; {journal.where(out)}") from None
-        except BaseException as e:  # nothing tracked (set-up, compiling), or no frame
-            if not journal.frames or (isinstance(e, InputError) and reader.n_read == 0):
-                journal.remove()
-            raise
+        except BaseException as e:
+            raise keep_or_drop(journal, e, out, reader.n_read) from None
         finally:
             journal.close()
 

@@ -381,33 +381,25 @@ class StereoPFFrameTracker:
         return FrameResult(q, ok, d, est)
 
     def checkpoint(self) -> dict:
-        """What carries over to the next frame, on the host (for ``track``'s journal): the
-        filter state (particles and its RNG key), the blob tracks, the start search, the
-        frame count and, with ``pf_colors="auto"``, the calibration (its frames so far, or
-        the colours calibrated from them)."""
+        """What carries over to the next frame, on the host (``track``'s journal): the filter
+        state (particles, RNG key), blob tracks, start search, frame count and the
+        ``pf_colors="auto"`` calibration (its frames so far, or the colours from them)."""
         return jax.device_get({
             "state": self.state, "blob_state": self.blob_state, "anchor": self.anchor,
-            "t": self._t, "waited": self._starter.waited,
-            "calibration": self._calibration, "auto_colors": getattr(self, "_auto_colors", None),
-        })
+            "t": self._t, "waited": self._starter.waited, "calibration": self._calibration,
+            "auto_colors": getattr(self, "_auto_colors", None)})
 
     def restore(self, checkpoint: dict) -> None:
-        """Continue from a :meth:`checkpoint` (after :meth:`start`): the same state and RNG
-        key, bit for bit."""
-        def device(tree):
-            return None if tree is None else jax.tree.map(jnp.asarray, tree)
-
-        colors = checkpoint["auto_colors"]
-        if colors is not None:  # the capture's colours were calibrated before the checkpoint
-            self._auto_colors = colors
-            self.params = self._make(colors)
+        """Continue from a :meth:`checkpoint` (after :meth:`start`), bit for bit."""
+        if checkpoint["auto_colors"] is not None:  # calibrated before the checkpoint
+            self._auto_colors = checkpoint["auto_colors"]
+            self.params = self._starter.params = self._make(self._auto_colors)
             self._step = self._pf.compile_step(self.params)
-            self._starter.params = self.params
-        self._calibration = checkpoint["calibration"]
-        self.state = device(checkpoint["state"])  # the filter's state lives on the device
-        self.blob_state = checkpoint["blob_state"]  # the blob tracks on the host (float64)
-        self.anchor, self._t = checkpoint["anchor"], int(checkpoint["t"])
-        self._starter.waited = int(checkpoint["waited"])
+        state = checkpoint["state"]  # the filter's state lives on the device, the blob
+        self.state = None if state is None else jax.tree.map(jnp.asarray, state)
+        self.blob_state = checkpoint["blob_state"]  # tracks on the host (float64)
+        self._calibration, self.anchor = checkpoint["calibration"], checkpoint["anchor"]
+        self._t, self._starter.waited = int(checkpoint["t"]), int(checkpoint["waited"])
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
         return _skeleton_views(self.body, self.cams, frames, result)
@@ -521,10 +513,9 @@ def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]]
     before it (``interrupted``); one before any frame was stepped propagates (set-up or
     compiling the first step: nothing to keep).
 
-    Resuming (``jaxmocap track --resume``): ``prefix`` = ``(qs, valid, rows, times)`` of the
-    frames already tracked (their outputs are not kept) and ``restore`` the tracker's
-    :meth:`checkpoint` after them, given to its ``restore`` right after ``start``; ``frames``
-    then yields only the instants after them."""
+    Resuming (``track --resume``): ``prefix`` = ``(qs, valid, rows, times)`` of the frames
+    tracked before, ``restore`` the tracker's checkpoint after them (given to its ``restore``
+    after ``start``); ``frames`` yields only the instants after them."""
     from tqdm import tqdm
 
     interrupt = interrupt or _plain_interrupt
