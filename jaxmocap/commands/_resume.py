@@ -115,7 +115,7 @@ def open_journal(args: argparse.Namespace, out: Path) -> tuple[Journal, object]:
         print("jaxmocap track: note: the overlay video is not journalled; the resumed run "
               "writes none (track again with --overlay for one)", file=sys.stderr)
     if not args.quiet:
-        print(f"jaxmocap track: resuming {out} after frame {len(journal.frames)} (the "
+        print(f"jaxmocap track: resuming {out} after frame {journal.count} (the "
               "journal's last checkpoint)", file=sys.stderr)
     return journal, restore
 
@@ -126,7 +126,7 @@ def keep_or_drop(journal: Journal, err: BaseException, out: Path, n_read: int
     frame (set-up, compiling) or no frame was readable; otherwise kept, and an OS error
     writing the outputs (disk full, a read-only folder) says where the frames are and how to
     resume."""
-    if not journal.frames or (isinstance(err, InputError) and n_read == 0):
+    if journal.count == 0 or (isinstance(err, InputError) and n_read == 0):
         journal.remove()
         return err
     if isinstance(err, OSError) or (isinstance(err, OutputPathError)):

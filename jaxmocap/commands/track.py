@@ -177,7 +177,7 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
     skipped, and the tracker continues from ``restore``."""
     state = {"writer": None, "size": None}
     n_dof = tracker.body.n_dof
-    done = 0 if journal is None else len(journal.frames)
+    done = 0 if journal is None else journal.count
     has_checkpoint = callable(getattr(tracker, "checkpoint", None))
 
     def record(t, res):
@@ -212,7 +212,9 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
         return None
 
     frames = itertools.islice(iter(reader), done, None)  # a resumed run's: read, not stepped
-    prefix = None if journal is None else tracked_arrays(journal.frames, n_dof)
+    prefix = None if journal is None else tracked_arrays(journal.resumed, n_dof)
+    if journal is not None:
+        journal.resumed = []  # handed over
     try:
         tracked = drive(tracker, frames, n_frames=reader.n_frames, on_frame=on_frame,
                         progress=progress, interrupt=_interrupt, prefix=prefix,
@@ -221,7 +223,7 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
         if state["writer"] is not None:
             state["writer"].close()
     if journal is not None and tracked.interrupted is None and has_checkpoint and \
-            journal.checkpointed < len(journal.frames) and len(journal.frames) > done:
+            journal.checkpointed < journal.count and journal.count > done:
         journal.checkpoint(tracker.checkpoint())  # all tracked: a resume only writes
     return tracked
 

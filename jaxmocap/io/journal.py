@@ -81,11 +81,14 @@ class Journal:
     :meth:`checkpoint_due`, :meth:`remove` once the outputs are promoted.
 
     A write that fails (disk full) does not stop the tracking: the journal is marked failed
-    (:attr:`failure`, one line) and the frames stay in memory for the outputs."""
+    (:attr:`failure`, one line) and the frames stay in memory for the outputs. The journal
+    holds no frame in memory (a long capture's memory does not grow by it): only the records
+    a resumed run read back (:attr:`resumed`) until they are handed over."""
 
-    def __init__(self, folder: Path, frames: list[dict], every_s: float) -> None:
+    def __init__(self, folder: Path, resumed: list[dict], every_s: float) -> None:
         self.folder = folder
-        self.frames = frames  # the records on disk (resume: the checkpoint's)
+        self.resumed = resumed  # a resumed run's records (read once; the rest stays on disk)
+        self.count = len(resumed)  # frames journalled
         self.every_s = every_s
         self.failure: str | None = None
         self._file = None
@@ -157,7 +160,7 @@ class Journal:
         j.checkpointed = n
         with open(folder / "frames.jsonl", "w") as f:  # the lines beyond the checkpoint go
             f.writelines(_line(r["t"], r["read"], r["valid"], np.asarray(r["q"]),
-                               r["diagnostics"]) for r in j.frames)
+                               r["diagnostics"]) for r in j.resumed)
             f.flush()
             os.fsync(f.fileno())
         j._open()
@@ -178,7 +181,7 @@ class Journal:
         """One instant's line, flushed to the kernel (a kill of the process loses nothing)
         and ``fsync``'ed at least every :data:`FSYNC_EVERY_S`."""
         rec = _line(t, read, valid, q, diagnostics)
-        self.frames.append(json.loads(rec))
+        self.count += 1
         if self.failure is not None:
             return
         try:
@@ -201,11 +204,11 @@ class Journal:
         try:
             self._file.flush()
             os.fsync(self._file.fileno())
-            body = pickle.dumps({"frames": len(self.frames), "tracker": state},
+            body = pickle.dumps({"frames": self.count, "tracker": state},
                                 protocol=pickle.HIGHEST_PROTOCOL)
             write_bytes(self.folder / "checkpoint.pkl",
                         hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
-            self.checkpointed = len(self.frames)
+            self.checkpointed = self.count
         except OSError as e:
             self._failed(e, "checkpoint.pkl")
         self._last_ckpt = self._last_sync = time.monotonic()
@@ -223,7 +226,7 @@ class Journal:
 
     def where(self, out: Path) -> str:
         """Where the tracked frames are and how to resume, for a message."""
-        kept = (f"{len(self.frames)} tracked frames are kept in {self.folder}"
+        kept = (f"{self.count} tracked frames are kept in {self.folder}"
                 if self.failure is None else
                 f"the journal {self.folder} holds the first {self.checkpointed} frames "
                 f"(writing it failed: {self.failure})")
