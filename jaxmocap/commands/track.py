@@ -116,6 +116,8 @@ estimate (its validity: diagnostics.csv). An
 replaced as a whole). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
 2 bad input (nothing written), 130 interrupted (Ctrl-C or SIGTERM: the frames tracked so far,
 marked partial in run.json and poses.npz; nothing if interrupted before the first frame).
+Every frame is journalled beside --out as it is tracked: after an interrupt, kill -9, a full
+disk or a read-only folder, `jaxmocap track --resume OUT` continues from the last checkpoint.
 """
 
 
