@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
+import sys
+from glob import escape as glob_escape
 from pathlib import Path
 
 import jax
@@ -17,18 +21,84 @@ def cache_dir() -> Path:
     return Path(env) if env else Path(platformdirs.user_cache_dir("jaxmocap"))
 
 
+def cache_folder(name: str) -> Path:
+    """``cache_dir() / name``, created, and tried for writing (a file is created and removed:
+    permission bits lie for root and read-only mounts); one :class:`InputError` line naming
+    the folder, the cause and ``JAXMOCAP_CACHE_DIR`` otherwise."""
+    import tempfile
+
+    from jaxmocap.errors import InputError
+    from jaxmocap.io.atomic import describe_os_error
+
+    folder = cache_dir() / name
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".jaxmocap-probe.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        where = f"{CACHE_ENV}={os.environ[CACHE_ENV]}" if os.environ.get(CACHE_ENV) else (
+            f"the default cache folder {cache_dir()}; {CACHE_ENV} is unset")
+        raise InputError(f"cache folder {describe_os_error(e, folder)} ({where}); set "
+                         f"{CACHE_ENV} to a folder you can write") from None
+    return folder
+
+
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache so a second run skips compilation.
 
     The cache lives in ``path``, else ``$JAXMOCAP_CACHE_DIR/jax``, else the user's cache dir
     (``~/.cache/jaxmocap/jax`` on Linux). Returns the folder used.
     """
-    folder = Path(path) if path is not None else cache_dir() / "jax"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = Path(path) if path is not None else cache_folder("jax")
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _repair_damaged_programs(folder)
     return folder
+
+
+# JAX's words when a cache entry does not decompress (a write cut short by a crash, a damaged
+# disk): it compiles the program again but leaves the entry, and says so on every run.
+_DAMAGED_ENTRY = re.compile(r"Error reading persistent compilation cache entry for '([^']+)'")
+
+
+def _repair_damaged_programs(folder: Path) -> None:
+    """Damaged compiled programs in ``folder`` are detected (JAX's entries carry a checksum:
+    zlib's Adler-32 or zstd's), removed so that JAX writes the program it compiles instead, and
+    reported in one line each (instead of JAX's warning on every run). Installed on
+    ``warnings.showwarning`` (the command line opts in through this function)."""
+    import warnings
+
+    previous = warnings.showwarning
+    if getattr(previous, "jaxmocap_cache", None) == folder:
+        return
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        m = _DAMAGED_ENTRY.match(str(message))
+        if m is None:
+            return previous(message, category, filename, lineno, file, line)
+        for entry in sorted(folder.glob(f"{glob_escape(m.group(1))}-*-cache")):
+            if not _entry_intact(entry):
+                with contextlib.suppress(OSError):
+                    entry.unlink()
+                print(f"jaxmocap: the compiled program {entry} in the cache was damaged; "
+                      "compiled again", file=sys.stderr)
+
+    showwarning.jaxmocap_cache = folder
+    warnings.showwarning = showwarning
+    warnings.filterwarnings("always", message=_DAMAGED_ENTRY.pattern)
+
+
+def _entry_intact(entry: Path) -> bool:
+    """Whether a JAX cache entry decompresses (its codec's checksum holds)."""
+    from jax._src import compilation_cache
+
+    try:
+        compilation_cache.decompress_executable(entry.read_bytes())
+    except Exception:  # noqa: BLE001 (zlib.error, zstd's errors: any failure is damage)
+        return False
+    return True
 
 
 SIDE_DEVICE_ENV = "JAXMOCAP_SIDE_DEVICE"

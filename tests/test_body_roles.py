@@ -570,3 +570,86 @@ def test_third_party_deepmimic_humanoid():
     assert names[mir.perm[names.index("left_knee")]] == "right_knee"
     with pytest.raises(InputError, match="scale/up apply to URDF"):
         body.load_body(Path(pybullet_data.getDataPath()) / "mjcf" / "humanoid.xml", scale=0.5)
+
+
+def test_garment_json_as_other_tools_write_it(foreign, tmp_path):
+    """Issue 52 item 6: MuJoCo-style ``rgba`` in 0..1 (a list, or MJCF's "r g b a" string),
+    patches naming their colour by index (0 = the first), and a patch ``geom`` given by the
+    name of a URDF link whose one visual has no name (jaxmocap calls it ``<link>_0``) read as
+    the same garment as the file written the jaxmocap way (the oracle)."""
+    text = foreign["urdf_path"].read_text()
+    unnamed = tmp_path / "unnamed.urdf"
+    unnamed.write_text(re.sub(r'<visual name="[^"]*">', "<visual>", text))
+    model = body.load_body(unnamed)
+    assert "torso_0" in model.geometry.names and "torso" not in model.geometry.names
+    ours = {
+        "colours": [{"name": "red", "rgb": [0.8, 0.1, 0.1]},
+                    {"name": "colour1", "rgb": [0.1, 0.6, 0.6]}],
+        "patches": [
+            {"name": "front", "geom": "torso_0", "half_spaces": [[-1, 0, 0, 0]], "colour": "red"},
+            {"name": "back", "geom": "torso_0", "half_spaces": [[1, 0, 0, 0]],
+             "colour": "colour1"},
+        ],
+    }  # fmt: skip
+    theirs = {
+        "colours": [{"name": "red", "rgba": [0.8, 0.1, 0.1, 1.0]}, {"rgba": "0.1 0.6 0.6 0.5"}],
+        "patches": [
+            {"name": "front", "geom": "torso", "half_spaces": [[-1, 0, 0, 0]], "colour": 0},
+            {"name": "back", "geom": "torso", "half_spaces": [[1, 0, 0, 0]], "colour": 1},
+        ],
+    }  # fmt: skip
+    a, b = tmp_path / "ours.json", tmp_path / "theirs.json"
+    a.write_text(json.dumps(ours))
+    b.write_text(json.dumps(theirs))
+    want, got = load_garment(a, model), load_garment(b, model)
+    assert got.colour_names == want.colour_names and got.patch_names == want.patch_names
+    for x, y in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert garment_digest(got) == garment_digest(want)
+    # what stays refused, each in one line naming the file and the field
+    for bad, field in (
+        ({**theirs, "colours": [{"rgba": [204, 25, 25, 255]}, "red"]},
+         r"colours\[0\].*'rgba' must be 4 numbers in \[0, 1\]"),
+        ({**theirs, "colours": [{"rgb": [1, 0, 0], "rgba": [1, 0, 0, 1]}]},
+         r"colours\[0\]: both 'rgb' and 'rgba'"),
+        ({**theirs, "patches": [{"name": "x", "geom": "torso", "colour": 2}]},
+         r"patches\[0\].*colour index 2 outside 0..1"),
+        ({**theirs, "patches": [{"name": "x", "geom": "torso", "colour": True}]},
+         r"patches\[0\].*colour True is not in 'colours'"),
+        ({**theirs, "patches": [{"name": "x", "geom": "hips", "colour": 0}]}, None),
+    ):  # fmt: skip
+        b.write_text(json.dumps(bad))
+        if field is None:  # hips has one visual too: accepted
+            assert load_garment(b, model).patch_geom.tolist() == [
+                model.geometry.names.index("hips_0")]
+            continue
+        with pytest.raises(InputError, match=field) as e:
+            load_garment(b, model)
+        assert str(b) in one_line(e)
+
+
+def test_garment_geom_naming_a_link_of_several_geoms_is_refused(foreign, tmp_path):
+    """A patch ``geom`` naming a link with several geoms is ambiguous: one line naming them."""
+    text = foreign["urdf_path"].read_text()
+    two = tmp_path / "two.urdf"
+    extra = '<visual><geometry><sphere radius="0.05"/></geometry></visual>'
+    two.write_text(re.sub(r'<visual name="[^"]*">', "<visual>", text)
+                   .replace('<link name="hips">', '<link name="hips">' + extra))
+    model = body.load_body(two)
+    assert {"hips_0", "hips_1"} <= set(model.geometry.names)
+    path = tmp_path / "g.json"
+    path.write_text(json.dumps({"colours": ["red"],
+                                "patches": [{"name": "x", "geom": "hips", "colour": 0}]}))
+    with pytest.raises(InputError, match=r"'geom' 'hips' is a link with 2 geoms") as e:
+        load_garment(path, model)
+    assert str(path) in one_line(e)
+
+
+def test_side_word_in_the_middle_of_a_name():
+    """Issue 52: ``skin_left_hand`` (a prefix, then side and part) is the left hand; a middle
+    ``l`` or a part word before the side word is not read."""
+    assert rl.classify_link("skin_left_hand")[:2] == ("l", "hand")
+    assert rl.classify_link("geom_right_upper_arm")[:2] == ("r", "upper_arm")
+    assert rl.classify_link("skin_l_hand")[:2] == (None, None)
+    assert rl.classify_link("hand_left_skin")[:2] == (None, None)
+    assert rl.classify_link("left_hand")[:2] == ("l", "hand")

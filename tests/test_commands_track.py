@@ -396,3 +396,204 @@ def eqx_swap_colours(g):
     pc = np.asarray(g.patch_colour).copy()
     pc[[0, 1]] = pc[[1, 0]]
     return eqx.tree_at(lambda x: x.patch_colour, g, jnp.asarray(pc))
+
+
+# ----------------------------------------------------------------------------- journal, resume
+
+
+@pytest.fixture(scope="module")
+def pf_footage(tmp_path_factory):
+    """The smallest footage on which the real stereo filter starts and runs: `jaxmocap synth`
+    (stereo rig, 96x72, plain background, 12 frames of the punch clip), played forwards and
+    backwards to 48 frames per camera (frame folders)."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = tmp_path_factory.mktemp("pf_footage")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    subprocess.run([sys.executable, "-m", "jaxmocap.cli", "synth", str(root / "ds"),
+                    "--preset", "stereo", "--width", "96", "--height", "72", "--frames", "12",
+                    "--background", "plain", "--png", "--no-video", "--quiet"],
+                   check=True, env=env, capture_output=True, timeout=120)
+    shutil.copy(root / "ds" / "cameras.json", root / "cameras.json")
+    for c in range(2):
+        src = sorted((root / "ds" / f"cam{c}").iterdir())
+        (root / f"cam{c}").mkdir()
+        for i, f in enumerate((src + src[::-1]) * 2):
+            shutil.copy(f, root / f"cam{c}" / f"{i:03d}.png")
+    return root, env
+
+
+def _journal_lines(out) -> list[dict]:
+    path = out.parent / f".{out.name}.jaxmocap-journal" / "frames.jsonl"
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return []
+    return [json.loads(ln) for ln in text.split("\n")[:-1]]
+
+
+def test_kill_9_mid_run_then_resume_equals_an_uninterrupted_run(pf_footage, tmp_path):
+    """Issue 52 items 2-3: a real `jaxmocap track --method pf` process killed with SIGKILL
+    part-way (after the filter started: its particles and RNG key are in the checkpoint) leaves
+    its tracked frames in the journal beside --out and nothing in --out; `track --resume OUT`
+    continues from the checkpoint and writes outputs bit-identical to an uninterrupted run's
+    (the oracle), then removes the journal and the lock."""
+    import pickle
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, env = pf_footage
+    argv = [sys.executable, "-m", "jaxmocap.cli", "track", "--method", "pf", "--skin", "synth",
+            "--particles", "50", "--cameras", str(root / "cameras.json"), str(root / "cam0"),
+            str(root / "cam1"), "--formats", "npz,csv,bvh", "--checkpoint", "0", "--quiet"]
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    n_all = 48
+    oracle = subprocess.Popen([*argv, "--out", str(whole)], env=env,  # meanwhile, uncut
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([*argv, "--out", str(cut)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 180
+    while len(_journal_lines(cut)) < 30 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    lines = _journal_lines(cut)
+    assert proc.returncode == -signal.SIGKILL and 30 <= len(lines) < n_all, len(lines)
+    assert not cut.exists() or not any(cut.iterdir())  # nothing half-written in --out
+    journal = tmp_path / ".cut.jaxmocap-journal"
+    raw = (journal / "checkpoint.pkl").read_bytes()
+    done = pickle.loads(raw.partition(b"\n")[2])["frames"]
+    assert 0 < done <= len(lines)
+    assert any(r["diagnostics"].get("waiting_for_head") == 0 for r in lines[:done])  # started
+    _, oracle_err = oracle.communicate(timeout=180)
+    assert oracle.returncode == 0, oracle_err
+    assert json.loads((whole / "run.json").read_text())["frames_written"] == n_all
+    res = subprocess.run([sys.executable, "-m", "jaxmocap.cli", "track", "--resume", str(cut),
+                          "--quiet"], env=env, capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr
+    for name in ("poses.npz", "poses.csv", "poses.bvh", "diagnostics.csv", "run.json"):
+        assert (cut / name).read_bytes() == (whole / name).read_bytes(), name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut", "whole"]  # journal, lock gone
+
+
+class CheckpointTracker(LinearTracker):
+    """LinearTracker with the checkpoint protocol (its state: the step count); ``crash_at``:
+    the step on which it dies (a stand-in for a kill between two frames)."""
+
+    def __init__(self, crash_at=None):
+        super().__init__()
+        self.crash_at, self.stepped = crash_at, 0
+
+    def step(self, frames):
+        if self.crash_at is not None and self.steps + 1 == self.crash_at:
+            raise RuntimeError("killed")
+        self.stepped += 1
+        return super().step(frames)
+
+    def checkpoint(self):
+        return {"steps": self.steps}
+
+    def restore(self, checkpoint):
+        self.steps = checkpoint["steps"]
+
+
+def _outputs(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_resume_after_a_crash_and_after_a_read_only_out(rig, capsys, monkeypatch):
+    """Issue 52 items 2-3 through the command: (a) a run that dies on frame 3 leaves frames 1-2
+    and the tracker's checkpoint in the journal; --resume steps only the third frame from the
+    restored state; (b) an --out that refuses the outputs (read-only: EROFS when they are
+    renamed into place) is one line saying where the tracked frames are and how to resume;
+    --resume then only writes them (nothing is tracked again). Both equal an uninterrupted
+    run's outputs (the oracle), and the journal is gone afterwards."""
+    import errno
+    from pathlib import Path
+
+    import jaxmocap.io.atomic as atomic
+
+    root, inputs, _ = rig
+    argv = ["track", "--cameras", root / "cameras.json", *inputs, "--quiet", "--checkpoint", "0"]
+    trackers = []
+
+    def make(crash_at=None):
+        def factory(args, cams, names):
+            trackers.append(CheckpointTracker(crash_at))
+            return trackers[-1]
+        return factory
+
+    monkeypatch.setattr(track_cmd, "_make_tracker", make())
+    assert run_cli(capsys, *argv, "--out", root / "whole")[0] == 0
+    want = _outputs(root / "whole")
+    # (a) dies on the third frame
+    monkeypatch.setattr(track_cmd, "_make_tracker", make(crash_at=3))
+    with pytest.raises(RuntimeError, match="killed"):
+        run_cli(capsys, *argv, "--out", root / "a")
+    journal = root / ".a.jaxmocap-journal"
+    assert len((journal / "frames.jsonl").read_text().splitlines()) == 2
+    assert not (root / "a").exists()
+    rc, out, err = run_cli(capsys, *argv, "--out", root / "a")  # not over a journal
+    assert rc == 2 and len(err) == 1 and f"({journal}); resume it with `jaxmocap track " \
+        f"--resume {root / 'a'}`" in err[0], err
+    monkeypatch.setattr(track_cmd, "_make_tracker", make())
+    rc, out, err = run_cli(capsys, "track", "--resume", root / "a", "--quiet")
+    assert rc == 0, err
+    assert trackers[-1].stepped == 1 and trackers[-1].steps == 3  # restored after frame 2
+    assert _outputs(root / "a") == want and not journal.exists()
+    # (b) the outputs cannot be renamed into --out
+    real_replace = atomic.os.replace
+
+    def read_only(src, dst):  # --out (only) became read-only
+        if Path(dst).parent == root / "b":
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(src), None, str(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", read_only)
+    rc, out, err = run_cli(capsys, *argv, "--out", root / "b")
+    journal = root / ".b.jaxmocap-journal"
+    assert rc == 2 and len(err) == 1, err
+    assert "the file system is read-only" in err[0] and err[0].endswith(
+        f"3 tracked frames are kept in {journal}; resume with `jaxmocap track --resume "
+        f"{root / 'b'}`"), err[0]
+    monkeypatch.setattr(atomic.os, "replace", real_replace)
+    rc, out, err = run_cli(capsys, "track", "--resume", root / "b", "--quiet")
+    assert rc == 0, err
+    assert trackers[-1].stepped == 0  # the journal held every frame and the last state
+    assert _outputs(root / "b") == want and not journal.exists()
+
+
+def test_resume_refusals(rig, capsys, monkeypatch):
+    """--resume is refused in one line: with other options, without a journal, when an input
+    changed since the interrupted run; a journal without its checkpoint's lines, or a damaged
+    checkpoint, tracks again from the first frame and says so."""
+    root, inputs, _ = rig
+    monkeypatch.setattr(track_cmd, "_make_tracker",
+                        lambda args, cams, names: CheckpointTracker(crash_at=3))
+    argv = ["track", "--cameras", root / "cameras.json", *inputs, "--quiet", "--checkpoint", "0"]
+    with pytest.raises(RuntimeError):
+        run_cli(capsys, *argv, "--out", root / "a")
+    assert_refused(capsys, "--resume", "track", "--resume", root / "a", "--formats", "npz")
+    assert_refused(capsys, f"--resume {root / 'nowhere'}: no journal of an interrupted run",
+                   "track", "--resume", root / "nowhere")
+    assert_refused(capsys, "give the inputs", "track", "--out", root / "x")
+    ckpt = root / ".a.jaxmocap-journal" / "checkpoint.pkl"
+    ckpt.write_bytes(ckpt.read_bytes()[:-3])  # a damaged checkpoint (a disk that lied)
+    monkeypatch.setattr(track_cmd, "_make_tracker",
+                        lambda args, cams, names: CheckpointTracker())
+    png = inputs[1] / "001.png"
+    stat = png.stat()
+    os.utime(png, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    assert_refused(capsys, f"--resume {root / 'a'}: {png} changed since the interrupted run",
+                   "track", "--resume", root / "a")
+    os.utime(png, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    rc, out, err = run_cli(capsys, "track", "--resume", root / "a", "--quiet")
+    assert rc == 0 and len(err) == 1 and "checkpoint is damaged" in err[0] and \
+        "tracking again from the first frame" in err[0], err
+    with np.load(root / "a" / "poses.npz") as z:
+        np.testing.assert_array_equal(z["diagnostics"][:, 0], [1, 2, 3])

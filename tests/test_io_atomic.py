@@ -2,6 +2,7 @@
 are refused with an InputError naming the path."""
 
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -282,9 +283,72 @@ def test_track_disk_full_and_long_out_one_line_nothing_left(capture, capsys, mon
         m.setattr(track_cmd, "write_exports", full)
         rc, out, err = run_cli(capsys, *argv, "--out", k / "runs" / "a")
     assert rc == 2 and len(err) == 1, (rc, err)
+    journal = k / "runs" / ".a.jaxmocap-journal"  # the tracked frames stay (issue 52)
     assert err[0] == (f"jaxmocap track: error: {k / 'runs' / 'a'}: cannot write: no space left "
                       "on the device: free some, or write elsewhere (ENOSPC); nothing was "
-                      "written")
+                      f"written; 12 tracked frames are kept in {journal}; resume with "
+                      f"`jaxmocap track --resume {k / 'runs' / 'a'}`")
+    assert _leftovers(k) == sorted(before + ["runs", str(journal.relative_to(k)),
+                                             *(str((journal / n).relative_to(k)) for n in
+                                               ("frames.jsonl", "meta.json"))])
+    rc, out, err = run_cli(capsys, "track", "--resume", k / "runs" / "a", "--quiet")
+    assert rc == 0, err
+    assert sorted(p.name for p in (k / "runs" / "a").iterdir()) == [
+        "diagnostics.csv", "poses.csv", "poses.npz", "run.json"]
+    shutil.rmtree(k / "runs")
     rc, out, err = run_cli(capsys, *argv, "--out", k / ("y" * 240))
     assert rc == 2 and len(err) == 1 and "is 240 bytes; this file system allows" in err[0]
     assert _leftovers(k) == before
+
+
+@pytest.mark.parametrize("fails", ["write", "fsync"])
+def test_disk_full_names_the_file_it_could_not_write(tmp_path, monkeypatch, fails):
+    """Issue 52 item 5: "No space left" names the file: ``write``/``fsync`` raise ENOSPC
+    without a file name (as the kernel reports them); the line names the file asked for (not
+    the hidden temporary), and nothing is left."""
+    import errno
+
+    import jaxmocap.io.atomic as atomic
+    from jaxmocap.io.atomic import describe_os_error
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    target = tmp_path / "out" / "poses.csv"
+    if fails == "fsync":
+        monkeypatch.setattr(atomic.os, "fsync", full)
+    with pytest.raises(OSError) as e:
+        if fails == "write":
+            with atomic_write(target) as f:
+                f.write("a,b\n")
+                full()
+        else:
+            write_text(target, "a,b\n")
+    assert e.value.filename == str(target)
+    assert describe_os_error(e.value).startswith(f"{target}: cannot write: no space left")
+    assert not target.exists()
+    assert [p for p in tmp_path.rglob("*") if p.is_file()] == []
+
+
+def test_cache_folder_refusal_names_the_variable(tmp_path, capsys, monkeypatch):
+    """Issue 52 item 5: a cache folder that cannot be made or written is one line naming the
+    folder, the cause and JAXMOCAP_CACHE_DIR (exit 2, before any work)."""
+    from test_cli import run_cli
+
+    from jaxmocap._config import CACHE_ENV, cache_folder
+
+    blocker = tmp_path / "cache"
+    blocker.write_text("a file where the cache folder should be")
+    monkeypatch.setenv(CACHE_ENV, str(blocker))
+    with pytest.raises(InputError) as e:
+        cache_folder("posedb")
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"cache folder {blocker / 'posedb'}: ")
+    assert f"{CACHE_ENV}={blocker}" in msg and f"set {CACHE_ENV} to a folder you can write" in msg
+    rc, out, err = run_cli(capsys, "eval", tmp_path / "poses.npz", tmp_path)
+    assert rc == 2 and len(err) == 1 and CACHE_ENV in err[0] and str(blocker) in err[0], err
+    monkeypatch.delenv(CACHE_ENV)
+    monkeypatch.setattr("platformdirs.user_cache_dir", lambda *a: str(blocker))
+    with pytest.raises(InputError, match=f"the default cache folder {blocker}; {CACHE_ENV} is "
+                                         "unset"):
+        cache_folder("jax")

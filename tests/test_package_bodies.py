@@ -455,3 +455,63 @@ def test_every_body_faces_forward_and_mirrors(bodies, name, rng):
     b = np.asarray(body.keypoints(model, jnp.asarray(m)))
     i, j = model.keypoint_names.index("l_hand"), model.keypoint_names.index("r_hand")
     np.testing.assert_allclose(b[j], a[i] * [1, -1, 1], atol=0.03)
+
+
+def _gym_with_hands_named(tmp_path, left: str, right: str) -> Path:
+    """gymnasium's humanoid as another tool writes it: the same file with its hand spheres
+    (on the lower-arm bodies) renamed."""
+    path, _ = package_body_file("gym_humanoid")
+    text = path.read_text()
+    assert text.count('name="left_hand"') == 1 and text.count('name="right_hand"') == 1
+    out = tmp_path / "humanoid.xml"
+    out.write_text(text.replace('name="left_hand"', f'name="{left}"')
+                   .replace('name="right_hand"', f'name="{right}"'))
+    return out
+
+
+def _hand_keypoints_at_mujoco_geoms(path, model, geoms, rng):
+    m = compile_mjcf(path)
+    d = mujoco.MjData(m)
+    lo, hi = np.asarray(model.chain.lower), np.asarray(model.chain.upper)
+    lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
+    for _ in range(3):
+        q = rng.uniform(lo, hi)
+        d.qpos[:] = _qpos(m, model, q)
+        mujoco.mj_kinematics(m, d)
+        at = dict(zip(model.keypoint_names, np.asarray(body.keypoints(model, jnp.asarray(q))),
+                      strict=True))
+        for key, geom in geoms.items():
+            gid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, geom)
+            np.testing.assert_allclose(at[key], d.geom_xpos[gid], atol=1e-5, err_msg=key)
+
+
+def test_hand_geoms_named_with_the_side_in_the_middle(bodies, tmp_path, rng):
+    """Issue 52 item 6: gymnasium's humanoid with its hand spheres named ``skin_left_hand`` /
+    ``skin_right_hand`` (the side word in the middle): the roles are inferred as for the
+    original file, and the hand keypoints sit at those spheres as MuJoCo places them."""
+    path = _gym_with_hands_named(tmp_path, "skin_left_hand", "skin_right_hand")
+    model = body.load_body(path)
+    assert dict(model.roles.links) == EXPECTED["gym_humanoid"][0]
+    assert {"skin_left_hand", "skin_right_hand"} <= set(model.roles.skin_geoms)
+    _, original = bodies["gym_humanoid"]
+    assert model.roles.keypoint_table() == original.roles.keypoint_table()
+    _hand_keypoints_at_mujoco_geoms(path, model, {"l_hand": "skin_left_hand",
+                                                  "r_hand": "skin_right_hand"}, rng)
+
+
+def test_roles_file_hand_on_the_forearm_link_placed_at_its_skin_geom(tmp_path, rng):
+    """Issue 52 item 6: hand spheres with names that say nothing (``lh_ball``), the roles file
+    naming the lower arms as the hands and the spheres as skin: the hand keypoints are placed
+    at the spheres (not refused for "no geometry"); without the skin geoms it stays one line
+    asking for them (which geom on the lower arm is the hand is then ambiguous)."""
+    path = _gym_with_hands_named(tmp_path, "lh_ball", "rh_ball")
+    links = {"l_hand": "left_lower_arm", "r_hand": "right_lower_arm"}
+    rf = body.roles_path(path)
+    rf.write_text(json.dumps({"links": links}))
+    with pytest.raises(InputError, match=r"the l_hand link 'left_lower_arm' has no geometry"):
+        body.load_body(path)
+    rf.write_text(json.dumps({"links": links, "skin_geoms": ["head", "lh_ball", "rh_ball"]}))
+    model = body.load_body(path)
+    assert model.roles.limb("l_forearm") == ("left_larm",)  # the sleeve, not the hand
+    _hand_keypoints_at_mujoco_geoms(path, model, {"l_hand": "lh_ball", "r_hand": "rh_ball"},
+                                    rng)

@@ -402,3 +402,50 @@ def test_orientation_hypotheses_recover_a_known_yaw(db):
     # the back view is one of the others, never blended into the first
     back = [abs(np.degrees(np.angle(np.exp(1j * (y - psi - np.pi))))) for y in yaw[1:]]
     assert min(back) < 3.0, np.degrees(yaw)
+
+
+def test_damaged_cache_is_detected_rebuilt_and_reported(tmp_path, capsys):
+    """Issue 52 item 4: a cached database cut short (a crash while the disk wrote it) or with
+    changed bytes inside a well-formed archive (found by the content digest recorded at build
+    time) is reported in one line and built again, equal to the first build (the oracle); the
+    same for the cached pose pool. A user's --db file with changed content is refused."""
+    cfg = posedb.SamplingConfig(size=12, seed=2)
+    first = posedb.load_or_build(cfg, cache=tmp_path, progress=False)
+    path = posedb.cache_path(first.key, tmp_path)
+    raw = path.read_bytes()
+    capsys.readouterr()
+
+    def rebuilt_equal():
+        again = posedb.load_or_build(cfg, cache=tmp_path, progress=False)
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        np.testing.assert_array_equal(np.asarray(again.codes), np.asarray(first.codes))
+        np.testing.assert_array_equal(np.asarray(again.poses), np.asarray(first.poses))
+        return err
+
+    path.write_bytes(raw[: len(raw) // 2])
+    err = rebuilt_equal()
+    assert len(err) == 1 and err[0].startswith(f"jaxmocap: the cached pose database {path} is "
+                                               "damaged (cannot read: truncated"), err
+    assert err[0].endswith("building it again")
+    with np.load(path) as z:  # a bit changed inside: the archive is still well formed
+        arrays = {k: z[k] for k in z.files}
+    arrays["maps"] = arrays["maps"].copy()
+    arrays["maps"].flat[7] ^= 1
+    np.savez_compressed(path, **arrays)
+    with pytest.raises(InputError, match=rf"{path.name}: damaged: its maps and poses do not "
+                                         "match the digest"):
+        posedb.load_database(path)
+    err = rebuilt_equal()
+    assert len(err) == 1 and "is damaged (damaged: its maps and poses" in err[0], err
+    assert rebuilt_equal() == []  # now intact: loaded, nothing said
+    # the cached pose pool (the clips retargeted to the body)
+    from jaxmocap.posedb._sample import source_pool
+
+    pool = source_pool(default_body(), TRAIN_CLIPS[:1], cache=str(tmp_path))
+    (cached,) = tmp_path.glob("pool-*.npz")
+    cached.write_bytes(cached.read_bytes()[:100])
+    capsys.readouterr()
+    np.testing.assert_array_equal(source_pool(default_body(), TRAIN_CLIPS[:1],
+                                              cache=str(tmp_path)), pool)
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and f"the cached pose pool {cached} is damaged" in err[0], err

@@ -201,6 +201,16 @@ def classify_link(name: str) -> tuple[str | None, str | None, int]:
         for part in LIMB_PARTS:
             if words[0][1:] in PART_WORDS[part]:
                 return words[0][0], part, PART_WORDS[part].index(words[0][1:])
+    sides = [i for i, w in enumerate(words) if w in ("left", "right")]
+    if side is None and len(sides) == 1 and 0 < sides[0] < len(words) - 1:
+        # the side word in the middle: a prefix, then side and part (skin_left_hand); only
+        # the full words left/right here (a middle "l" is too often something else)
+        i = sides[0]
+        rest = words[i + 1:]
+        for candidate in ("_".join(rest), "".join(rest)):
+            for part in LIMB_PARTS:
+                if candidate in PART_WORDS[part]:
+                    return words[i][0], part, PART_WORDS[part].index(candidate)
     return side, None, 0
 
 
@@ -394,12 +404,13 @@ def is_skin_material(geometry: Geometry, g: int) -> bool:
     return bool(mats) and "skin" in name_words(mats[g] or "")
 
 
-def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str]
-               ) -> dict[str, list[int]]:
+def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str],
+               skin: Sequence[str] = ()) -> dict[str, list[int]]:
     """``{link role: [geom indices]}``: each geom belongs to the role of its owner link
     (:func:`owner_link`); on a link that plays several roles, a geom named for one of them
-    (``head``, ``right_hand``) belongs to it and the others to the most proximal role
-    (:data:`_CONTAINER_ORDER`)."""
+    (``head``, ``right_hand``, ``skin_left_hand``) belongs to it, a skin geom (of skin material,
+    or in ``skin``: the roles' skin geoms) to the one skin role there (a hand on the forearm
+    link), and the others to the most proximal role (:data:`_CONTAINER_ORDER`)."""
     names = chain.link_names
     by_link: dict[int, list[str]] = {}
     for role in _CONTAINER_ORDER:
@@ -413,9 +424,10 @@ def geom_roles(chain: KinematicChain, geometry: Geometry, links: Mapping[str, st
         roles_here = by_link[owner]
         side, part, _ = classify_link(geometry.names[g])
         named = f"{side}_{part}" if side else part
-        if named not in roles_here and is_skin_material(geometry, g):
-            skin = [r for r in roles_here if r in ("head", "neck", "l_hand", "r_hand")]
-            named = skin[0] if len(skin) == 1 else named
+        if named not in roles_here and (is_skin_material(geometry, g)
+                                        or geometry.names[g] in skin):
+            skin_roles = [r for r in roles_here if r in ("head", "neck", "l_hand", "r_hand")]
+            named = skin_roles[0] if len(skin_roles) == 1 else named
         out[named if named in roles_here else roles_here[0]].append(g)
     return out
 
@@ -532,7 +544,7 @@ def _mirror_pairs(chain: KinematicChain, joints: Mapping[str, tuple[str, ...]],
 
 
 def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, str],
-               where: str, skip: Sequence[str] = ()
+               where: str, skip: Sequence[str] = (), skin: Sequence[str] = ()
                ) -> dict[str, tuple[str, tuple[float, float, float]]]:
     """The keypoint rules of the module docstring for every keypoint not in ``skip`` (those
     the roles file gives: a keypoint given there is never derived, so a head link without
@@ -541,7 +553,7 @@ def _keypoints(chain: KinematicChain, geometry: Geometry, links: Mapping[str, st
     rest = rest_transforms(chain)
     idx = {r: chain.link_names.index(n) for r, n in links.items()}
     neck = links.get("neck", links["head"])
-    owned = geom_roles(chain, geometry, links)
+    owned = geom_roles(chain, geometry, links, skin)
     kind, size = np.asarray(geometry.kind), np.asarray(geometry.size, np.float64)
 
     def centre(role):
@@ -655,7 +667,9 @@ def derive_roles(
             raise InputError(f"{where}: {what} names unknown geoms {unknown}; geoms: {gnames}")
         return tuple(geoms)
 
-    owned = geom_roles(chain, geometry, links)
+    if skin_geoms is not None:
+        check(skin_geoms, "skin_geoms")
+    owned = geom_roles(chain, geometry, links, skin_geoms or ())
     if skin_geoms is None:  # the head, neck and hands with everything below them
         skin_roles = ("neck", "head", "l_hand", "r_hand")
         skin_set = {g for r in skin_roles for g in owned.get(r, [])}
@@ -694,7 +708,7 @@ def derive_roles(
 
     given = dict(keypoints or {})
     kp = {} if set(KEYPOINT_NAMES) <= set(given) else _keypoints(
-        chain, geometry, links, where, skip=tuple(given))
+        chain, geometry, links, where, skip=tuple(given), skin=skin)
     for k, (link, off) in given.items():
         if link not in names:
             raise InputError(f"{where}: keypoints: {k!r} names unknown link {link!r}; links "

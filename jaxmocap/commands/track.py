@@ -19,6 +19,13 @@ cameras the tracker cannot use.
 tracked so far are written as a complete result marked partial (``run.json`` ``complete``
 false, ``poses.npz`` ``complete`` False, the printed line) and the exit code is 130. An
 interrupt before the first frame was tracked (set-up, compilation) writes nothing (exit 130).
+
+**Nothing tracked is lost** (:mod:`jaxmocap.io.journal`): every frame goes to a journal beside
+``--out`` as it is tracked, with the tracker's state every ``--checkpoint`` seconds; the
+outputs are made from it at the end and the journal is removed once they are in place. After
+an interrupt, a ``kill -9``, a full disk or an output folder that became read-only the journal
+stays, the message says where, and ``track --resume OUT`` continues from the checkpoint with
+the interrupted run's settings (its outputs equal an uninterrupted run's).
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import itertools
 import json
 import os
 import signal
@@ -37,10 +45,19 @@ import cv2
 import numpy as np
 
 from jaxmocap.camera import Camera
+from jaxmocap.commands._resume import (
+    input_paths,
+    keep_or_drop,
+    non_negative_seconds,
+    open_journal,
+    refuse_over_journal,
+    resumed_args,
+)
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, check_output_folder, output_folder_lock
 from jaxmocap.io.cameras import load_cameras
 from jaxmocap.io.export import FORMATS, pose_track, write_exports
+from jaxmocap.io.journal import CHECKPOINT_EVERY_S, Journal, tracked_arrays
 from jaxmocap.io.preflight import (
     check_outputs,
     check_stale,
@@ -99,6 +116,8 @@ estimate (its validity: diagnostics.csv). An
 replaced as a whole). Exit codes: 0 done, 1 done but some frames were unreadable (reported),
 2 bad input (nothing written), 130 interrupted (Ctrl-C or SIGTERM: the frames tracked so far,
 marked partial in run.json and poses.npz; nothing if interrupted before the first frame).
+Every frame is journalled beside --out as it is tracked: after an interrupt, kill -9, a full
+disk or a read-only folder, `jaxmocap track --resume OUT` continues from the last checkpoint.
 """
 
 
@@ -151,13 +170,30 @@ def _interrupt(err: BaseException) -> str | None:
 
 def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, out: Path,
                  fps: float, overlay: bool = False, show: bool = False,
-                 progress: bool = True) -> Tracked:
+                 progress: bool = True, journal: Journal | None = None,
+                 restore=None) -> Tracked:
     """:func:`jaxmocap.trackers.driver.drive` over ``reader``, with the overlay video (if
     asked, into ``files``) and the live window (``show``); an interrupt is read as the command
-    line reads it."""
+    line reads it. ``journal``: every instant is appended to it as it is tracked, with the
+    tracker's checkpoint when due; the instants it already holds (a resumed run) are read and
+    skipped, and the tracker continues from ``restore``."""
     state = {"writer": None, "size": None}
+    n_dof = tracker.body.n_dof
+    done = 0 if journal is None else journal.count
+    has_checkpoint = callable(getattr(tracker, "checkpoint", None))
+
+    def record(t, res):
+        if journal is None:
+            return
+        if res is None:
+            journal.append(t, False, False, np.full(n_dof, np.nan), {})
+        else:
+            journal.append(t, True, res.valid, res.q, res.diagnostics)
+        if has_checkpoint and journal.checkpoint_due():
+            journal.checkpoint(tracker.checkpoint())
 
     def on_frame(t, frames, res):
+        record(t, res)
         view = None
         if frames is not None and (overlay or show):
             view = np.concatenate(list(tracker.draw(frames, res)), axis=1)
@@ -177,12 +213,21 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
                 return True
         return None
 
+    frames = itertools.islice(iter(reader), done, None)  # a resumed run's: read, not stepped
+    prefix = None if journal is None else tracked_arrays(journal.resumed, n_dof)
+    if journal is not None:
+        journal.resumed = []  # handed over
     try:
-        return drive(tracker, reader, n_frames=reader.n_frames, on_frame=on_frame,
-                     progress=progress, interrupt=_interrupt)
+        tracked = drive(tracker, frames, n_frames=reader.n_frames, on_frame=on_frame,
+                        progress=progress, interrupt=_interrupt, prefix=prefix,
+                        restore=restore)
     finally:
         if state["writer"] is not None:
             state["writer"].close()
+    if journal is not None and tracked.interrupted is None and has_checkpoint and \
+            journal.checkpointed < journal.count and journal.count > done:
+        journal.checkpoint(tracker.checkpoint())  # all tracked: a resume only writes
+    return tracked
 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
@@ -337,11 +382,11 @@ def add_parser(sub) -> None:
         "frames, or a camera index for live capture. Writes the poses (BVH, TRC, C3D, CSV, NPZ), "
         "per-frame diagnostics and optionally an overlay video into --out.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("inputs", nargs="+", metavar="INPUT",
+    p.add_argument("inputs", nargs="*", metavar="INPUT",
                    help="per camera: video file, folder of frames, or camera index (0, 1, ...)")
     p.add_argument("--method", choices=("shirt", "pf"), default="shirt",
                    help="tracker: shirt (Wang et al.) or pf (Azad et al.) (default: %(default)s)")
-    p.add_argument("--cameras", required=True, metavar="CAMERAS_JSON",
+    p.add_argument("--cameras", metavar="CAMERAS_JSON",
                    help="calibrated cameras (from `jaxmocap calibrate`), required")
     p.add_argument("--out", default="track_out", metavar="FOLDER",
                    help="output folder (default: %(default)s)")
@@ -373,6 +418,15 @@ def add_parser(sub) -> None:
                    f"amplitude (response 1/(1+(f/HZ)^4); below half the frame rate) "
                    f"(default: {DEFAULT_CUTOFF_HZ:g})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--resume", metavar="OUT",
+                   help="continue the interrupted run (Ctrl-C, kill -9, disk full, read-only "
+                   "folder) that wrote to OUT, from its last checkpoint, with its settings "
+                   "(from the journal beside OUT; give no other option but --quiet)")
+    p.add_argument("--checkpoint", type=non_negative_seconds, default=CHECKPOINT_EVERY_S,
+                   metavar="SECONDS",
+                   help="save the tracker's state to the journal at most every SECONDS: at "
+                   "most that much tracking is done again after a kill (0: every frame) "
+                   "(default: %(default)s)")
     p.add_argument("--tuned", metavar="TUNED_JSON",
                    help="tuned parameters (from `jaxmocap tune`): the shirt tracker's IK "
                    "covariances (generalises --ik-cov) or the stereo filter's cue widths "
@@ -431,16 +485,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _inputs(args) -> list:
-    """Every file or folder the command reads (camera indices are not paths)."""
-    srcs = [i for i in args.inputs if os.path.exists(i) or not str(i).isdigit()]
-    return [*srcs, args.cameras, args.colors, args.white_balance, args.db, args.ik_cov,
-            getattr(args, "tuned", None), getattr(args, "observer", None),
-            getattr(args, "body", None), getattr(args, "garment", None),
-            None if getattr(args, "pf_colors", None) == "auto" else getattr(args, "pf_colors",
-                                                                            None)]
-
-
 def check_stereo_cameras(cams: list[Camera], names: list[str], path: str) -> None:
     """The stereo particle filter's needs: one image size (its blob and edge maps are stacked
     per camera) and two distinct centres (the baseline triangulates the head and hands)."""
@@ -467,7 +511,8 @@ def _run_json(args, tracked: Tracked, reader: SyncReader, n_frames: int | None) 
            "frames_written": len(tracked.valid), "frames_tracked": int(tracked.valid.sum()),
            "frames_estimated": int(np.isfinite(tracked.q).all(axis=1).sum()),
            "frames_readable": reader.n_read, "frames_in_input": n_frames,
-           "method": args.method, "inputs": [str(i) for i in args.inputs],
+           "method": args.method,
+           "inputs": [str(i) for i in getattr(args, "inputs_given", None) or args.inputs],
            "sync": args.sync, "sync_report": reader.sync_report,
            "smooth_hz": _cutoff(args) if args.smooth else None,
            "motion_offsets": reader.motion_offsets()}
@@ -486,6 +531,14 @@ def _check_smooth(args, fps: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     quiet_ffmpeg()
+    if args.resume:
+        args = resumed_args(args)
+        if any(str(i).isdigit() and not os.path.exists(i) for i in args.inputs):
+            raise InputError(f"--resume {args.resume}: a live capture (camera indices) cannot "
+                             "be resumed")
+    elif not args.inputs or not args.cameras:
+        raise InputError("give the inputs (one video, frame folder or camera index per "
+                         "camera) and --cameras CAMERAS_JSON, or --resume OUT")
     if args.smooth_hz is not None and not args.smooth:
         raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
                          "--smooth")
@@ -502,13 +555,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--formats {args.formats!r}: expected a comma-separated subset of "
                          f"{','.join(FORMATS)}")
     names_out = result_names()
-    check_outputs([out, *(out / n for n in sorted(names_out))], _inputs(args))
+    check_outputs([out, *(out / n for n in sorted(names_out))], input_paths(args))
     with output_folder_lock(out):  # one run at a time writes --out
         return _run(args, out, formats, names_out)
 
 
 def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set[str]) -> int:
-    stale = check_stale(out, names_out, args.overwrite)
+    resume = bool(args.resume)
+    refuse_over_journal(out, args.overwrite, resume)
+    # a resumed run replaces what its own interruption wrote there (marked partial)
+    stale = check_stale(out, names_out, args.overwrite or resume)
     cams, names = load_cameras(args.cameras)
     real = [os.path.realpath(i) if os.path.exists(i) else i for i in args.inputs]
     dup = next((i for i, r in enumerate(real) if real.index(r) != i), None)
@@ -532,36 +588,53 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         fps = args.fps or reader.fps or DEFAULT_FPS
         _check_smooth(args, fps)
         tracker = _make_tracker(args, cams, names)
-        with AtomicFiles(out) as files:
-            files.replace_set(stale)
-            tracked = track_frames(tracker, reader, files, out, fps, args.overlay,
-                                   args.show, progress=not args.quiet)
-            if reader.n_read == 0:
-                raise InputError(f"no readable frames in the inputs: {reader.problems()}")
-            # a second Ctrl-C must not leave the set half renamed: the writing is short
-            handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
-            try:
-                names_d = tuple(tracker.diagnostic_names)
-                q, extra = tracked.q, {}
-                if args.smooth:  # the per-frame estimates stay in poses.npz
-                    q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
-                    extra["q_raw"] = tracked.q
-                table = diagnostics_table(tracked.rows, names_d)
-                track = pose_track(tracker.body, q, tracked.valid, fps, table, names_d)
-                write_exports(files, out, tracker.body, track, formats,
-                              complete=np.asarray(tracked.interrupted is None),
-                              frames_in_input=np.asarray(-1 if reader.n_frames is None
-                                                         else reader.n_frames, np.int64),
-                              **extra)
-                files.path(out / "diagnostics.csv").write_text(
-                    _diagnostics_csv(names_d, tracked.rows, table))
-                files.path(out / "run.json").write_text(
-                    _run_json(args, tracked, reader, reader.n_frames))
-                targets = files.targets
-                files.commit()  # while SIGINT is ignored
-            finally:
-                signal.signal(signal.SIGINT, handler)
-        problems = reader.problems()
+        journal, restore = open_journal(args, out)
+        try:
+            return _track_and_write(args, out, formats, stale, reader, tracker, journal,
+                                    restore, fps)
+        except BaseException as e:
+            raise keep_or_drop(journal, e, out, reader.n_read) from None
+        finally:
+            journal.close()
+
+
+def _track_and_write(args, out: Path, formats: list[str], stale, reader: SyncReader,
+                     tracker: FrameTracker, journal: Journal, restore, fps: float) -> int:
+    """The frame loop and the outputs, promoted together; the journal removed once they are
+    in place (complete) and kept otherwise."""
+    with AtomicFiles(out) as files:
+        files.replace_set(stale)
+        tracked = track_frames(tracker, reader, files, out, fps, args.overlay,
+                               args.show, progress=not args.quiet, journal=journal,
+                               restore=restore)
+        if reader.n_read == 0:
+            raise InputError(f"no readable frames in the inputs: {reader.problems()}")
+        # a second Ctrl-C must not leave the set half renamed: the writing is short
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            names_d = tuple(tracker.diagnostic_names)
+            q, extra = tracked.q, {}
+            if args.smooth:  # the per-frame estimates stay in poses.npz
+                q = smooth_poses(tracked.q, tracked.valid, fps, _cutoff(args))
+                extra["q_raw"] = tracked.q
+            table = diagnostics_table(tracked.rows, names_d)
+            track = pose_track(tracker.body, q, tracked.valid, fps, table, names_d)
+            write_exports(files, out, tracker.body, track, formats,
+                          complete=np.asarray(tracked.interrupted is None),
+                          frames_in_input=np.asarray(-1 if reader.n_frames is None
+                                                     else reader.n_frames, np.int64),
+                          **extra)
+            files.path(out / "diagnostics.csv").write_text(
+                _diagnostics_csv(names_d, tracked.rows, table))
+            files.path(out / "run.json").write_text(
+                _run_json(args, tracked, reader, reader.n_frames))
+            targets = files.targets
+            files.commit()  # while SIGINT is ignored
+        finally:
+            signal.signal(signal.SIGINT, handler)
+    problems = reader.problems()
+    if tracked.interrupted is None:
+        journal.remove()
     valid = tracked.valid
     summary = (f"tracked {int(valid.sum())} of {len(valid)} frames ({reader.n_read} readable) -> "
                + ", ".join(str(p) for p in targets))
@@ -570,7 +643,8 @@ def _run(args: argparse.Namespace, out: Path, formats: list[str], names_out: set
         print(f"PARTIAL: interrupted ({tracked.interrupted}) after {len(valid)}{total} frames; "
               + summary)
         print(f"jaxmocap track: interrupted; wrote the {len(valid)} frames tracked so far, "
-              "marked partial (run.json, poses.npz 'complete')", file=sys.stderr)
+              f"marked partial (run.json, poses.npz 'complete'); {journal.where(out)}",
+              file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary)
     offsets = reader.motion_offsets()

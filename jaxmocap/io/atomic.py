@@ -279,14 +279,30 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix); rename it to ``path`` on success,
     remove it on error. The writer must create the file at exactly the yielded path."""
     path = check_output_file(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_name(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _temp_name(path)
+    except OSError as e:
+        raise _naming(e, path) from None
     try:
         yield tmp
         _publish(tmp, path)
+    except OSError as e:
+        _remove(tmp)
+        raise _naming(e, path, tmp) from None
     except BaseException:
         _remove(tmp)
         raise
+
+
+def _naming(err: OSError, path: Path, tmp: Path | None = None) -> OSError:
+    """``err`` naming ``path``: a write that failed (``write``/``fsync`` name no file) or
+    failed on our hidden temporary is reported for the file the user asked for."""
+    if err.filename is not None and (tmp is None or os.fspath(err.filename) != os.fspath(tmp)):
+        return err
+    out = type(err)(err.errno, err.strerror or str(err), os.fspath(path))
+    out.__cause__ = err
+    return out
 
 
 @contextlib.contextmanager

@@ -58,17 +58,11 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
         raise fail("'colours' must be a non-empty list of names or {name, rgb} objects")
     rgb_of: dict[str, np.ndarray | None] = {}
     for k, c in enumerate(file_cols):
-        name, rgb = (c, None) if isinstance(c, str) else (
-            (c.get("name"), c.get("rgb")) if isinstance(c, dict) else (None, None))
-        if not isinstance(name, str) or (isinstance(c, dict) and set(c) - {"name", "rgb"}):
-            raise fail(f"colours[{k}]: expected a name or {{\"name\": ..., \"rgb\": [r, g, b]}}")
+        name, rgb = _colour_entry(c, k, fail)
         if name in rgb_of:
             raise fail(f"colours[{k}]: colour {name!r} is listed twice")
-        if rgb is not None:
-            rgb = np.asarray(rgb, dtype=float) if _numbers(rgb, 3) else None
-            if rgb is None or rgb.min() < 0 or rgb.max() > 1:
-                raise fail(f"colours[{k}] ({name!r}): 'rgb' must be 3 numbers in [0, 1]")
         rgb_of[name] = rgb
+    by_index = list(rgb_of)  # a patch may name its colour by index (0 = the first)
     order, model_rgb = list(rgb_of), {}
     if colors is not None:
         cm_names = list(colors) if isinstance(colors, (list, tuple)) else list(colors.names)
@@ -111,6 +105,8 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
         if ("geom" in p) == ("link" in p):
             raise fail(f"{where} ({name!r}): give exactly one of 'geom' or 'link'")
         target = p.get("geom", p.get("link"))
+        if "geom" in p and target not in model.geometry.names and target in model.chain.link_names:
+            target = _only_geom_of_link(model, target, fail, f"{where} ({name!r})")
         if "geom" in p and target not in model.geometry.names:
             raise fail(f"{where} ({name!r}): unknown geom {target!r}; geoms: "
                        f"{model.geometry.names}")
@@ -125,7 +121,12 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
             raise fail(f"{where} ({name!r}): 'half_spaces' must be at most {MAX_HALF_SPACES} "
                        "lists [a, b, c, d] of numbers (a x + b y + c z + d <= 0, geom frame)")
         colour = p.get("colour")
-        if colour not in rgb_of:
+        if isinstance(colour, int) and not isinstance(colour, bool):
+            if not 0 <= colour < len(by_index):
+                raise fail(f"{where} ({name!r}): colour index {colour} outside 0.."
+                           f"{len(by_index) - 1} (the indices of 'colours')")
+            colour = by_index[colour]
+        if not isinstance(colour, str) or colour not in rgb_of:
             raise fail(f"{where} ({name!r}): colour {colour!r} is not in 'colours' "
                        f"{list(rgb_of)}")
         for g in geoms:
@@ -143,6 +144,48 @@ def load_garment(path: str | os.PathLike, model: BodyModel, colors=None) -> Garm
     if ignored:  # other tools' extra fields: not an error, but said
         print(f"{path}: note: ignoring fields jaxmocap does not use: {ignored}", file=sys.stderr)
     return make_garment(model, patches, colours, skin_geoms)
+
+
+def _colour_entry(c, k: int, fail) -> tuple[str, np.ndarray | None]:
+    """(name, RGB in [0, 1] or None) of ``colours[k]``: a name, or an object with ``name`` and
+    ``rgb`` (3 numbers) or MuJoCo's ``rgba`` (4 numbers, or MJCF's ``"r g b a"`` string; alpha
+    is not used), all in [0, 1]. An object without ``name`` is called ``colour<k>`` (other tools
+    name colours by index)."""
+    if isinstance(c, str):
+        return c, None
+    if not isinstance(c, dict) or set(c) - {"name", "rgb", "rgba"}:
+        raise fail(f"colours[{k}]: expected a name or {{\"name\": ..., \"rgb\": [r, g, b]}} "
+                   "(or \"rgba\": [r, g, b, a] in [0, 1])")
+    if "rgb" in c and "rgba" in c:
+        raise fail(f"colours[{k}]: both 'rgb' and 'rgba' given; keep one")
+    name = c.get("name", f"colour{k}")
+    if not isinstance(name, str) or not name:
+        raise fail(f"colours[{k}]: 'name' must be a non-empty string")
+    key, n = ("rgba", 4) if "rgba" in c else ("rgb", 3)
+    value = c.get(key)
+    if value is None:
+        return name, None
+    if isinstance(value, str):  # MJCF writes rgba="0.8 0.1 0.1 1"
+        try:
+            value = [float(v) for v in value.split()]
+        except ValueError:
+            value = None
+    ok = _numbers(value, n) and min(value) >= 0 and max(value) <= 1
+    if not ok:
+        raise fail(f"colours[{k}] ({name!r}): {key!r} must be {n} numbers in [0, 1]"
+                   + (" (MuJoCo's rgba; 0..255 values: divide by 255)" if n == 4 else ""))
+    return name, np.asarray(value[:3], dtype=float)
+
+
+def _only_geom_of_link(model: BodyModel, link: str, fail, where: str) -> str:
+    """The one geom of ``link`` (with its fixed children), for a patch whose ``geom`` names a
+    link: a URDF link's unnamed visual is the geom ``<link>_0``, and other tools name it by its
+    link. A link with no geom or several is an error naming them."""
+    geoms = _geoms_named(model, [link], where)
+    if len(geoms) != 1:
+        raise fail(f"{where}: 'geom' {link!r} is a link with {len(geoms)} geoms "
+                   f"{geoms}, not one: name one of them as 'geom', or give 'link' for all")
+    return geoms[0]
 
 
 def _spelling(obj: dict, aliases: dict[str, str], fail, where: str) -> dict:

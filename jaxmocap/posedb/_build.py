@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 import equinox as eqx
@@ -170,9 +171,22 @@ def save_database(path: str | Path, maps: np.ndarray, poses: np.ndarray, meta: d
     from ..io.atomic import atomic_path
 
     path = Path(path)
+    meta = {**meta, "content_digest": content_digest(maps, poses)}
     with atomic_path(path) as tmp:
         np.savez_compressed(tmp, maps=maps, poses=poses, meta=np.array(json.dumps(meta)))
     return path
+
+
+def content_digest(maps: np.ndarray, poses: np.ndarray) -> str:
+    """SHA-256 of a database's arrays (dtype, shape, bytes): recorded in its ``meta`` when
+    saved and checked when loaded, so that a file a crash or a disk damaged is detected rather
+    than searched."""
+    h = hashlib.sha256()
+    for a in (maps, poses):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 META_FIELDS = ("key", "n_colours", "dof_names")  # what loading needs from ``meta``
@@ -211,6 +225,10 @@ def load_database(path: str | Path, key: str | None = None,
         raise DatabaseError(f"{path}: field 'poses': expected float (n, {len(meta['dof_names'])}) "
                             f"for its {len(meta['dof_names'])} meta.dof_names, got "
                             f"{poses.dtype} {poses.shape}")
+    digest = meta.get("content_digest")  # (absent from databases of older versions)
+    if digest is not None and digest != content_digest(maps, poses):
+        raise DatabaseError(f"{path}: damaged: its maps and poses do not match the digest "
+                            "recorded when it was built; build it again (`jaxmocap build-db`)")
     if key is not None and meta.get("key") != key:
         raise DatabaseError(f"{path}: meta.key is {meta.get('key')!r}, expected {key!r}")
     if model is not None:
@@ -296,7 +314,17 @@ def load_or_build(
     model = model or default_body()
     garment = garment or default_garment(model)
     key = database_key(config, model, garment)
+    if cache is None:  # the user's cache folder: created and tried, refused naming its variable
+        from .._config import cache_folder
+
+        cache = cache_folder("posedb")
     path = cache_path(key, cache)
     if path.exists():
-        return load_database(path, key, model)
+        try:
+            return load_database(path, key, model)
+        except DatabaseError as e:  # a crash or a disk left it damaged: built again, said
+            why = str(e).removeprefix(f"{path}: ").split(";")[0]
+            print(f"jaxmocap: the cached pose database {path} is damaged ({why}); building it "
+                  "again", file=sys.stderr)
+            path.unlink(missing_ok=True)
     return build_database(config, model, garment, out=path, progress=progress)

@@ -32,6 +32,7 @@ of a real camera.
 from __future__ import annotations
 
 import hashlib
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -220,26 +221,41 @@ def source_pool(model: BodyModel, clips: tuple[str, ...], cache: str | None = No
     """Frames of ``clips`` retargeted to ``model`` (n_frames, n_dof), float32, within the
     limits. Cached as ``pool-<hash>.npz`` in ``cache`` (default: the jaxmocap cache dir), since
     retargeting all clips compiles a few programs."""
-    from .._config import cache_dir
+    from .._config import cache_folder
     from ..synth import clip_to_body_q, list_clips, load_deepmimic
 
     known = set(list_clips())
     bad = [c for c in clips if c not in known]
     if bad:
         raise SamplingError(f"SamplingConfig.clips: unknown clips {bad}; known: {sorted(known)}")
-    folder = cache_dir() / "posedb" if cache is None else Path(cache)
+    folder = cache_folder("posedb") if cache is None else Path(cache)
     key = hashlib.sha256((model_digest(model) + repr(clips) + "pool-v1").encode()).hexdigest()
     path = folder / f"pool-{key[:16]}.npz"
     if path.exists():
-        with np.load(path) as f:
-            return f["q"]
+        from ..io.preflight import read_npz
+
+        try:  # checked by its digest: a crash or a disk may have damaged it
+            got = read_npz(path, "a cached pose pool", ("q", "digest"))
+            if str(got["digest"]) != _array_digest(got["q"]):
+                raise InputError(f"{path}: its poses do not match their digest")
+            return got["q"]
+        except InputError as e:
+            why = str(e).removeprefix(f"{path}: ")
+            print(f"jaxmocap: the cached pose pool {path} is damaged ({why}); building it again",
+                  file=sys.stderr)
+            path.unlink(missing_ok=True)
     qs = [np.asarray(clip_to_body_q(load_deepmimic(c), model).q, np.float32) for c in clips]
     pool = np.concatenate(qs)
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, q=pool)
-    tmp.replace(path)
+    from ..io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        np.savez(tmp, q=pool, digest=np.asarray(_array_digest(pool)))
     return pool
+
+
+def _array_digest(a: np.ndarray) -> str:
+    a = np.ascontiguousarray(a)
+    return hashlib.sha256(f"{a.dtype.str}{a.shape}".encode() + a.tobytes()).hexdigest()
 
 
 def model_digest(*trees) -> str:

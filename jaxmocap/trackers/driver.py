@@ -230,6 +230,18 @@ class ShirtFrameTracker:
         return FrameResult(np.asarray(out.q_frame, np.float64), bool(out.valid),
                            shirt_diagnostics(out, W, self.names), out)
 
+    def checkpoint(self) -> dict:
+        """What carries over to the next frame, on the host (for ``track``'s journal)."""
+        if self._subs is not None:
+            raise ValueError("ShirtFrameTracker.checkpoint: OpenCV's background subtractors "
+                             "cannot be saved")
+        return {"state": jax.device_get(self.state)}
+
+    def restore(self, checkpoint: dict) -> None:
+        """Continue from a :meth:`checkpoint` (after :meth:`start`): the same state, bit for
+        bit."""
+        self.state = jax.tree.map(jnp.asarray, checkpoint["state"])
+
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
         """Classified pixels tinted with their colour's mean (current W), then the skeleton."""
         images = []
@@ -332,7 +344,8 @@ class StereoPFFrameTracker:
             if len(self._calibration) < AUTO_FRAMES:
                 return FrameResult(np.full(self.body.n_dof, np.nan), False,
                                    {"calibrating": 1.0, "start_anchor": 0.0})
-            self.params = self._make(calibrate_from_frames(self._calibration))
+            self._auto_colors = calibrate_from_frames(self._calibration)
+            self.params = self._make(self._auto_colors)
             self._step = self._pf.compile_step(self.params)
             self._calibration = None
             self._starter.params = self.params
@@ -366,6 +379,27 @@ class StereoPFFrameTracker:
              "head_residual_m": float(res), "calibrating": 0.0,
              "start_anchor": float(START_ANCHOR_CODES[self.anchor])}
         return FrameResult(q, ok, d, est)
+
+    def checkpoint(self) -> dict:
+        """What carries over to the next frame, on the host (``track``'s journal): the filter
+        state (particles, RNG key), blob tracks, start search, frame count and the
+        ``pf_colors="auto"`` calibration (its frames so far, or the colours from them)."""
+        return jax.device_get({
+            "state": self.state, "blob_state": self.blob_state, "anchor": self.anchor,
+            "t": self._t, "waited": self._starter.waited, "calibration": self._calibration,
+            "auto_colors": getattr(self, "_auto_colors", None)})
+
+    def restore(self, checkpoint: dict) -> None:
+        """Continue from a :meth:`checkpoint` (after :meth:`start`), bit for bit."""
+        if checkpoint["auto_colors"] is not None:  # calibrated before the checkpoint
+            self._auto_colors = checkpoint["auto_colors"]
+            self.params = self._starter.params = self._make(self._auto_colors)
+            self._step = self._pf.compile_step(self.params)
+        state = checkpoint["state"]  # the filter's state lives on the device, the blob
+        self.state = None if state is None else jax.tree.map(jnp.asarray, state)
+        self.blob_state = checkpoint["blob_state"]  # tracks on the host (float64)
+        self._calibration, self.anchor = checkpoint["calibration"], checkpoint["anchor"]
+        self._t, self._starter.waited = int(checkpoint["t"]), int(checkpoint["waited"])
 
     def draw(self, frames: np.ndarray, result: FrameResult) -> np.ndarray:
         return _skeleton_views(self.body, self.cams, frames, result)
@@ -468,7 +502,8 @@ def _plain_interrupt(err: BaseException) -> str | None:
 def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]],
           n_frames: int | None = None, on_frame: Callable[..., bool | None] | None = None,
           progress: bool = True, interrupt: Callable[[BaseException], str | None] = None,
-          keep_outputs: bool = False, desc: str = "tracking") -> Tracked:
+          keep_outputs: bool = False, desc: str = "tracking", prefix: tuple | None = None,
+          restore: Any = None) -> Tracked:
     """Drive ``tracker`` over ``frames`` (``(t, frames)`` pairs, ``None`` for an unreadable
     instant, which is not stepped and gets a NaN row). ``on_frame(t, frames, result)`` is
     called after every instant (``result`` None where unreadable); it returns True to stop.
@@ -476,12 +511,18 @@ def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]]
     An exception during the loop that ``interrupt(err)`` names as an interrupt ("SIGINT" /
     "SIGTERM"; default: any ``KeyboardInterrupt``) ends it, keeping every frame completed
     before it (``interrupted``); one before any frame was stepped propagates (set-up or
-    compiling the first step: nothing to keep)."""
+    compiling the first step: nothing to keep).
+
+    Resuming (``track --resume``): ``prefix`` = ``(qs, valid, rows, times)`` of the frames
+    tracked before, ``restore`` the tracker's checkpoint after them (given to its ``restore``
+    after ``start``); ``frames`` yields only the instants after them."""
     from tqdm import tqdm
 
     interrupt = interrupt or _plain_interrupt
     n_dof = tracker.body.n_dof
-    qs, valid, rows, times, outputs = [], [], [], [], []
+    qs, valid, rows, times = ([list(a) for a in prefix] if prefix is not None
+                              else ([], [], [], []))
+    outputs = [None] * len(qs) if keep_outputs else []
     started = False
     interrupted = None
     try:
@@ -496,6 +537,8 @@ def drive(tracker: FrameTracker, frames: Iterable[tuple[int, np.ndarray | None]]
             else:
                 if not started:
                     tracker.start(fr)
+                    if restore is not None:
+                        tracker.restore(restore)
                     started = True
                 t0 = time.perf_counter()
                 res = tracker.step(fr)

@@ -90,7 +90,7 @@ def skin_parts(body: BodyModel, garment: Garment) -> tuple[np.ndarray, np.ndarra
     head sphere on the torso link; -1 else), and each part's link index. Found by the body's
     roles."""
     roles = require_roles(body, "the skin terms (head and hands observed)")
-    by_role = geom_roles(body.chain, body.geometry, dict(roles.links))
+    by_role = geom_roles(body.chain, body.geometry, dict(roles.links), roles.skin_geoms)
     skin = np.asarray(garment.skin)
     part_geom = np.full(skin.shape[0], -1, np.int32)
     for k, role in enumerate(SKIN_PARTS):

@@ -67,7 +67,7 @@ def head_sphere(model: BodyModel) -> tuple[float, np.ndarray]:
     capsule's middle one)."""
     roles = require_roles(model, "stereo_pf.head")
     geo = model.geometry
-    gs = geom_roles(model.chain, geo, dict(roles.links)).get("head", [])
+    gs = geom_roles(model.chain, geo, dict(roles.links), roles.skin_geoms).get("head", [])
     if not gs:
         from jaxmocap.errors import InputError
 

@@ -84,7 +84,7 @@ def part_scene(model: BodyModel) -> PartScene:
     ``r_hand`` link roles (:func:`jaxmocap.body.roles.geom_roles`) and the shirt's geoms
     (:func:`jaxmocap.garment.shirt_geoms`), by roles."""
     roles = require_roles(model, "stereo_pf.parts")
-    by_role = geom_roles(model.chain, model.geometry, dict(roles.links))
+    by_role = geom_roles(model.chain, model.geometry, dict(roles.links), roles.skin_geoms)
     labels = np.zeros(len(model.geometry.names) + 1, np.int32)
     shirt = set(shirt_geoms(model))
     for g, name in enumerate(model.geometry.names):
