@@ -209,12 +209,8 @@ def test_learned_step3_recovers_the_true_patch_map():
     hits = render_ids(BODY, GARMENT, q, cam)
     lab = labels_of(CLASSES, hits.geom, hits.colour)
     logp = jnp.log(jax.nn.one_hot(lab, CLASSES.n) * 0.98 + 0.02 / CLASSES.n)
-
-    class P:  # what learned_pose_assisted reads of ShirtParams
-        garment = GARMENT
-
     dist = patch_distance_maps(hits.patch, GARMENT.n_patches, jnp.float32)
-    patch = learned_pose_assisted(P, logp, dist, 0.05, None)
+    patch = learned_pose_assisted(GARMENT, logp, dist, 0.05, None)
     np.testing.assert_array_equal(patch, hits.patch)
 
 

@@ -33,6 +33,7 @@ from jaxmocap.color.pose_assisted import (
     patch_distance_maps,
     pose_assisted_classify,
 )
+from jaxmocap.garment import Garment
 from jaxmocap.ik import (
     IKCovariances,
     append_anchors,
@@ -214,11 +215,13 @@ def learned_classification(params: ShirtParams, state: ShirtState, crops, fgs):
     return jax.vmap(one, in_axes=(0, None if fgs is None else 0, 0))(crops, fgs, state.W)
 
 
-def learned_pose_assisted(params: ShirtParams, logp, dist, weight, fg):
+def learned_pose_assisted(garment: Garment, logp: Float[Array, "n n c"],
+                          dist: Float[Array, "p n n"], weight, fg) -> Int[Array, "n n"]:
     """Step 3 on the learned model: the patch minimising ``-log p(colour(p)) + weight d_p``
-    unless ``-log p(not shirt)`` (background or skin) is lower; patch ids (0 none)."""
-    K = params.garment.n_colours
-    pc = jnp.asarray(params.garment.patch_colour, jnp.int32)
+    (``dist``: :func:`patch_distance_maps` of the prior) unless ``-log p(not shirt)``
+    (background or skin) is lower; patch ids (0 none)."""
+    K = garment.n_colours
+    pc = jnp.asarray(garment.patch_colour, jnp.int32)
     cost = -logp[..., pc] + weight * jnp.moveaxis(dist, 0, -1).astype(logp.dtype)
     p_shirt = jnp.sum(jnp.exp(logp[..., 1:K + 1]), -1)
     not_shirt = -jnp.log(jnp.maximum(1 - p_shirt, 1e-12))
@@ -365,7 +368,7 @@ def pose_assisted_centroids(
                 w = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), w)
             else:
                 w = jnp.asarray(TIE_BREAK_WEIGHT, dt)
-            patch = learned_pose_assisted(params, logp, dist, w, fg)
+            patch = learned_pose_assisted(params.garment, logp, dist, w, fg)
             return patch_centroids(patch, P, window, dtype=dt)
         if params.ablations.pose_prior:
             weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
