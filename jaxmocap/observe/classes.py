@@ -67,7 +67,8 @@ def classes_of(model: BodyModel, garment: Garment) -> Classes:
     return Classes(names, K, table)
 
 
-def labels_of(classes: Classes, geom: Int[Array, "*s"], colour: Int[Array, "*s"]) -> Int[Array, "*s"]:
+def labels_of(classes: Classes, geom: Int[Array, "*s"], colour: Int[Array, "*s"]
+              ) -> Int[Array, "*s"]:
     """Ground-truth class of every ray from a render's ``geom`` and ``colour`` ids (Hits)."""
     table = jnp.asarray(classes.geom_class)
     return jnp.where(colour > 0, colour, table[geom + 1]).astype(jnp.int32)

@@ -28,9 +28,9 @@ DILATIONS = (1, 2, 4, 8)
 
 def features(image: Float[Array, "h w 3"]) -> Float[Array, "5 h w"]:
     """The light-normalised input planes (module docstring) of an RGB crop (0..255)."""
-    l = jnp.log((image.astype(jnp.float32) + 2.0) / 257.0)
-    centred = l - jnp.mean(l, axis=(0, 1), keepdims=True)
-    chroma = jnp.stack([l[..., 0] - l[..., 1], l[..., 2] - l[..., 1]], -1)
+    lg = jnp.log((image.astype(jnp.float32) + 2.0) / 257.0)
+    centred = lg - jnp.mean(lg, axis=(0, 1), keepdims=True)
+    chroma = jnp.stack([lg[..., 0] - lg[..., 1], lg[..., 2] - lg[..., 1]], -1)
     return jnp.moveaxis(jnp.concatenate([centred, chroma], -1), -1, 0)
 
 
@@ -54,7 +54,7 @@ class Observer(eqx.Module):
                                   dtype=DTYPE)
         self.blocks = tuple(
             eqx.nn.Conv2d(context, context, 3, padding=d, dilation=d, key=k, dtype=DTYPE)
-            for d, k in zip(DILATIONS, ks[3:])
+            for d, k in zip(DILATIONS, ks[3:], strict=True)
         )
         self.head = eqx.nn.Conv2d(width + context, n_classes, 1, key=ks[2], dtype=DTYPE)
         self.n_classes, self.width, self.context = int(n_classes), int(width), int(context)

@@ -88,7 +88,8 @@ def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, 
     fov = jnp.deg2rad(_uniform(ks[4], FOV, (), dt))
     fx = (w / 2) / jnp.tan(fov / 2)
     zero, one = jnp.zeros((), dt), jnp.ones((), dt)
-    K = jnp.stack([jnp.stack([fx, zero, one * (w - 1) / 2]), jnp.stack([zero, fx, one * (h - 1) / 2]),
+    K = jnp.stack([jnp.stack([fx, zero, one * (w - 1) / 2]),
+                   jnp.stack([zero, fx, one * (h - 1) / 2]),
                    jnp.stack([zero, zero, one])])
     cam = look_at(eye, target, width=w, height=h, K=K)
     from jaxmocap.camera import project, to_camera
@@ -145,7 +146,7 @@ def render_geometry(model: BodyModel, garment: Garment, classes: Classes,
             qs = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)])
             kk = jnp.concatenate([kk, jnp.repeat(kk[-1:], pad, 0)])
         g = jax.device_get(fn(jnp.asarray(qs), kk))
-        out.append(jax.tree.map(lambda a: a[: j - i], g))
+        out.append(jax.tree.map(lambda a, k=j - i: a[:k], g))
         if progress is not None:
             progress(j - i)
     g = jax.tree.map(lambda *a: np.concatenate(a), *out)
