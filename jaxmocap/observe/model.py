@@ -9,7 +9,7 @@ Input normalised against the light (issue 49: a per-pixel model learns the light
 
 Architecture (equinox, ``../shared/STYLE.md``'s pattern): a 3x3 stem at full resolution, a
 stride-2 3x3 convolution, residual 3x3 convolutions dilated 1, 2, 4, 8 at half resolution (a
-receptive field of ~70 px, about a quarter of the tracker's 128 px crop: neighbouring patches and
+receptive field of 65 px, half of the tracker's 128 px crop: neighbouring patches and
 the skin beside them), bilinear upsampling, and a 1x1 head over the stem's and the context's
 features. ~25k parameters; at 128 x 128 about 8 M multiply-adds per 1,000 pixels.
 """
