@@ -215,8 +215,8 @@ def learned_classification(params: ShirtParams, state: ShirtState, crops, fgs):
     return jax.vmap(one, in_axes=(0, None if fgs is None else 0, 0))(crops, fgs, state.W)
 
 
-def learned_pose_assisted(garment: Garment, logp: Float[Array, "n n c"],
-                          dist: Float[Array, "p n n"], weight, fg) -> Int[Array, "n n"]:
+def learned_pose_assisted(garment: Garment, logp: Float[Array, "h w c"],
+                          dist: Float[Array, "p h w"], weight, fg) -> Int[Array, "h w"]:
     """Step 3 on the learned model: the patch minimising ``-log p(colour(p)) + weight d_p``
     (``dist``: :func:`patch_distance_maps` of the prior) unless ``-log p(not shirt)``
     (background or skin) is lower; patch ids (0 none)."""
