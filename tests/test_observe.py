@@ -203,14 +203,14 @@ def test_learned_step3_recovers_the_true_patch_map():
     """With the true colours as the model's probabilities and the true patch map as the
     prior, step 3 on the model gives back the rendered patch map."""
     from jaxmocap.color.pose_assisted import patch_distance_maps
-    from jaxmocap.trackers.shirt.frame import learned_pose_assisted
+    from jaxmocap.trackers.shirt.frame import learned_costs, learned_pose_assisted
 
     q, cam = _rest_view()
     hits = render_ids(BODY, GARMENT, q, cam)
     lab = labels_of(CLASSES, hits.geom, hits.colour)
     logp = jnp.log(jax.nn.one_hot(lab, CLASSES.n) * 0.98 + 0.02 / CLASSES.n)
     dist = patch_distance_maps(hits.patch, GARMENT.n_patches, jnp.float32)
-    patch = learned_pose_assisted(GARMENT, logp, dist, 0.05, None)
+    patch = learned_pose_assisted(learned_costs(GARMENT, logp), dist, 0.05, None)
     np.testing.assert_array_equal(patch, hits.patch)
 
 

@@ -119,7 +119,7 @@ class Views(NamedTuple):
     s_found: Float[Array, " n_cams"]
     found: Bool[Array, " n_cams"]
     cls: ReferenceClassification
-    logp: Float[Array, "n_cams n n c"] | None = None  # the learned model's (colours.observer)
+    learned: LearnedCosts | None = None  # the learned model's step-3 costs (colours.observer)
 
 
 class DatabasePose(NamedTuple):
@@ -176,9 +176,9 @@ def locate_and_classify(params: ShirtParams, state: ShirtState, frames, masks) -
     crops = jnp.stack(crops)
     fgs = None if masks is None else jnp.stack(fgs)
     if params.colours.observer is not None:
-        logp, cls = learned_classification(params, state, crops, fgs)
+        learned, cls = learned_classification(params, state, crops, fgs)
         return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls,
-                     logp)
+                     learned)
     if params.colours.patch_colours:
         cls = classify_by_patch(params, state, crops, fgs)
         return Views(crops, fgs, jnp.stack(windows), jnp.stack(s_found), jnp.stack(found), cls)
@@ -208,27 +208,50 @@ def learned_classification(params: ShirtParams, state: ShirtState, crops, fgs):
             ids = jnp.where(fg, ids, 0)
             n_px = jnp.maximum(jnp.sum(fg), 1).astype(dt)
         fraction = (jnp.sum(ids > 0) / n_px).astype(dt)
-        return logp, ReferenceClassification(ids=ids, distance=-jnp.max(logp, -1).astype(dt),
+        costs = learned_costs(params.garment, logp)
+        return costs, ReferenceClassification(ids=ids, distance=-jnp.max(logp, -1).astype(dt),
                                              W=W, fraction=fraction,
                                              used_reference=jnp.array(False))
 
     return jax.vmap(one, in_axes=(0, None if fgs is None else 0, 0))(crops, fgs, state.W)
 
 
-def learned_pose_assisted(garment: Garment, logp: Float[Array, "h w c"],
-                          dist: Float[Array, "p h w"], weight, fg) -> Int[Array, "h w"]:
-    """Step 3 on the learned model: the patch minimising ``-log p(colour(p)) + weight d_p``
-    (``dist``: :func:`patch_distance_maps` of the prior) unless ``-log p(not shirt)``
-    (background or skin) is lower; patch ids (0 none)."""
+class LearnedCosts(NamedTuple):
+    """Step 3's data terms from the learned model, once per frame (every IK round reuses them):
+    ``patch[p - 1] = -log p(colour(p))`` per pixel, ``rest = -log p(not shirt)``."""
+
+    patch: Float[Array, "*cams p h w"]
+    rest: Float[Array, "*cams h w"]
+
+
+def learned_costs(garment: Garment, logp: Float[Array, "h w c"]) -> LearnedCosts:
+    """:class:`LearnedCosts` of one crop's log-probabilities."""
     K = garment.n_colours
     pc = jnp.asarray(garment.patch_colour, jnp.int32)
-    cost = -logp[..., pc] + weight * jnp.moveaxis(dist, 0, -1).astype(logp.dtype)
     p_shirt = jnp.sum(jnp.exp(logp[..., 1:K + 1]), -1)
-    not_shirt = -jnp.log(jnp.maximum(1 - p_shirt, 1e-12))
-    keep = jnp.min(cost, -1) < not_shirt
+    return LearnedCosts(jnp.moveaxis(-logp[..., pc], -1, 0),
+                        -jnp.log(jnp.maximum(1 - p_shirt, 1e-12)))
+
+
+def learned_pose_assisted(costs: LearnedCosts, dist: Float[Array, "p h w"], weight,
+                          fg) -> Int[Array, "h w"]:
+    """Step 3 on the learned model: the patch minimising ``-log p(colour(p)) + weight d_p``
+    (``dist``: :func:`patch_distance_maps` of the prior) unless ``-log p(not shirt)``
+    (background or skin) is lower; patch ids (0 none). A running minimum over the patch planes,
+    as :func:`jaxmocap.color.pose_assisted_classify` (one fused loop, ties to the first)."""
+    dt = costs.patch.dtype
+    score = best = None
+    for p in range(costs.patch.shape[0]):
+        cost = costs.patch[p] + weight * dist[p].astype(dt)
+        if score is None:
+            score, best = cost, jnp.zeros(cost.shape, jnp.int32)
+        else:
+            better = cost < score
+            score, best = jnp.where(better, cost, score), jnp.where(better, p, best)
+    keep = score < costs.rest
     if fg is not None:
         keep = keep & fg
-    return jnp.where(keep, jnp.argmin(cost, -1) + 1, 0)
+    return jnp.where(keep, best + 1, 0)
 
 
 def database_pose(params: ShirtParams, views: Views, dt) -> DatabasePose:
@@ -360,15 +383,15 @@ def pose_assisted_centroids(
     v = ctx.views
     patch_colour = params.garment.patch_colour
 
-    def one(patch_map, W, crop, fg, s_found, window, look, W_look, logp):
+    def one(patch_map, W, crop, fg, s_found, window, look, W_look, learned):
         dist = patch_distance_maps(patch_map, P, dt)
-        if logp is not None:  # the learned model (colours.observer)
+        if learned is not None:  # the learned model (colours.observer)
             w = PRIOR_SCALE / s_found * (window[2] / n) * params.colours.observer_prior
             if params.ablations.pose_prior:
                 w = jnp.where(plain, jnp.asarray(TIE_BREAK_WEIGHT, dt), w)
             else:
                 w = jnp.asarray(TIE_BREAK_WEIGHT, dt)
-            patch = learned_pose_assisted(params.garment, logp, dist, w, fg)
+            patch = learned_pose_assisted(learned, dist, w.astype(learned.patch.dtype), fg)
             return patch_centroids(patch, P, window, dtype=dt)
         if params.ablations.pose_prior:
             weight = PRIOR_SCALE / s_found * (window[2] / n)  # C = 6/s', d in image px
@@ -392,9 +415,9 @@ def pose_assisted_centroids(
     fg_ax = None if v.fgs is None else 0
     look, look_W = ctx.look, ctx.look_W
     l_ax = None if look is None else 0
-    p_ax = None if v.logp is None else 0
+    p_ax = None if v.learned is None else 0
     c = jax.vmap(one, in_axes=(0, 0, 0, fg_ax, 0, 0, l_ax, l_ax, p_ax))(
-        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows, look, look_W, v.logp
+        patch_maps, v.cls.W, v.crops, v.fgs, v.s_found, v.windows, look, look_W, v.learned
     )
     return PatchCentroids(c.xy, c.count, c.valid & ctx.okq[:, None])
 
