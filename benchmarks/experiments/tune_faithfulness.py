@@ -64,46 +64,12 @@ def main(argv=None) -> dict:
     from scipy.stats import spearmanr
 
     from jaxmocap import tune
-    from jaxmocap._config import enable_compilation_cache
-    from jaxmocap.body import keypoint_index, keypoints
-    from jaxmocap.experiment.cell import eval_joints, pf_setup
-    from jaxmocap.experiment.config import Sequence, load_config
     from jaxmocap.experiment.tuning import _pf_setups
-    from jaxmocap.io.export import load_track
-    from jaxmocap.synth.dataset import load_dataset
-    from jaxmocap.trackers import stereo_pf as sp
-    from jaxmocap.trackers.driver import stereo_offline
 
-    enable_compilation_cache()
     t_start = time.perf_counter()
-    cfg = next(c for c in load_config(args.config).configs if c.name == args.name)
-    cfg = dataclasses.replace(cfg, options={**cfg.options, "particles": args.particles})
+    cfg, seqs, data, obs_cache = dev_observations(args.world, args.sequences, args.config,
+                                                  args.name, args.frames, args.particles)
     c = cfg.to_dict()
-    seqs = [Sequence(n, str(Path(args.world) / n)) for n in args.sequences]
-
-    # the observations (host image line + blob tracker), once per sequence
-    data, obs_cache = {}, {}
-    for s in seqs:
-        full = load_dataset(s.folder)
-        seq = full._replace(frames=full.frames[: args.frames])
-        params, blob, lag, _, search, heads = pf_setup(seq, c, s.folder)
-        if search != "off" or params.hand_search is not None or params.part_colours is not None \
-                or params.adapt is not None or lag:
-            raise SystemExit(f"{args.name}: its observations depend on the filter (or it "
-                             "smooths); this check holds them fixed")
-        obs = sp.observe_sequence(params, seq.frames, blob)
-        o = {k: np.asarray(v) for k, v in zip(
-            ("edges", "points", "points_valid", "foreground", "support"),
-            (obs.edges, obs.points, obs.valid, obs.foreground, obs.support), strict=True)
-            if v is not None}
-        obs_cache[s.name] = o
-        gt = load_track(Path(s.folder) / "groundtruth.npz")
-        names = list(params.model.keypoint_names)
-        joints = [j for j in eval_joints(c) if j in names and j in gt.keypoint_names]
-        ig = [list(gt.keypoint_names).index(j) for j in joints]
-        data[s.name] = (seq, obs, heads, np.asarray(keypoint_index(params.model, joints)),
-                        gt.keypoints[: args.frames][:, ig])
-        print(f"{s.name}: {seq.frames.shape[0]} frames observed", flush=True)
     t_obs = time.perf_counter() - t_start
 
     # the loss's terms, exactly as `jaxmocap tune --tracker pf` builds them
@@ -120,20 +86,8 @@ def main(argv=None) -> dict:
         theta = tune.pf_theta(sg, sd, jnp.float32)
         per_seq_loss = [float(loss_fn(theta, p, q)) for p, q in terms]
         t_loss = time.perf_counter() - t0
-        cd = {**c, "options": {**c["options"], "sigma_g": float(sg), "sigma_d": float(sd)}}
-        real = {}
         t1 = time.perf_counter()
-        for s in seqs:
-            seq, obs, heads, jidx, gt = data[s.name]
-            params = pf_setup(seq, cd, s.folder)[0]
-            for seed in args.seeds:
-                run = stereo_offline(params, jax.random.key(seed), seq.frames, lambda o=obs: o,
-                                     start_from_head=heads)
-                q = np.asarray(run.estimate.q, np.float64)
-                kp = np.asarray(jax.vmap(lambda x, m=params.model: keypoints(m, x))(
-                    jnp.asarray(q, jnp.float32)))[:, jidx]
-                err = np.linalg.norm(kp - gt, axis=-1).mean(axis=1)  # (T,) m
-                real.setdefault(seed, []).append(float(np.nanmean(err)))
+        real = real_errors(c, seqs, data, sg, sd, args.seeds)
         t_real = time.perf_counter() - t1
         row = {"sigma_g": sg, "sigma_d": sd, "loss_cm": 100 * float(np.mean(per_seq_loss)),
                "loss_per_sequence_cm": [100 * v for v in per_seq_loss],
@@ -174,6 +128,79 @@ def main(argv=None) -> dict:
     _plot(result, loss, real, Path(args.plot))
     print(json.dumps(result["spearman"], indent=1))
     return result
+
+
+def dev_observations(world, sequences, config, name, frames, particles):
+    """(configuration with ``particles``, sequences, per sequence (the dataset cut to its first
+    ``frames`` frames, observations, start_from_head, joint indices, ground-truth keypoints
+    (T, J, 3) m), the observations as ``jaxmocap tune`` caches them). The host image line and
+    blob tracker run once per sequence (the configuration's observations must not depend on
+    the filter)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", False)
+    from jaxmocap._config import enable_compilation_cache
+    from jaxmocap.body import keypoint_index
+    from jaxmocap.experiment.cell import eval_joints, pf_setup
+    from jaxmocap.experiment.config import Sequence, load_config
+    from jaxmocap.io.export import load_track
+    from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers import stereo_pf as sp
+
+    enable_compilation_cache()
+    cfg = next(c for c in load_config(config).configs if c.name == name)
+    cfg = dataclasses.replace(cfg, options={**cfg.options, "particles": particles})
+    c = cfg.to_dict()
+    seqs = [Sequence(n, str(Path(world) / n)) for n in sequences]
+    data, obs_cache = {}, {}
+    for s in seqs:
+        full = load_dataset(s.folder)
+        seq = full._replace(frames=full.frames[:frames])
+        params, blob, lag, _, search, heads = pf_setup(seq, c, s.folder)
+        if search != "off" or params.hand_search is not None or params.part_colours is not None \
+                or params.adapt is not None or lag:
+            raise SystemExit(f"{name}: its observations depend on the filter (or it smooths); "
+                             "this check holds them fixed")
+        obs = sp.observe_sequence(params, seq.frames, blob)
+        obs_cache[s.name] = {k: np.asarray(v) for k, v in zip(
+            ("edges", "points", "points_valid", "foreground", "support"),
+            (obs.edges, obs.points, obs.valid, obs.foreground, obs.support), strict=True)
+            if v is not None}
+        gt = load_track(Path(s.folder) / "groundtruth.npz")
+        names = list(params.model.keypoint_names)
+        joints = [j for j in eval_joints(c) if j in names and j in gt.keypoint_names]
+        ig = [list(gt.keypoint_names).index(j) for j in joints]
+        data[s.name] = (seq, obs, heads, np.asarray(keypoint_index(params.model, joints)),
+                        gt.keypoints[:frames][:, ig])
+        print(f"{s.name}: {seq.frames.shape[0]} frames observed", flush=True)
+    return cfg, seqs, data, obs_cache
+
+
+def real_errors(c: dict, seqs, data, sigma_g: float, sigma_d: float, seeds) -> dict:
+    """Per seed the real filter's all-frames error (m) per sequence with the widths: the
+    tracker's offline programs (``stereo_offline``) with parameters the experiment cell's
+    ``pf_setup`` builds with ``sigma_g``, ``sigma_d``, on the held observations; per sequence
+    the mean over frames of the mean per-joint error, as a cell scores it."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.body import keypoints
+    from jaxmocap.experiment.cell import pf_setup
+    from jaxmocap.trackers.driver import stereo_offline
+
+    cd = {**c, "options": {**c["options"], "sigma_g": float(sigma_g), "sigma_d": float(sigma_d)}}
+    real = {}
+    for s in seqs:
+        seq, obs, heads, jidx, gt = data[s.name]
+        params = pf_setup(seq, cd, s.folder)[0]
+        for seed in seeds:
+            run = stereo_offline(params, jax.random.key(seed), seq.frames, lambda o=obs: o,
+                                 start_from_head=heads)
+            q = jnp.asarray(run.estimate.q, jnp.float32)
+            kp = np.asarray(jax.vmap(lambda x, m=params.model: keypoints(m, x))(q))[:, jidx]
+            err = np.linalg.norm(kp - gt, axis=-1).mean(axis=1)  # (T,) m
+            real.setdefault(seed, []).append(float(np.nanmean(err)))
+    return real
 
 
 def _plot(result, loss, real, path: Path) -> None:
