@@ -614,7 +614,8 @@ class PFSequence(eqx.Module):
     per frame (``obs``, leading time axis T), the frame the tracker initialised on
     (``first``: ``obs`` at the start frame) and its anchor (``start``: a
     :class:`jaxmocap.trackers.stereo_pf.start.Start`, or None for the head prior), the random
-    key the tracker ran with, the ground-truth keypoints ``gt`` (T, J, 3) m of the scored
+    key the tracker ran with (or a batch of keys (K,): :func:`pf_loss` is then the mean of the
+    K runs), the ground-truth keypoints ``gt`` (T, J, 3) m of the scored
     joints and their indices ``joints`` (J,) in the filter's body; ``scored`` (T,) the frames
     with a ground truth."""
 
@@ -673,7 +674,13 @@ def pf_loss(theta: PFTheta, params, seq: PFSequence,
             window: int | Int[Array, ""] = PF_WINDOW) -> Float[Array, ""]:
     """Mean per-joint error (m) of the stereo filter over every scored frame of ``seq``
     (:func:`pf_frame_errors`): the experiment's all-frames error of the run with these
-    widths."""
+    widths. With a batch of keys in ``seq.key`` the mean over the K runs (vmapped): the
+    filter's error is a random variable of its key, and the mean of K runs estimates its
+    expectation -- the quantity a tuning should rank widths by -- with 1/K of one run's
+    variance (the gradient likewise)."""
+    if seq.key.ndim == 1:
+        one = lambda k: pf_loss(theta, params, eqx.tree_at(lambda q: q.key, seq, k), window)
+        return jnp.mean(jax.vmap(one)(seq.key))
     e = pf_frame_errors(theta, params, seq, window)
     ok = seq.scored
     return jnp.sum(jnp.where(ok, e, 0.0)) / jnp.maximum(jnp.sum(ok), 1)

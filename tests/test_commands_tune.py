@@ -31,6 +31,8 @@ def test_refusals_before_any_work(tmp_path, capsys):
                    leaves=[out])
     assert_refused(capsys, "--optimiser cma is the stereo filter's black-box baseline", *base,
                    "--optimiser", "cma", "--tracker", "shirt", leaves=[out])
+    assert_refused(capsys, "--pf-seeds is the stereo filter's", *base, "--pf-seeds", "2",
+                   leaves=[out])
 
 
 # ----------------------------------------------------------------------------- stereo filter

@@ -389,6 +389,17 @@ def test_pf_loss_gradient_crosses_the_recursion(stereo):
         tune.pf_frame_errors(theta, params, seq, 0)
 
 
+def test_pf_loss_over_a_batch_of_keys_is_the_mean_of_their_runs(stereo):
+    _, _, params, seq, _ = stereo
+    theta = tune.pf_theta(0.25, 0.05)
+    keys = jax.random.split(jax.random.key(7), 2)
+    f = eqx.filter_jit(tune.pf_loss)
+    each = [float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, k))) for k in keys]
+    both = float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, keys)))
+    assert each[0] != each[1]
+    assert both == pytest.approx(np.mean(each), rel=1e-9)
+
+
 # ----------------------------------------------------------------------------- many clips
 
 

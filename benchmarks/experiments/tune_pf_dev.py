@@ -34,7 +34,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--particles", type=int, default=300)
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--learning-rate", type=float, default=0.1)
-    ap.add_argument("--eval-seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--eval-seeds", type=int, nargs="+", default=[5, 6, 7],
+                    help="the real filter's seeds of the check (not the loss's)")
+    ap.add_argument("--loss-seeds", type=int, default=1, help="--pf-seeds of the loss")
     ap.add_argument("--out", default="benchmarks/results")
     args = ap.parse_args(argv)
 
@@ -47,7 +49,7 @@ def main(argv=None) -> dict:
     cfg, seqs, data, obs_cache = dev_observations(args.world, args.sequences, args.config,
                                                   args.name, args.frames, args.particles)
     c = cfg.to_dict()
-    terms, theta0, _, _ = _pf_setups(cfg, seqs, obs_cache)
+    terms, theta0, _, _ = _pf_setups(cfg, seqs, obs_cache, args.loss_seeds)
     _, vg = _pf_losses(terms)
     widths = lambda th: (float(jnp.exp(th.sigma_g)), float(jnp.exp(th.sigma_d)))
     say = lambda tag: lambda i, v, th: print(f"{tag} {i:2d}: loss {100 * v:.3f} cm"
@@ -78,7 +80,7 @@ def main(argv=None) -> dict:
     doc = {"world": str(Path(args.world).resolve()), "split": "dev", "sequences": args.sequences,
            "config": c, "frames": args.frames, "particles": args.particles,
            "steps": args.steps, "learning_rate": args.learning_rate,
-           "tuning_seed": 0, "eval_seeds": args.eval_seeds,
+           "loss_seeds": list(range(args.loss_seeds)), "eval_seeds": args.eval_seeds,
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "curves_cm": {"adam": (100 * np.asarray(curve_adam)).tolist(),
                          "cma": (100 * np.asarray(curve_cma)).tolist()},

@@ -57,6 +57,9 @@ def add_parser(sub) -> None:
     p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
                    help="Adam's step size (default: jaxmocap.tune.ADAM_LEARNING_RATE, "
                    "0.05); L-BFGS takes its step from the linesearch and refuses one")
+    p.add_argument("--pf-seeds", type=int, default=1, metavar="K",
+                   help="--tracker pf: the loss is the mean of K filter runs (the keys of seeds "
+                   "0..K-1): K times the cost, 1/K of one run's variance (default: %(default)s)")
     p.add_argument("--every", type=int, default=5, metavar="N",
                    help="write a checkpoint every N steps (default: %(default)s)")
     p.add_argument("--out", default="tune_out", metavar="FOLDER",
@@ -85,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
                        subset=args.subset, name=args.name, tracker=args.tracker,
                        optimiser=args.optimiser, steps=args.steps,
                        learning_rate=args.learning_rate, workers=args.workers or 0,
-                       scheduler=args.scheduler, every=args.every, progress=not args.quiet)
+                       scheduler=args.scheduler, every=args.every, progress=not args.quiet,
+                       pf_seeds=args.pf_seeds)
     loss, wall = doc["loss"], doc["wall_s"]
     print(f"jaxmocap tune: {len(doc['tuned_on']['sequences'])} sequences, {loss['steps']} "
           f"{loss['optimiser']} steps: loss {100 * loss['before']:.2f} -> "

@@ -36,7 +36,8 @@ configuration's hash and the sequence's content digest (a rerun reads them back)
   flags and its own estimates (``StereoRun.observations``, ``estimate.q``). The loss is
   :func:`jaxmocap.tune.pf_loss`: **the filter itself re-run with the candidate widths** -- its
   annealed initialisation on the tracker's start frame (:func:`~jaxmocap.trackers.stereo_pf.
-  start.start_frame` of these observations) with the key of seed :data:`PF_SEED`, then its
+  start.start_frame` of these observations) with the key of seed :data:`PF_SEED` (or the mean
+  of ``pf_seeds`` runs, seeds 0, 1, ...: ``--pf-seeds``), then its
   frame step over every frame -- scored on every frame with a ground truth: the mean
   per-joint error of its estimate over the configuration's evaluated joints against the
   sequence's ground-truth keypoints (the experiment's all-frames error of that run), averaged
@@ -355,10 +356,11 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
     return setups, clips, theta, ident, digests
 
 
-def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
+def _pf_setups(cfg: TrackerConfig, seqs, obs: dict, pf_seeds: int = 1):
     """The stereo filter's loss terms (module docstring): per sequence ``(params,
-    jaxmocap.tune.PFSequence)``; the start theta (the configuration's widths), the file's
-    identity, per-sequence body digests."""
+    jaxmocap.tune.PFSequence)`` with the keys of seeds ``PF_SEED .. PF_SEED + pf_seeds - 1``
+    (one: seed 0's key, the loss is that run; several: the mean of their runs); the start
+    theta (the configuration's widths), the file's identity, per-sequence body digests."""
     import jax
     import jax.numpy as jnp
 
@@ -396,7 +398,9 @@ def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
         dt = lik.default_q.dtype
         seq = tune.PFSequence(
             obs=z, first=jax.tree.map(lambda a, t0=t0: a[t0], z), start=start,
-            key=jax.random.key(PF_SEED), gt=jnp.asarray(np.nan_to_num(g), dt),
+            key=jax.random.key(PF_SEED) if pf_seeds == 1 else jnp.stack(
+                [jax.random.key(PF_SEED + i) for i in range(pf_seeds)]),
+            gt=jnp.asarray(np.nan_to_num(g), dt),
             joints=jnp.asarray(keypoint_index(body, joints)),
             scored=jnp.asarray(np.isfinite(g).all(axis=(1, 2))))
         terms.append((params, seq))
@@ -514,11 +518,12 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                  name: str | None = None, tracker: str | None = None,
                  optimiser: str = "adam", steps: int = 20, learning_rate: float | None = None,
                  workers: int = 0, scheduler: str | None = None, every: int = CHECKPOINT_EVERY,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, pf_seeds: int = 1) -> dict:
     """Tune (or resume tuning) a tracker configuration on ``dataset``'s sequences (module
     docstring); writes ``out/tuned.json`` and returns its content (plus ``wall_s``).
     ``learning_rate``: Adam's step (None: :data:`jaxmocap.tune.ADAM_LEARNING_RATE`); L-BFGS
-    takes its step from the linesearch and ignores it."""
+    takes its step from the linesearch and ignores it. ``pf_seeds``: the stereo filter's loss
+    is the mean of that many runs (keys of seeds 0, 1, ...; :func:`jaxmocap.tune.pf_loss`)."""
     import jax
 
     from jaxmocap import tune
@@ -532,9 +537,9 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     if optimiser not in OPTIMISERS:
         raise ExperimentError(f"--optimiser: expected one of {', '.join(OPTIMISERS)}, "
                               f"got {optimiser!r}")
-    if steps < 0 or every < 1 or workers < 0:
-        raise ExperimentError(f"tune: steps >= 0, every >= 1, workers >= 0 expected; got "
-                              f"{steps}, {every}, {workers}")
+    if steps < 0 or every < 1 or workers < 0 or pf_seeds < 1:
+        raise ExperimentError(f"tune: steps >= 0, every >= 1, workers >= 0, pf_seeds >= 1 "
+                              f"expected; got {steps}, {every}, {workers}, {pf_seeds}")
     if optimiser == "lbfgs" and (workers or scheduler):
         raise ExperimentError("--optimiser lbfgs runs in this process (its linesearch "
                               "evaluates the loss inside the jitted update); give --workers 0")
@@ -542,6 +547,9 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
     if optimiser == "cma" and cfg.method != "pf":
         raise ExperimentError("--optimiser cma is the stereo filter's black-box baseline "
                               "(--tracker pf); tune the shirt with adam or lbfgs")
+    if pf_seeds != 1 and cfg.method != "pf":
+        raise ExperimentError("--pf-seeds is the stereo filter's (--tracker pf): the shirt "
+                              "tracker is deterministic")
     seqs = dataset_sequences(dataset, split, subset)
     out = output_folder(out, seqs, dataset)
     # no file it writes may be one it reads (a config, split or tuned file kept in --out)
@@ -564,12 +572,12 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
         import jax.numpy as jnp
 
         if pf:
-            terms, theta0, ident, digests = _pf_setups(cfg, seqs, obs)
+            terms, theta0, ident, digests = _pf_setups(cfg, seqs, obs, pf_seeds)
             frames = int(sum(int(np.asarray(t[1].scored).sum()) for t in terms))
         else:
             setups, clips, theta0, ident, digests = _setups(cfg, seqs, obs, jnp.float64)
             frames = int(sum(_n(c) for c in clips))
-        key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident)
+        key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident, pf_seeds)
         ckpt = out / (CMA_CHECKPOINT if optimiser == "cma" else CHECKPOINT)
         opt = None if optimiser == "cma" else tune.make_optimiser(
             optimiser, None if optimiser == "lbfgs" else learning_rate)
@@ -654,7 +662,8 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                   "config_path": None if config is None or isinstance(config, ExperimentConfig)
                   else str(Path(config).resolve()),
                   "body_digests": digests, "frames": frames, **(
-                      {"window": tune.PF_WINDOW, "seed": PF_SEED} if pf
+                      {"window": tune.PF_WINDOW, "seeds": list(range(PF_SEED, PF_SEED
+                                                                       + pf_seeds))} if pf
                       else {"window": WINDOW}),
                   "held_fixed": PF_HELD_FIXED if pf else "the tracker's centroids, their "
                   "validity, q_blend and its valid flags (tracked once with the "
@@ -682,7 +691,7 @@ def _n(clip) -> float:
     return _frames(clip)
 
 
-def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident) -> str:
+def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident, pf_seeds: int = 1) -> str:
     """What a checkpoint belongs to: configuration, sequences (their cached observations'
     content), optimiser and rate, parameter kind."""
     h = hashlib.sha256()
@@ -695,7 +704,7 @@ def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident) -> str:
     if cfg.method == "pf":
         from jaxmocap.tune import PF_WINDOW
 
-        h.update(json.dumps([PF_WINDOW, PF_SEED, CMA_SIGMA0]).encode())
+        h.update(json.dumps([PF_WINDOW, PF_SEED, pf_seeds, CMA_SIGMA0]).encode())
     for s in seqs:
         for k in keys:
             h.update(np.ascontiguousarray(obs[s.name][k]).tobytes())
