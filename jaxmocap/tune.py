@@ -37,12 +37,20 @@ estimates them well; their covariances and T decide the trade-off between colour
 background).
 
 **3. Stereo-filter cue widths (Azad §III-D).** sigma_g, sigma_d act through the particle
-weights ``w_j ∝ exp(log p(z | s_j))``; resampling is not differentiable, so the surrogate is
-one weighting step over fixed particles: per frame, ``n`` particles ``s_j = s_gt + delta +
-eps_j`` (``delta`` a shared prediction error, ``eps_j`` the filter's diffusion, both drawn
-once and held fixed), and ``pf_loss`` is the mean per-joint error of the weighted-mean
-estimate ``sum_j w_j(sigma) s_j``. Too small sigmas put all the weight on one noisy particle,
-too large ones return the cloud's centre: the loss prices exactly the filter's trade-off.
+weights ``w_j ∝ exp(log p(z | s_j))``. ``pf_loss`` is the filter's own frame loop with the
+candidate widths: the tracker's annealed initialisation on its start frame with its key, then
+its frame step over every frame (:func:`jaxmocap.trackers.stereo_pf.filter.filter_step`: the
+resampling, the motion model's adaptive noise, the guided and swivel proposals), on the
+observations the tracker made (held fixed: edge maps, foreground, triangulated head and hands),
+scored on every frame: the mean per-joint error of its estimate against the ground-truth
+keypoints -- in value the experiment's all-frames error of that run. Its gradient crosses the
+resamplings by the filter's stop-gradient resampling (Scibior & Wood 2021,
+:mod:`jaxmocap.pf.resample`; the forward pass is unchanged) and is truncated to windows of
+:data:`PF_WINDOW` frames (truncated backpropagation through time: a frame's error is
+differentiated through the frames since the last window boundary, the state entering a
+window is held constant); the initialisation's annealing is run with the widths but not
+differentiated. (Before issue 51 the loss was one weighting step over fixed particles; it did
+not predict the running filter, docs/results/tuning.md section 3.)
 
 **Constrained parameters** are declared once (as dynamax's ``ParameterProperties``):
 :data:`IK_PARAMETERS`, :data:`COLOR_PARAMETERS`, :data:`PF_PARAMETERS` name the bijection of
@@ -568,6 +576,8 @@ def color_loss(
 
 # ----------------------------------------------------------------------------- 3. stereo PF cues
 
+PF_WINDOW = 10  # frames a gradient crosses back in the stereo filter's loss (module docstring)
+
 
 class PFTheta(eqx.Module):
     """Unconstrained cue widths (:data:`PF_PARAMETERS`): log sigma_g, log sigma_d (m)."""
@@ -581,62 +591,99 @@ def pf_theta(sigma_g: float, sigma_d: float, dtype=None) -> PFTheta:
     return PFTheta(jnp.log(jnp.asarray(sigma_g, dt)), jnp.log(jnp.asarray(sigma_d, dt)))
 
 
-class PFData(eqx.Module):
-    """Per frame: the observation z_t, fixed particles (n, d) in the filter's DOF subset and
-    the true pose s_gt (d,)."""
+def pf_with_widths(params, theta: PFTheta):
+    """The stereo filter's parameters (:class:`jaxmocap.trackers.stereo_pf.StereoPFParams`)
+    with the cue widths of ``theta``: every :class:`StereoLikelihood` in them -- the filter's
+    ``loglik``, ``params.likelihood`` and the guided proposal's bound residuals (which read
+    sigma_d where the distance cue is anisotropic) -- gets the same sigma_g, sigma_d, as
+    :func:`jaxmocap.trackers.stereo_pf.make_params` would build them."""
+    v = _constrain(theta, PF_PARAMETERS)
+
+    def widths(x):
+        if not isinstance(x, StereoLikelihood):
+            return x
+        dt = x.sigma_g.dtype
+        return eqx.tree_at(lambda m: (m.sigma_g, m.sigma_d), x,
+                           (v["sigma_g"].astype(dt), v["sigma_d"].astype(dt)))
+
+    return jax.tree.map(widths, params, is_leaf=lambda x: isinstance(x, StereoLikelihood))
+
+
+class PFSequence(eqx.Module):
+    """One sequence's held-fixed inputs of :func:`pf_loss`: what the filter's likelihood read
+    per frame (``obs``, leading time axis T), the frame the tracker initialised on
+    (``first``: ``obs`` at the start frame) and its anchor (``start``: a
+    :class:`jaxmocap.trackers.stereo_pf.start.Start`, or None for the head prior), the random
+    key the tracker ran with (or a batch of keys (K,): :func:`pf_loss` is then the mean of the
+    K runs), the ground-truth keypoints ``gt`` (T, J, 3) m of the scored
+    joints and their indices ``joints`` (J,) in the filter's body; ``scored`` (T,) the frames
+    with a ground truth."""
 
     obs: Observation
-    particles: Float[Array, "t n d"]
-    s_gt: Float[Array, "t d"]
+    first: Observation
+    start: object
+    key: Array
+    gt: Float[Array, "t j 3"]
+    joints: Int[Array, " j"]
+    scored: Bool[Array, " t"]
 
 
-def pf_particles(
-    s_gt: Float[ArrayLike, "t d"], offset_std: ArrayLike, spread_std: ArrayLike, n: int,
-    key: Array, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
-) -> Float[Array, "t n d"]:  # fmt: skip
-    """Fixed particles ``s_gt + delta_t + eps_tj`` (``delta_t ~ N(0, offset_std^2)`` shared
-    by a frame's particles — the prediction error —, ``eps_tj ~ N(0, spread_std^2)`` the
-    diffusion; stds scalar or per DOF), clipped to ``[lower, upper]`` where given. ``jaxmocap
-    tune --tracker pf`` passes the filter's own estimates as ``s_gt`` with ``offset_std`` 0:
-    the offset from the truth is then the filter's real error."""
-    s = jnp.asarray(s_gt)
-    shape = (s.shape[0], n, s.shape[1])
-    k1, k2 = jax.random.split(key)
-    delta = jax.random.normal(k1, s.shape, s.dtype) * jnp.broadcast_to(
-        jnp.asarray(offset_std, s.dtype), s.shape)  # scalars or per-DOF (d,) stds
-    eps = jax.random.normal(k2, shape, s.dtype) * jnp.broadcast_to(
-        jnp.asarray(spread_std, s.dtype), shape)
-    p = s[:, None, :] + delta[:, None, :] + eps
-    if lower is not None:
-        p = jnp.clip(p, jnp.broadcast_to(jnp.asarray(lower, s.dtype), shape),
-                     jnp.broadcast_to(jnp.asarray(upper, s.dtype), shape))
-    return p
+def _cut(tree, cut: Bool[Array, ""]):
+    """``tree`` with no gradient flowing back through its float leaves where ``cut``."""
+    return jax.tree.map(
+        lambda a: jnp.where(cut, jax.lax.stop_gradient(a), a) if eqx.is_inexact_array(a) else a,
+        tree)  # fmt: skip
 
 
-def pf_estimate(
-    theta: PFTheta, likelihood: StereoLikelihood, z: Observation, particles: Float[Array, "n d"]
-) -> Float[Array, " d"]:
-    """The weighted-mean estimate ``sum_j w_j s_j`` of one weighting step with the cue widths
-    of ``theta`` (weights ``softmax_j log p(z | s_j)``)."""
-    v = _constrain(theta, PF_PARAMETERS)
-    lik = eqx.tree_at(lambda m: (m.sigma_g, m.sigma_d), likelihood, (v["sigma_g"], v["sigma_d"]))
-    ll = jax.vmap(lambda s: lik(s, z))(particles)
-    return jax.nn.softmax(ll) @ particles
+def pf_frame_errors(theta: PFTheta, params, seq: PFSequence,
+                    window: int | Int[Array, ""] = PF_WINDOW) -> Float[Array, " t"]:
+    """Per frame the mean per-joint error (m) of the stereo filter's estimate, run as the
+    tracker runs it (:func:`jaxmocap.trackers.stereo_pf.init` on ``seq.first`` with
+    ``seq.key``, then :func:`~jaxmocap.trackers.stereo_pf.filter.filter_step` over every frame
+    from 0) with the cue widths of ``theta`` (module docstring). Gradients: through each frame's
+    weights and, by the filter's stop-gradient resampling, its ancestors'; through the
+    adaptive noise and the proposals' moves; back over at most ``window`` frames (the state's
+    gradient is cut at frames 0, window, 2 window, ...: truncated backpropagation through
+    time) and not into the annealed initialisation. Each frame is rematerialised in the
+    backward pass (``jax.checkpoint``), so memory holds one frame's intermediates."""
+    from jaxmocap.trackers.stereo_pf.filter import filter_step, init
+
+    if isinstance(window, int) and window < 1:  # traced: the caller's (tune_dataset: 10)
+        raise TuneError(f"pf_frame_errors: window must be >= 1, got {window}")
+    window = jnp.asarray(window)
+    p = pf_with_widths(params, theta)
+    state, _ = init(p, seq.key, seq.first, seq.start)
+    state = _cut(state, jnp.asarray(True))
+    model = params.likelihood.model
+
+    @jax.checkpoint
+    def frame(state, inputs):
+        t, z, g, ok = inputs
+        state = _cut(state, t % window == 0)
+        state, est = filter_step(p, state, z)
+        x = keypoints(model, est.q)[seq.joints]
+        g = jnp.where(ok, g, x)  # a frame without ground truth: 0 error, then masked
+        e = jnp.mean(jnp.sqrt(jnp.sum(jnp.square(x - g.astype(x.dtype)), -1) + NORM_EPS))
+        return state, jnp.where(ok, e, jnp.nan)
+
+    t = jnp.arange(seq.scored.shape[0])
+    return jax.lax.scan(frame, state, (t, seq.obs, seq.gt, seq.scored))[1]
 
 
-def pf_loss(
-    theta: PFTheta, likelihood: StereoLikelihood, data: PFData, joints: Int[Array, " j"]
-) -> Float[Array, ""]:
-    """Mean per-joint error (m, keypoints ``joints``) of :func:`pf_estimate` over frames."""
-    model = likelihood.model
-
-    def frame(z, parts, s_gt):
-        s = pf_estimate(theta, likelihood, z, parts)
-        x = keypoints(model, likelihood.full_q(s))[joints]
-        g = keypoints(model, likelihood.full_q(s_gt))[joints]
-        return jnp.mean(jnp.sqrt(jnp.sum(jnp.square(x - g), -1) + NORM_EPS))
-
-    return jnp.mean(jax.vmap(frame)(data.obs, data.particles, data.s_gt))
+def pf_loss(theta: PFTheta, params, seq: PFSequence,
+            window: int | Int[Array, ""] = PF_WINDOW) -> Float[Array, ""]:
+    """Mean per-joint error (m) of the stereo filter over every scored frame of ``seq``
+    (:func:`pf_frame_errors`): the experiment's all-frames error of the run with these
+    widths. With a batch of keys in ``seq.key`` the mean over the K runs (vmapped): the
+    filter's error is a random variable of its key, and the mean of K runs estimates its
+    expectation -- the quantity a tuning should rank widths by -- with 1/K of one run's
+    variance (the gradient likewise)."""
+    if seq.key.ndim == 1:
+        one = lambda k: pf_loss(theta, params, eqx.tree_at(lambda q: q.key, seq, k), window)
+        return jnp.mean(jax.vmap(one)(seq.key))
+    e = pf_frame_errors(theta, params, seq, window)
+    ok = seq.scored
+    return jnp.sum(jnp.where(ok, e, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
 
 
 # ----------------------------------------------------------------------------- optimiser

@@ -1,9 +1,11 @@
-"""Tests of jaxmocap.tune: gradients of the three tuning losses against central finite
+"""Tests of jaxmocap.tune: gradients of the IK and colour losses against central finite
 differences (float64), jit, NaN-free gradients with missing patches, closed form as the
-starting point, constraints round trip, and the loss falling under a few Adam steps.
+starting point, constraints round trip, and the loss falling under a few Adam steps; the stereo
+filter's loss against the tracker's own run (its gradient's estimator is tested against the
+Kalman filter in test_pf_filter.py).
 
 The IK tests use a small arm (root + 3 revolute joints) so that the solve compiles fast; the
-stereo-filter test uses the bundled body (the cue needs its limbs) on 80x60 edge maps.
+stereo filter's loss runs the tracker on its drawn 4-frame scene with 32 particles.
 """
 
 import equinox as eqx
@@ -304,56 +306,98 @@ def test_color_data_samples_labelled_pixels(rng):
 
 # ----------------------------------------------------------------------------- stereo filter
 
+PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 
-def test_pf_loss_gradients_match_finite_differences(rng):
-    from jaxmocap.body import default_body, keypoint_index, stereo_dofs
-    from jaxmocap.pf.cues import Observation, StereoLikelihood, limb_model
 
-    model = default_body()
-    cams = stack_cameras(make_cameras(SceneConfig(rig="stereo", width=80, height=60), jnp.float64))
-    dofs = tuple(int(i) for i in stereo_dofs(model))
-    lik = StereoLikelihood(
-        model=model, limbs=limb_model(model), cams=cams, default_q=jnp.zeros(model.n_dof),
-        sigma_g=jnp.asarray(0.2), sigma_d=jnp.asarray(0.04), sigma_r=jnp.asarray(0.1),
-        dofs=dofs,
-    )  # fmt: skip
-    T, n, d = 2, 12, len(dofs)
-    s_gt = np.zeros((T, d))
-    s_gt[:, 2] = 0.9
-    s_gt[:, 6:] = rng.uniform(-0.3, 0.3, (T, d - 6))
-    # smooth edge maps in [0, 1] and blob points near the true hands/head (one missing)
-    from scipy.ndimage import gaussian_filter
+@pytest.fixture(scope="module")
+def stereo():
+    """The stereo tracker's drawn scene (4 frames, tests/test_trackers_stereo_pf.py) with 32
+    particles, float64: parameters at widths other than the defaults, the loss's sequence."""
+    from test_trackers_stereo_pf import drawn_scene
 
-    edges = np.stack([[gaussian_filter(rng.random((60, 80)), 2) for _ in range(2)]
-                      for _ in range(T)])  # fmt: skip
-    edges = (edges - edges.min()) / (edges.max() - edges.min())
-    idx = keypoint_index(model, ("head", "l_hand", "r_hand"))
+    from jaxmocap.body import keypoint_index
+    from jaxmocap.trackers import stereo_pf as sp
+    from jaxmocap.trackers.stereo_pf.start import start_frame
+
+    model, cams, _, _, kp, _, obs = drawn_scene(4, 0.05)
+    make = lambda g, d: sp.make_params(cams, dtype=jnp.float64, motion=sp.Motion(n_particles=32),
+                                       cues=sp.Cues(sigma_g=g, sigma_d=d))
+    params = make(0.2, 0.04)
+    t0, _, start = start_frame(params, obs)
+    joints = np.asarray(keypoint_index(model, PF_JOINTS))
+    seq = tune.PFSequence(obs=obs, first=jax.tree.map(lambda a: a[t0], obs), start=start,
+                          key=jax.random.key(0), gt=jnp.asarray(kp[:, joints]),
+                          joints=jnp.asarray(joints), scored=jnp.ones(4, bool))
+    return model, make, params, seq, kp[:, joints]
+
+
+def test_pf_loss_is_the_real_filter_run_with_the_widths(stereo):
+    """The loss at widths (0.3, 6 cm) equals the mean per-joint error of the tracker's own
+    programs (``init_top_level`` + ``run_top_level``, the same key) run with parameters that
+    ``make_params`` built with those widths -- the loss's width substitution and its frame loop
+    are the tracker's."""
     from jaxmocap.body import keypoints
+    from jaxmocap.trackers import stereo_pf as sp
 
-    pts = np.stack([np.asarray(keypoints(model, lik.full_q(jnp.asarray(s))))[idx] for s in s_gt])
-    pts = pts + rng.normal(0, 0.03, pts.shape)
-    valid = np.ones((T, 3), bool)
-    valid[1, 2] = False
-    obs = Observation(jnp.asarray(edges), jnp.asarray(pts), jnp.asarray(valid),
-                      jnp.zeros((T, 2, 60, 80)))  # fmt: skip
-    parts = tune.pf_particles(s_gt, 0.03, 0.05, n, jax.random.key(0))
-    assert parts.shape == (T, n, d)
-    data = tune.PFData(obs, parts, jnp.asarray(s_gt))
-    joints = jnp.asarray(keypoint_index(model, ("l_elbow", "r_elbow", "l_hand", "r_hand")))
+    model, make, params, seq, gt = stereo
+    real = make(0.3, 0.06)
+    state, _ = sp.init_top_level(real, seq.key, seq.first, seq.start)
+    _, est = sp.run_top_level(real, state, seq.obs)
+    kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(est.q))[:, np.asarray(seq.joints)]
+    want = np.linalg.norm(kp - gt, axis=-1).mean()
+    got = float(jax.jit(tune.pf_loss)(tune.pf_theta(0.3, 0.06), params, seq))
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_stereo_filter_forward_is_bit_identical_with_stop_gradient_resampling(stereo):
+    """The tracker's offline run with the filter's stop-gradient resampling (the default) and
+    without it: the same estimates and final state, bit for bit."""
+    import dataclasses
+
+    from jaxmocap.trackers import stereo_pf as sp
+
+    _, _, params, seq, _ = stereo
+    none = dataclasses.replace(
+        params, filter=dataclasses.replace(params.filter, resampling_gradient="none"))
+    runs = []
+    for p in (params, none):
+        state, first = sp.init_top_level(p, seq.key, seq.first, seq.start)
+        runs.append(jax.tree.leaves((first, sp.run_top_level(p, state, seq.obs))))
+    assert params.filter.resampling_gradient == "stop"
+    raw = lambda a: np.asarray(jax.random.key_data(a) if jnp.issubdtype(
+        a.dtype, jax.dtypes.prng_key) else a)
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(raw(a), raw(b))
+
+
+def test_pf_loss_gradient_crosses_the_recursion(stereo):
+    """The gradient is finite and non-zero for both widths; cutting the recursion at every
+    frame (window 1) changes it (the weights' ancestry and the adaptive noise count), and the
+    value does not depend on the window (only the gradient's truncation does)."""
+    _, _, params, seq, _ = stereo
     theta = tune.pf_theta(0.2, 0.04)
-    vg = jax.jit(jax.value_and_grad(tune.pf_loss))
-    value, grad = vg(theta, lik, data, joints)
-    assert 0 < float(value) < 1.0
-    f = lambda th: vg(th, lik, data, joints)[0]
+    vg = eqx.filter_jit(jax.value_and_grad(tune.pf_loss))
+    v4, g4 = vg(theta, params, seq, jnp.asarray(4))  # traced: one compiled program
+    v1, g1 = vg(theta, params, seq, jnp.asarray(1))
+    assert float(v4) == float(v1)
     for name in ("sigma_g", "sigma_d"):
-        g = getattr(grad, name)
-        assert np.isfinite(g) and abs(float(g)) > 1e-8
-        fd = float(directional_fd(f, theta, name, 1.0, 1e-5))
-        assert abs(float(g) - fd) <= 1e-3 * abs(fd), (name, float(g), fd)
-    # the estimate is a convex combination of the particles: with huge sigmas, their mean
-    flat = tune.pf_theta(1e3, 1e3)
-    est = tune.pf_estimate(flat, lik, jax.tree.map(lambda a: a[0], obs), parts[0])
-    np.testing.assert_allclose(est, parts[0].mean(0), atol=1e-6)
+        a, b = float(getattr(g4, name)), float(getattr(g1, name))
+        assert np.isfinite(a) and abs(a) > 1e-8, name
+        assert np.isfinite(b)
+    assert float(g4.sigma_g) != float(g1.sigma_g)
+    with pytest.raises(tune.TuneError, match="window"):
+        tune.pf_frame_errors(theta, params, seq, 0)
+
+
+def test_pf_loss_over_a_batch_of_keys_is_the_mean_of_their_runs(stereo):
+    _, _, params, seq, _ = stereo
+    theta = tune.pf_theta(0.25, 0.05)
+    keys = jax.random.split(jax.random.key(7), 2)
+    f = eqx.filter_jit(tune.pf_loss)
+    each = [float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, k))) for k in keys]
+    both = float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, keys)))
+    assert each[0] != each[1]
+    assert both == pytest.approx(np.mean(each), rel=1e-9)
 
 
 # ----------------------------------------------------------------------------- many clips

@@ -8,11 +8,8 @@ demo does (the demo's cached 3,000-pose database built from TRAIN_CLIPS, a colou
 scribbles on white-light renders, W0 from one scribbled frame) and tracks every frame. Saved per
 clip: the tracker's per-frame centroids, visibility and blended pose ``q_blend`` (the IK
 inputs), its final pose, the true pose, frames and ground-truth colour ids (for the colour
-tuning), and W0.
-
-``python benchmarks/experiments/tune_data.py stereo`` renders the stereo set-up of Azad et al.
-(11 cm baseline, single-colour shirt) for ``STEREO_TRAIN`` / ``STEREO_HELDOUT`` and runs the
-tracker's host pipeline (edge maps, triangulated hands/head) to get the observations z_t.
+tuning), and W0. (The stereo filter's one-step study that used a ``stereo`` mode here was
+superseded by issue 51's loss through the running filter, ``jaxmocap tune --tracker pf``.)
 """
 
 from __future__ import annotations
@@ -27,8 +24,6 @@ N_FRAMES = 30
 SHIRT_TRAIN = ("humanoid3d_walk", "humanoid3d_kick", "humanoid3d_dance_a", "walker/turn_right0")
 SHIRT_HELDOUT = ("humanoid3d_punch", "humanoid3d_dance_b", "walker/turn_left0")
 OCCLUDED = {"humanoid3d_kick": (10, 16)}  # frames during which a panel hides part of the body
-STEREO_TRAIN = ("humanoid3d_walk", "humanoid3d_dance_a")
-STEREO_HELDOUT = ("humanoid3d_punch",)
 DB_SIZE = 3000  # the demo's database (jaxmocap.trackers.shirt.export.DEMO_DB_SIZE)
 WORK_SIZE = 96
 
@@ -86,43 +81,16 @@ def shirt_clip(clip: str) -> None:
     )
 
 
-def stereo_clip(clip: str) -> None:
-    from jaxmocap.segment import HSVInterval, SegmentParams
-    from jaxmocap.synth import SceneConfig, render_sequence
-    from jaxmocap.trackers import stereo_pf as sp
-
-    t0 = time.perf_counter()
-    config = SceneConfig(
-        clip=clip,
-        rig="stereo",
-        garment="single",
-        background="plain",
-        n_frames=N_FRAMES,
-        noise_sigma=0.01,
-        seed=0,
-    )
-    seq = render_sequence(config)
-    params = sp.make_params(
-        list(seq.cameras),
-        images=sp.Images(segment=SegmentParams(skin=HSVInterval(*sp.SYNTH_SKIN_HSV))),
-    )
-    obs = sp.observe_sequence(params, seq.frames)
-    np.savez_compressed(
-        clip_file("stereo", clip), edges=np.asarray(obs.edges), points=np.asarray(obs.points),
-        valid=np.asarray(obs.valid), foreground=np.asarray(obs.foreground),
-        q_gt=seq.groundtruth["q"], frames=seq.frames,
-    )  # fmt: skip
-    print(f"stereo {clip}: {time.perf_counter() - t0:.0f} s", flush=True)
-
-
 def main(kind: str) -> None:
     from jaxmocap._config import enable_compilation_cache
 
     enable_compilation_cache()
-    clips = (SHIRT_TRAIN + SHIRT_HELDOUT) if kind == "shirt" else (STEREO_TRAIN + STEREO_HELDOUT)
-    for clip in clips:
+    if kind != "shirt":
+        raise SystemExit(f"tune_data.py: kind {kind!r}: only 'shirt' (the stereo study was "
+                         "superseded, docs/results/tuning.md section 3)")
+    for clip in SHIRT_TRAIN + SHIRT_HELDOUT:
         if not clip_file(kind, clip).exists():
-            (shirt_clip if kind == "shirt" else stereo_clip)(clip)
+            shirt_clip(clip)
 
 
 if __name__ == "__main__":

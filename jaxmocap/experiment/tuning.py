@@ -34,23 +34,29 @@ configuration's hash and the sequence's content digest (a rerun reads them back)
   of both cameras, the foreground, the triangulated head / hands and their validity, stored
   as ``edges, foreground, points, points_valid``), with the true pose, the filter's valid
   flags and its own estimates (``StereoRun.observations``, ``estimate.q``). The loss is
-  :func:`jaxmocap.tune.pf_loss`: one weighting step over fixed particles. Per frame the filter
-  reported valid, :data:`PF_PARTICLES` particles ``s_hat_t + eps_tj`` around the filter's OWN
-  estimate ``s_hat_t`` (its DOF subset; the offset from the truth is the filter's real error,
-  not a synthetic one), ``eps_tj ~ N(0, sigma_max^2)`` per DOF (the filter's noise maximum,
-  ``PFParams.sigma_max``), clipped to its joint box, key :data:`PF_KEY`; weights
-  ``softmax_j log p(z_t | s_tj)`` with the candidate sigma_g, sigma_d (the configuration's
-  other cue settings as tracked); loss = mean per-joint error of the weighted mean over the
-  configuration's evaluated joints (the DOFs outside the filter's subset at its default pose,
-  for estimate and truth alike), frame-weighted over the sequences. Held fixed: the
-  observations (the host image pipeline and blob tracker, discrete), the filter's estimates
-  and valid flags, the particles, and the whole recursion — prediction, adaptive noise,
-  resampling, annealing layers, the swivel / seeded jumps — none of which the widths change
-  in this loss. Still a one-step surrogate: it asks which widths best pick the truth out of
-  a cloud at the filter's own error, not how the widths change where the filter goes next
-  (docs/results/tuning.md section 3: a surrogate with particles around the truth loosened
-  sigma_d and made the real filter worse). In the filter's float32; the descent runs in this
-  process (the tracking may run on Dask).
+  :func:`jaxmocap.tune.pf_loss`: **the filter itself re-run with the candidate widths** -- its
+  annealed initialisation on the tracker's start frame (:func:`~jaxmocap.trackers.stereo_pf.
+  start.start_frame` of these observations) with the key of seed :data:`PF_SEED` (or the mean
+  of ``pf_seeds`` runs, seeds 0, 1, ...: ``--pf-seeds``), then its
+  frame step over every frame -- scored on every frame with a ground truth: the mean
+  per-joint error of its estimate over the configuration's evaluated joints against the
+  sequence's ground-truth keypoints (the experiment's all-frames error of that run), averaged
+  over the sequences. Gradients through the recursion by the filter's stop-gradient
+  resampling, truncated to windows of :data:`PF_WINDOW` frames (:mod:`jaxmocap.tune`).
+  Held fixed: only the observations (the host image line and the blob tracker; where a
+  configuration feeds the filter's estimate back into its observations -- the gated hand
+  search, per-part colours, on-line colour adaptation, the prediction-guided search -- that
+  feedback is cut). In the filter's float32, in this process (the tracking may run on Dask).
+  The loss's forward pass is the tracker's programs compiled into one: the same arithmetic,
+  but not bit for bit the tracker's run (XLA may round a fused program differently, and a
+  particle filter's resampling amplifies a rounding difference over frames); how far the loss
+  predicts the tracker's own all-frames error over widths is measured by
+  ``benchmarks/experiments/tune_faithfulness.py`` (docs/results/tuning.md).
+
+  ``optimiser="cma"``: the black-box baseline, CMA-ES (Hansen's ``cma`` package) over the
+  same two log-widths, evaluating the same loss's value (filter runs, no gradient): the start,
+  then whole generations of its default population while they fit in ``steps + 1``
+  evaluations -- the number of loss evaluations a gradient descent of ``steps`` steps makes.
 
 **Parameters.** When every sequence has the same body and shirt, the full matrices
 Sigma_c, Sigma_b, Sigma_p of that body (:class:`jaxmocap.tune.IKTheta`; the file's
@@ -104,20 +110,22 @@ CHECKPOINT = "checkpoint.npz"
 TUNED = "tuned.json"
 RUN_RECORD = "tune_run.json"
 WINDOW = 10  # frames per IK window (docs/results/tuning.md)
-PF_PARTICLES = 200  # fixed particles per frame in the stereo filter's loss
-PF_KEY = 0  # their random key
+PF_SEED = 0  # the stereo filter's loss runs the filter with the key of this seed (seed 0's cell)
 CHECKPOINT_EVERY = 5
 CACHE_VERSION = 2  # observations/<sequence>.npz: + the tracker's valid flags and poses
 
 
 PF_HELD_FIXED = ("the filter's observations (edge maps, foreground, triangulated head/hands "
-                 "and their validity), its estimates and valid flags (tracked once with the "
-                 "configuration); the fixed particles: the filter's own estimate of each "
-                 "frame plus N(0, sigma_max^2) per DOF, clipped to the joint box; the "
-                 "resampling, prediction and annealing (one weighting step, no recursion)")
-PF_LOSS = ("mean per-joint position error (m, DOFs outside the filter's subset at its "
-           "default pose) of one weighting step's estimate over fixed particles around the "
-           "filter's own estimate, on the frames the filter reported valid")
+                 "and their validity; tracked once with the configuration), hence any "
+                 "feedback of the estimate into them; the random key (seed 0); the "
+                 "initialisation's annealing is run with the widths but not differentiated")
+PF_LOSS = ("mean per-joint position error (m) of the stereo filter re-run with the widths "
+           "(annealed initialisation on the tracker's start frame, then every frame), all "
+           "frames, mean over sequences; gradients by stop-gradient resampling, truncated to "
+           "windows of PF_WINDOW frames")
+OPTIMISERS = ("adam", "lbfgs", "cma")
+CMA_SIGMA0 = 0.35  # CMA-ES's initial step in log-width: +-2 sigma0 spans x0.5-x2 (log 2 = 0.69)
+CMA_CHECKPOINT = "checkpoint_cma.pkl"
 
 
 def _pick_config(config, name: str | None, tracker: str | None) -> TrackerConfig:
@@ -348,51 +356,55 @@ def _setups(cfg: TrackerConfig, seqs, obs: dict, dtype):
     return setups, clips, theta, ident, digests
 
 
-def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
-    """The stereo filter's loss terms (module docstring): per sequence ``(likelihood, data,
-    joints)`` with :class:`jaxmocap.tune.PFData` over the frames the filter reported valid,
-    the start theta (the configuration's cue widths), the file's identity (as
-    :func:`_setups`) and the per-sequence body digests."""
+def _pf_setups(cfg: TrackerConfig, seqs, obs: dict, pf_seeds: int = 1):
+    """The stereo filter's loss terms (module docstring): per sequence ``(params,
+    jaxmocap.tune.PFSequence)`` with the keys of seeds ``PF_SEED .. PF_SEED + pf_seeds - 1``
+    (one: seed 0's key, the loss is that run; several: the mean of their runs); the start
+    theta (the configuration's widths), the file's identity, per-sequence body digests."""
     import jax
     import jax.numpy as jnp
 
     from jaxmocap import tune
     from jaxmocap.body import body_digest, default_body, keypoint_index
     from jaxmocap.experiment.cell import eval_joints, pf_setup
+    from jaxmocap.io.export import load_track
     from jaxmocap.pf.cues import Observation
     from jaxmocap.synth.dataset import load_dataset
+    from jaxmocap.trackers.stereo_pf.start import start_frame
 
     c = cfg.to_dict()
     terms, digests, widths = [], {}, None
-    for i, s in enumerate(seqs):
-        params = pf_setup(load_dataset(s.folder), c, s.folder)[0]
+    for s in seqs:
+        params, _, lag, _, _, heads = pf_setup(load_dataset(s.folder), c, s.folder)
+        if lag:
+            raise ExperimentError(f"tune --tracker pf: configuration {cfg.name!r} smooths "
+                                  f"(smooth_lag = {lag}); the loss scores the filter's own "
+                                  "estimate: tune a configuration without smooth_lag")
         lik, body = params.likelihood, params.model
         digests[s.name] = body_digest(body)
         if widths is None:
             widths = (float(lik.sigma_g), float(lik.sigma_d))
         o = obs[s.name]
-        dofs = np.asarray(lik.dofs)
-        n = min(len(o["q_tracker"]), len(o["q_gt"]), len(o["edges"]))
-        keep = np.asarray(o["valid"][:n], bool) & np.isfinite(o["q_tracker"][:n]).all(1)
-        if not keep.any():
-            continue  # the filter reported no frame valid: nothing to score
-        dt = lik.default_q.dtype
-        s_est = jnp.asarray(o["q_tracker"][:n][keep][:, dofs], dt)
-        s_gt = jnp.asarray(o["q_gt"][:n][keep][:, dofs], dt)
-        z = Observation(*(jnp.asarray(o[k][:n][keep]) for k in
-                          ("edges", "points", "points_valid", "foreground")),
-                        support=jnp.asarray(o["support"][:n][keep]) if "support" in o else None)
-        f = params.filter
-        parts = tune.pf_particles(s_est, 0.0, f.sigma_max, PF_PARTICLES,
-                                  jax.random.fold_in(jax.random.key(PF_KEY), i),
-                                  f.lower, f.upper)
+        gt = load_track(Path(s.folder) / "groundtruth.npz")
         names = list(body.keypoint_names)
-        joints = jnp.asarray(keypoint_index(body, [j for j in eval_joints(c) if j in names]))
-        terms.append((lik, tune.PFData(z, parts, s_gt), joints))
-    if not terms:
-        raise ExperimentError("tune: the stereo filter reported no frame valid on any "
-                              "sequence; nothing to tune on")
-    theta = tune.pf_theta(*widths, dtype=terms[0][0].default_q.dtype)
+        joints = [j for j in eval_joints(c) if j in names and j in gt.keypoint_names]
+        n = min(len(o["edges"]), len(gt.keypoints))
+        ig = [list(gt.keypoint_names).index(j) for j in joints]
+        g = np.asarray(gt.keypoints[:n][:, ig], np.float64)
+        z = Observation(*(jnp.asarray(o[k][:n]) for k in
+                          ("edges", "points", "points_valid", "foreground")),
+                        support=jnp.asarray(o["support"][:n]) if "support" in o else None)
+        t0, _, start = start_frame(params, z, heads=heads)
+        dt = lik.default_q.dtype
+        seq = tune.PFSequence(
+            obs=z, first=jax.tree.map(lambda a, t0=t0: a[t0], z), start=start,
+            key=jax.random.key(PF_SEED) if pf_seeds == 1 else jnp.stack(
+                [jax.random.key(PF_SEED + i) for i in range(pf_seeds)]),
+            gt=jnp.asarray(np.nan_to_num(g), dt),
+            joints=jnp.asarray(keypoint_index(body, joints)),
+            scored=jnp.asarray(np.isfinite(g).all(axis=(1, 2))))
+        terms.append((params, seq))
+    theta = tune.pf_theta(*widths, dtype=terms[0][0].likelihood.default_q.dtype)
     # the cue widths do not depend on the body: shared by any body with roles, also when the
     # dev sequences share one body (the test split's bodies are others)
     ref = default_body()
@@ -400,30 +412,48 @@ def _pf_setups(cfg: TrackerConfig, seqs, obs: dict):
     return terms, theta, ident, digests
 
 
-def _pf_losses(terms):
-    """(scalar loss, value-and-gradient) over the sequences' terms: the frame-weighted mean
-    of :func:`jaxmocap.tune.pf_loss`."""
+def _pf_losses(terms, window: int | None = None):
+    """(scalar loss, value-and-gradient) over the sequences' terms: the mean over sequences of
+    :func:`jaxmocap.tune.pf_loss` (each sequence's all-frames mean, as the experiments'
+    **all** row)."""
+    import equinox as eqx
     import jax
 
     from jaxmocap import tune
 
-    w = np.asarray([t[1].s_gt.shape[0] for t in terms], np.float64)
-    w = w / w.sum()
-    vg = jax.jit(jax.value_and_grad(tune.pf_loss))
+    window = tune.PF_WINDOW if window is None else window
+    w = 1.0 / len(terms)
+    vg = eqx.filter_jit(jax.value_and_grad(tune.pf_loss))
 
     def loss(theta):
-        return sum(float(wi) * tune.pf_loss(theta, *t) for wi, t in zip(w, terms, strict=True))
+        return sum(w * tune.pf_loss(theta, p, s, window) for p, s in terms)
 
     def value_and_grad(theta):
         total, grad = 0.0, None
-        for wi, t in zip(w, terms, strict=True):
-            v, g = vg(theta, *t)
-            total = total + wi * v
-            g = jax.tree.map(lambda a, wi=wi: wi * a, g)
+        for p, s in terms:
+            v, g = vg(theta, p, s, window)
+            total = total + w * v
+            g = jax.tree.map(lambda a: w * a, g)
             grad = g if grad is None else jax.tree.map(lambda a, b: a + b, grad, g)
         return total, grad
 
     return loss, value_and_grad
+
+
+def pf_value(terms, window: int | None = None):
+    """``theta -> loss`` over the sequences without its gradient (the filter runs only):
+    one compiled program per sequence, what the black-box baseline evaluates."""
+    import equinox as eqx
+
+    from jaxmocap import tune
+
+    window = tune.PF_WINDOW if window is None else window
+    f = eqx.filter_jit(tune.pf_loss)
+
+    def value(theta):
+        return sum(float(f(theta, p, s, window)) for p, s in terms) / len(terms)
+
+    return value
 
 
 def jax_cast(cov, dtype):
@@ -488,11 +518,12 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                  name: str | None = None, tracker: str | None = None,
                  optimiser: str = "adam", steps: int = 20, learning_rate: float | None = None,
                  workers: int = 0, scheduler: str | None = None, every: int = CHECKPOINT_EVERY,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, pf_seeds: int = 1) -> dict:
     """Tune (or resume tuning) a tracker configuration on ``dataset``'s sequences (module
     docstring); writes ``out/tuned.json`` and returns its content (plus ``wall_s``).
     ``learning_rate``: Adam's step (None: :data:`jaxmocap.tune.ADAM_LEARNING_RATE`); L-BFGS
-    takes its step from the linesearch and ignores it."""
+    takes its step from the linesearch and ignores it. ``pf_seeds``: the stereo filter's loss
+    is the mean of that many runs (keys of seeds 0, 1, ...; :func:`jaxmocap.tune.pf_loss`)."""
     import jax
 
     from jaxmocap import tune
@@ -503,16 +534,22 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
 
     if learning_rate is None:
         learning_rate = tune.ADAM_LEARNING_RATE
-    if optimiser not in tune.OPTIMISERS:
-        raise ExperimentError(f"--optimiser: expected one of {', '.join(tune.OPTIMISERS)}, "
+    if optimiser not in OPTIMISERS:
+        raise ExperimentError(f"--optimiser: expected one of {', '.join(OPTIMISERS)}, "
                               f"got {optimiser!r}")
-    if steps < 0 or every < 1 or workers < 0:
-        raise ExperimentError(f"tune: steps >= 0, every >= 1, workers >= 0 expected; got "
-                              f"{steps}, {every}, {workers}")
+    if steps < 0 or every < 1 or workers < 0 or pf_seeds < 1:
+        raise ExperimentError(f"tune: steps >= 0, every >= 1, workers >= 0, pf_seeds >= 1 "
+                              f"expected; got {steps}, {every}, {workers}, {pf_seeds}")
     if optimiser == "lbfgs" and (workers or scheduler):
         raise ExperimentError("--optimiser lbfgs runs in this process (its linesearch "
                               "evaluates the loss inside the jitted update); give --workers 0")
     cfg = _pick_config(config, name, tracker)
+    if optimiser == "cma" and cfg.method != "pf":
+        raise ExperimentError("--optimiser cma is the stereo filter's black-box baseline "
+                              "(--tracker pf); tune the shirt with adam or lbfgs")
+    if pf_seeds != 1 and cfg.method != "pf":
+        raise ExperimentError("--pf-seeds is the stereo filter's (--tracker pf): the shirt "
+                              "tracker is deterministic")
     seqs = dataset_sequences(dataset, split, subset)
     out = output_folder(out, seqs, dataset)
     # no file it writes may be one it reads (a config, split or tuned file kept in --out)
@@ -535,16 +572,17 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
         import jax.numpy as jnp
 
         if pf:
-            terms, theta0, ident, digests = _pf_setups(cfg, seqs, obs)
-            frames = int(sum(t[1].s_gt.shape[0] for t in terms))
+            terms, theta0, ident, digests = _pf_setups(cfg, seqs, obs, pf_seeds)
+            frames = int(sum(int(np.asarray(t[1].scored).sum()) for t in terms))
         else:
             setups, clips, theta0, ident, digests = _setups(cfg, seqs, obs, jnp.float64)
             frames = int(sum(_n(c) for c in clips))
-        key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident)
-        ckpt = out / CHECKPOINT
-        opt = tune.make_optimiser(optimiser, None if optimiser == "lbfgs" else learning_rate)
+        key = _run_key(cfg, seqs, obs, optimiser, learning_rate, ident, pf_seeds)
+        ckpt = out / (CMA_CHECKPOINT if optimiser == "cma" else CHECKPOINT)
+        opt = None if optimiser == "cma" else tune.make_optimiser(
+            optimiser, None if optimiser == "lbfgs" else learning_rate)
         start = None
-        if ckpt.is_file():
+        if ckpt.is_file() and optimiser != "cma":
             try:
                 start, meta = tune.load_fit_state(ckpt, theta0, opt)
             except (OSError, ValueError, KeyError, tune.TuneError):
@@ -558,7 +596,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
         from tqdm import tqdm
 
         bar = tqdm(total=steps + 1, initial=min(bar_done, steps + 1), desc=f"tune {optimiser}",
-                   unit="step", disable=not progress)
+                   unit="eval" if optimiser == "cma" else "step", disable=not progress)
 
         def callback(i, value, th):
             bar.update(1)
@@ -571,7 +609,10 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
         client = cluster = None
         t1 = time.perf_counter()
         try:
-            if pf:  # in this process (the tracking may have run on Dask)
+            if optimiser == "cma":  # the black-box baseline: filter runs only
+                best, losses = cma_search(pf_value(terms), theta0, steps + 1, ckpt, key,
+                                          every, callback)
+            elif pf:  # in this process (the tracking may have run on Dask)
                 scalar, pf_vg = _pf_losses(terms)
                 loss, vg = (scalar, False) if optimiser == "lbfgs" else (pf_vg, True)
             elif workers or scheduler:
@@ -590,9 +631,10 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                 from jaxmocap.experiment.tune_dask import clip_value_and_grad
 
                 loss, vg = clip_value_and_grad(setups, clips), True
-            best, losses = tune.fit(loss, theta0, steps, learning_rate, callback=callback,
-                                    value_and_grad=vg, optimiser=optimiser, start=start,
-                                    checkpoint=checkpoint)
+            if optimiser != "cma":
+                best, losses = tune.fit(loss, theta0, steps, learning_rate, callback=callback,
+                                        value_and_grad=vg, optimiser=optimiser, start=start,
+                                        checkpoint=checkpoint)
         finally:
             bar.close()
             if client is not None:
@@ -620,7 +662,8 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
                   "config_path": None if config is None or isinstance(config, ExperimentConfig)
                   else str(Path(config).resolve()),
                   "body_digests": digests, "frames": frames, **(
-                      {"particles": PF_PARTICLES, "particle_key": PF_KEY} if pf
+                      {"window": tune.PF_WINDOW, "seeds": list(range(PF_SEED, PF_SEED
+                                                                       + pf_seeds))} if pf
                       else {"window": WINDOW}),
                   "held_fixed": PF_HELD_FIXED if pf else "the tracker's centroids, their "
                   "validity, q_blend and its valid flags (tracked once with the "
@@ -632,7 +675,7 @@ def tune_dataset(dataset, config=None, out="tune_out", split=None, subset: str |
               "before": float(losses[0]),
               "after": float(losses[i_best]), "best_step": i_best, "steps": steps,
               "optimiser": optimiser,
-              "learning_rate": None if optimiser == "lbfgs" else learning_rate,
+              "learning_rate": learning_rate if optimiser == "adam" else None,
               "curve": [float(x) for x in losses]},
         path=str(out / TUNED))
     result.save(out / TUNED)
@@ -648,23 +691,95 @@ def _n(clip) -> float:
     return _frames(clip)
 
 
-def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident) -> str:
+def _run_key(cfg, seqs, obs, optimiser, learning_rate, ident, pf_seeds: int = 1) -> str:
     """What a checkpoint belongs to: configuration, sequences (their cached observations'
     content), optimiser and rate, parameter kind."""
     h = hashlib.sha256()
     h.update(json.dumps([cfg.to_dict(), [s.name for s in seqs], optimiser,
-                         None if optimiser == "lbfgs" else learning_rate, list(ident[:2]),
+                         learning_rate if optimiser == "adam" else None, list(ident[:2]),
                          WINDOW], sort_keys=True, default=str).encode())
     keys = ("centroids", "visible", "q_blend", "q_gt", "valid")
     if cfg.method == "pf":
         keys = ("edges", "points", "points_valid", "valid", "q_tracker", "q_gt")
     if cfg.method == "pf":
-        h.update(json.dumps([PF_PARTICLES, PF_KEY]).encode())
+        from jaxmocap.tune import PF_WINDOW
+
+        h.update(json.dumps([PF_WINDOW, PF_SEED, pf_seeds, CMA_SIGMA0]).encode())
     for s in seqs:
         for k in keys:
             h.update(np.ascontiguousarray(obs[s.name][k]).tobytes())
     return h.hexdigest()[:16]
 
 
-__all__ = ["TRACKERS", "observations", "tune_dataset"]
+def cma_search(value, theta0, budget: int, ckpt: Path, key: str, every: int = 1,
+               callback=None, sigma0: float = CMA_SIGMA0, seed: int = 0):
+    """CMA-ES (Hansen's ``cma``, its default population for the dimension) minimising
+    ``value(theta)`` over the flattened unconstrained parameters, started at ``theta0`` with
+    step ``sigma0``: ``theta0`` is evaluated first, then whole generations while the total
+    stays within ``budget`` evaluations. Returns (theta with the lowest value seen, every
+    evaluation's value in order). Every ``every`` generations the search (the ``cma`` object,
+    pickled, with NumPy's global random state, from which ``cma`` samples) is written to
+    ``ckpt`` with ``key``; a rerun with the same key restores both and continues, so it ends
+    where an uninterrupted one ends."""
+    import pickle
+
+    import cma
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmocap.io.atomic import atomic_path
+
+    leaves, treedef = jax.tree.flatten(theta0)
+    sizes = [int(np.size(x)) for x in leaves]
+    dt = jnp.asarray(leaves[0]).dtype
+
+    def unflat(x):
+        parts = np.split(np.asarray(x, np.float64), np.cumsum(sizes)[:-1])
+        return jax.tree.unflatten(treedef, [jnp.asarray(p.reshape(np.shape(leaf)), dt)
+                                            for p, leaf in zip(parts, leaves, strict=True)])
+
+    x0 = np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in leaves])
+    state = None
+    if ckpt.is_file():
+        try:
+            with open(ckpt, "rb") as f:
+                state = pickle.load(f)
+        except (OSError, pickle.UnpicklingError, EOFError, AttributeError):
+            state = None
+        if state is None or state.get("key") != key:
+            raise ExperimentError(f"{ckpt}: not a checkpoint of this CMA-ES run (other "
+                                  "sequences, configuration or start); remove it or choose "
+                                  "another --out")
+    if state is None:
+        es = cma.CMAEvolutionStrategy(x0, sigma0, {"seed": seed + 1, "verbose": -9})
+        v = float(value(theta0))
+        state = {"key": key, "es": es, "losses": [v], "best_x": x0, "best": v}
+        if callback is not None:
+            callback(0, v, theta0)
+    else:
+        np.random.set_state(state["np_random"])  # noqa: NPY002 (cma samples from it)
+    es = state["es"]
+    pop = es.popsize
+    generation = 0
+    while len(state["losses"]) + pop <= budget:
+        xs = es.ask()
+        vs = []
+        for x in xs:
+            v = float(value(unflat(x)))
+            vs.append(v)
+            state["losses"].append(v)
+            if v < state["best"]:
+                state["best"], state["best_x"] = v, np.asarray(x, np.float64)
+            if callback is not None:
+                callback(len(state["losses"]) - 1, v, None)
+        es.tell(xs, vs)
+        generation += 1
+        if generation % every == 0 or len(state["losses"]) + pop > budget:
+            state["np_random"] = np.random.get_state()  # noqa: NPY002
+            with atomic_path(ckpt) as tmp, open(tmp, "wb") as f:
+                pickle.dump(state, f)
+    return unflat(state["best_x"]), np.asarray(state["losses"])
+
+
+__all__ = ["OPTIMISERS", "TRACKERS", "cma_search", "observations", "tune_dataset"]
 

@@ -8,6 +8,14 @@ unnormalised log-weights and are safe for -inf entries (zero weight).
   either floor(N pi_i) or ceil(N pi_i) times (lowest variance, O(N log N)).
 * :func:`multinomial` — N independent draws from Categorical(pi) (the textbook Condensation
   scheme; kept for comparison).
+* :func:`stop_gradient_correction` — the weights after a resampling that carry the gradient of
+  the weights before it (Scibior & Wood 2021, "Differentiable particle filtering without
+  modifying the forward pass"): the picked particle a_i gets log-weight
+  ``-log M + log pi_{a_i} - stop_gradient(log pi_{a_i})``, which is ``-log M`` in value (the
+  forward pass is unchanged, bit for bit) while its derivative is that of ``log pi_{a_i}``. The
+  indices stay non-differentiable; with this correction automatic differentiation of the
+  filter's log-evidence gives the classical Fisher-identity score estimate (Poyiadjis et al.
+  2011) instead of ignoring every resampling's dependence on the parameters.
 """
 
 import jax
@@ -18,6 +26,7 @@ __all__ = [
     "effective_sample_size",
     "multinomial",
     "normalize_log_weights",
+    "stop_gradient_correction",
     "systematic",
 ]
 
@@ -94,3 +103,18 @@ def multinomial(
     lw, _ = normalize_log_weights(log_weights)
     u = jax.random.uniform(key, (m,), dtype=log_weights.dtype)
     return multinomial_from_uniforms(lw, u)
+
+
+def stop_gradient_correction(
+    log_weights: Float[Array, " n"], idx: Int[Array, " m"]
+) -> Float[Array, " m"]:
+    """``log pi_{a_i} - stop_gradient(log pi_{a_i})`` for the picked indices ``a = idx``: zero
+    in value, the gradient of the picked particles' log-weights in reverse mode (Scibior &
+    Wood 2021; module docstring). Added to the uniform log-weight ``-log M`` after a
+    resampling. An entry whose picked log-weight is not finite (a zero-weight particle that
+    only rounding of the last position can pick) contributes an exact 0 and no gradient (its
+    difference would be NaN)."""
+    picked = log_weights[idx]
+    ok = jnp.isfinite(picked)
+    safe = jnp.where(ok, picked, jnp.zeros_like(picked))
+    return jnp.where(ok, safe - jax.lax.stop_gradient(safe), jnp.zeros_like(picked))
