@@ -25,6 +25,24 @@ def shirt_database(args, body, garment):
     return load_or_build(model=body, garment=garment, progress=not args.quiet)
 
 
+def shirt_inputs(args, body, garment, tuned):
+    """``(IK covariances or None, pose database, Search)`` of ``--tuned`` / ``--ik-cov``,
+    ``--db`` and ``--work-size``, shared by both of the shirt tracker's paths."""
+    from jaxmocap.trackers.shirt import Search
+
+    cov = None if tuned is None else tuned.ik_covariances(body)
+    if args.ik_cov:
+        from jaxmocap.ik import IKCovariances
+
+        try:
+            cov = IKCovariances.load(args.ik_cov)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+    db = shirt_database(args, body, garment)
+    search = Search() if args.work_size is None else Search(work_size=args.work_size)
+    return cov, db, search
+
+
 def learned_shirt_tracker(args, body, cams, names, tuned):
     """The shirt tracker on the learned observation (issue 49; the default, ``--colors`` is the
     paper's set-up): steps 1 and 3 read the model of ``--observer``, or without it ``jaxmocap
@@ -38,7 +56,7 @@ def learned_shirt_tracker(args, body, cams, names, tuned):
     from jaxmocap.commands._body import garment_from_args
     from jaxmocap.observe import load as load_observer
     from jaxmocap.trackers.driver import ShirtFrameTracker, shirt_params
-    from jaxmocap.trackers.shirt import Colours, Search
+    from jaxmocap.trackers.shirt import Colours
 
     for flag, given in (("--colors", args.colors), ("--white-balance", args.white_balance)):
         if given:
@@ -62,16 +80,7 @@ def learned_shirt_tracker(args, body, cams, names, tuned):
     color = ColorModel(jnp.asarray(garment.colours) * 255,
                        jnp.tile(jnp.eye(3) * 100.0, (garment.n_colours, 1, 1)),
                        names=garment.colour_names)
-    cov = None if tuned is None else tuned.ik_covariances(body)
-    if args.ik_cov:
-        from jaxmocap.ik import IKCovariances
-
-        try:
-            cov = IKCovariances.load(args.ik_cov)
-        except ValueError as e:
-            raise InputError(str(e)) from None
-    db = shirt_database(args, body, garment)
-    search = Search() if args.work_size is None else Search(work_size=args.work_size)
+    cov, db, search = shirt_inputs(args, body, garment, tuned)
     params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
                           colours=Colours(observer=observer))
     return ShirtFrameTracker(params, None, cams, names, color, None)

@@ -232,7 +232,7 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
 
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     from jaxmocap.commands._body import body_from_args, garment_from_args
-    from jaxmocap.commands._shirt import learned_shirt_tracker, shirt_database
+    from jaxmocap.commands._shirt import learned_shirt_tracker, shirt_inputs
 
     body = body_from_args(args)
     tuned = None
@@ -280,18 +280,9 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
         if room is not None:
             print(f"jaxmocap track: {room.n_colors} room colours of {args.white_balance} are "
                   "background", file=sys.stderr)
-    cov = None if tuned is None else tuned.ik_covariances(body)
-    if args.ik_cov:
-        from jaxmocap.ik import IKCovariances
+    cov, db, search = shirt_inputs(args, body, garment, tuned)
+    from jaxmocap.trackers.shirt import Colours
 
-        try:
-            cov = IKCovariances.load(args.ik_cov)
-        except ValueError as e:
-            raise InputError(str(e)) from None
-    db = shirt_database(args, body, garment)
-    from jaxmocap.trackers.shirt import Colours, Search
-
-    search = Search() if args.work_size is None else Search(work_size=args.work_size)
     params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
                           colours=Colours(shading=color.shading, scene_colors=room))
     return ShirtFrameTracker(params, W0, cams, names, color, room)
