@@ -1,6 +1,11 @@
 """``jaxmocap tune``'s library call: a tracker's weighting tuned by gradient on a dataset's dev
 sequences, written as a tuned-parameters file (:mod:`jaxmocap.tuned`).
 
+Why one file: both trackers' tunes run through the one loop of :func:`tune_dataset` (the
+observations and their cache, the split, the resumable checkpoints, the optimisers: Adam,
+L-BFGS and the CMA-ES baseline on the same loss and budget); the shirt's and the stereo
+filter's set-ups (:func:`_setups`, :func:`_pf_setups`) are the two halves of that one call.
+
 **Observations, held fixed** (:func:`observations`): every sequence is tracked once by the
 real tracker with the configuration's settings (an experiment cell,
 :func:`jaxmocap.experiment.cell.compute_cell`: in this process, on a local Dask cluster of
