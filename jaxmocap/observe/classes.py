@@ -55,7 +55,7 @@ class Classes(NamedTuple):
 def classes_of(model: BodyModel, garment: Garment) -> Classes:
     """The class table of ``model`` wearing ``garment`` (skin parts by the body's roles)."""
     roles = require_roles(model, "observe.classes")
-    by_role = geom_roles(model.chain, model.geometry, dict(roles.links))
+    by_role = geom_roles(model.chain, model.geometry, dict(roles.links), roles.skin_geoms)
     skin = np.asarray(garment.skin)
     K = garment.n_colours
     table = np.zeros(len(model.geometry.names) + 1, np.int32)

@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxmocap.body import BodyModel
-from jaxmocap.camera import camera_center, look_at, pixel_rays
+from jaxmocap.camera import camera_center, look_at, pixel_rays, project, to_camera
 from jaxmocap.garment import Garment, albedo
 from jaxmocap.render import cast_rays, posed_scene, render_rays, shirt_points
 from jaxmocap.sampling import crop_uv
@@ -92,8 +92,6 @@ def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, 
                    jnp.stack([zero, fx, one * (h - 1) / 2]),
                    jnp.stack([zero, zero, one])])
     cam = look_at(eye, target, width=w, height=h, K=K)
-    from jaxmocap.camera import project, to_camera
-
     front = valid & (to_camera(cam, pts)[:, 2] > 0)
     uv = project(cam, pts)
     big = jnp.asarray(1e6, dt)
