@@ -230,6 +230,16 @@ def test_learn_command(tmp_path):
     r = subprocess.run([sys.executable, "-m", "jaxmocap.cli", "learn", "--out", "m.npz"],
                        capture_output=True, text=True, env=env)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and ".eqx" in r.stderr
+    # the stereo filter's model: Azad's one-colour shirt (5 classes), the rig's framing
+    pf = tmp_path / "pf.eqx"
+    r = subprocess.run([sys.executable, "-m", "jaxmocap.cli", "learn", "--tracker", "pf",
+                        "--poses", "8", "--steps", "2", "--out", str(pf), "--quiet"],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "observation model: 5 classes" in r.stdout
+    _, head = load(pf)
+    assert head["settings"]["framing"] == "frame"
+    assert head["classes"] == ["background", "shirt", "head", "left hand", "right hand"]
 
 
 def test_part_maps_partition_the_probabilities():

@@ -19,7 +19,8 @@ where the blob line missed them) or ``parts-replace`` (the search's hands replac
 line's) or ``head`` (``base`` with the head as a fitted sphere, ``Images(head_sphere=True)``,
 issue 39 item 2; ``docs/results/stereo_pf_round2.md``) or ``hands`` / ``hands-motion`` (``base``
 with the hands gated by the filter's prediction, ``Images(hand_search=True)`` and the motion
-map, issue 39 item 1; ``docs/results/stereo_pf_hands.md``).
+map, issue 39 item 1; ``docs/results/stereo_pf_hands.md``) or ``learned`` (the learned
+observation layer's parts, issue 50; ``docs/results/learned_pf.md``).
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ CONFIGS = {
                      "hand_search": True, "hand_motion": True},
     "parts-replace": {"skin": "scribbles", "plausible_blobs": True, "hand_swap": True,
                       "part_colours": True, "seed_replace": [False, True, True]},
+    # the learned observation layer (issue 50): the sequence's body and shirt, the model
+    # fine-tuned from the shipped "frame" model (jaxmocap learn --tracker pf)
+    "learned": {"skin": "learned", "plausible_blobs": True, "hand_swap": True},
 }
 
 
@@ -109,7 +113,7 @@ def run(out: Path, config: str, folders: list[str], seed: int) -> None:
     from jaxmocap.experiment.cell import _track_pf
 
     for folder, dest, seq in pending(out, config, folders, seed):
-        cfg = {"name": config, "method": "pf", "body": "sequence",
+        cfg = {"name": config, "method": "pf", "body": "sequence", "garment": "sequence",
                "options": dict(CONFIGS[config])}
         t0 = time.perf_counter()
         res = _track_pf(seq, cfg, seed, folder)

@@ -61,6 +61,22 @@ def garment_from_args(args: argparse.Namespace, model: BodyModel, colors=None) -
     return default_garment(model)
 
 
+def pf_garment(args: argparse.Namespace, model: BodyModel) -> Garment:
+    """The stereo filter's shirt: ``--garment`` (one colour: Azad's set-up), else Azad's blue
+    shirt on ``model`` (:func:`jaxmocap.garment.single_colour_garment`)."""
+    from jaxmocap.garment import single_colour_garment
+    from jaxmocap.synth.scene import AZAD_SHIRT_RGB
+
+    path = getattr(args, "garment", None)
+    if not path:
+        return single_colour_garment(model, AZAD_SHIRT_RGB)
+    garment = load_garment(path, model)
+    if garment.n_colours != 1:
+        raise InputError(f"{path}: the particle filter's shirt has one colour (Azad et al. "
+                         f"2007), this garment has {garment.n_colours}")
+    return garment
+
+
 def inputs_of(args: argparse.Namespace) -> list[str]:
     """The body/garment files a command reads (for the outputs-never-touch-inputs check)."""
     return [p for p in (getattr(args, "body", None), getattr(args, "garment", None)) if p]

@@ -6,14 +6,23 @@ cached by the inputs' digests. ``track --observer FILE`` reads the file it write
 By default the bundled body and shirt get the shipped model; a body or shirt of your own with
 as many colours is fine-tuned from it (``observe.FINE_TUNE``: fewer renders and steps), any
 other from scratch (``observe.Settings``). ``--start``, ``--poses``, ``--steps`` choose
-otherwise."""
+otherwise. ``--tracker pf`` trains for the stereo filter's learned parts (research, not yet a ``track``
+option: docs/results/learned_pf.md): crops framed like a rig's whole frames
+(``observe.scenes.FRAMINGS``), Azad's one-colour shirt (``--garment`` a one-colour
+garment.json; without it Azad's blue shirt on the body), from scratch."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from jaxmocap.commands._body import add_body_args, body_from_args, garment_from_args, inputs_of
+from jaxmocap.commands._body import (
+    add_body_args,
+    body_from_args,
+    garment_from_args,
+    inputs_of,
+    pf_garment,
+)
 from jaxmocap.errors import UsageError
 from jaxmocap.io.atomic import check_output_file
 from jaxmocap.io.preflight import check_outputs, int_range
@@ -33,6 +42,12 @@ def add_parser(sub) -> None:
                    "fine-tuning)")
     p.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
                    help="seed of poses, cameras, lamps and every batch (default: %(default)s)")
+    p.add_argument("--tracker", choices=("shirt", "pf"), default="shirt",
+                   help="what the model is for: the colour shirt's crop (track --method shirt) "
+                   "or a stereo rig's whole frames for the particle filter's learned parts "
+                   "(--garment a one-colour shirt, Azad's blue without it; from scratch; "
+                   "research: experiment option skin = \"learned\", measured worse than the "
+                   "capture's colours, docs/results/learned_pf.md) (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_body_args(p)
     p.set_defaults(func=run)
@@ -49,21 +64,23 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.out)
         check_outputs([Path(args.out)], [*inputs_of(args), args.start])
     model = body_from_args(args)
-    garment = garment_from_args(args, model)
+    framing = "frame" if args.tracker == "pf" else "crop"
+    garment = pf_garment(args, model) if args.tracker == "pf" else garment_from_args(args, model)
     if args.start:
         start_model(args.start, classes_of(model, garment))  # refused before any work
     chosen = args.poses is not None or args.steps is not None or args.seed != 0
     settings = None
     if chosen or args.start:
         base = FINE_TUNE if args.start else Settings()
-        settings = base._replace(**{k: v for k, v in (("poses", args.poses),
+        settings = base._replace(framing=framing, **{k: v for k, v in (("poses", args.poses),
                                                       ("steps", args.steps),
                                                       ("seed", args.seed)) if v is not None})
     if args.start:
         _, head, path = fit(model, garment, settings, out=args.out, progress=not args.quiet,
                             start=args.start)
     else:
-        _, head, path = learn(model, garment, settings, out=args.out, progress=not args.quiet)
+        _, head, path = learn(model, garment, settings, out=args.out, progress=not args.quiet,
+                              framing=framing)
     rec = head["record"]
     curve = rec["loss_every_10"]
     print(f"observation model: {len(head['classes'])} classes, key {head['key']}, "

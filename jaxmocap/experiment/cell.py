@@ -197,14 +197,14 @@ def _scribbled_capture_colors(seq, n_frames: int = SCRIBBLE_FRAMES):
 # ----------------------------------------------------------------------------- the trackers
 
 
-def _observer(option, body, garment):
+def _observer(option, body, garment, framing: str = "crop"):
     """The ``observer`` option: ``"learn"`` trains (or loads from the cache) the default model
-    for the sequence's own body and shirt (``jaxmocap learn``); a path loads that file
-    (refused if trained for another body or shirt)."""
+    for the sequence's own body and shirt (``jaxmocap learn``; ``framing`` "frame" for the
+    stereo filter); a path loads that file (refused if trained for another body or shirt)."""
     from jaxmocap.observe import learn, load
 
     if option == "learn":
-        return learn(body, garment, progress=False)[0]
+        return learn(body, garment, progress=False, framing=framing)[0]
     return load(option, body, garment)[0]
 
 
@@ -324,8 +324,12 @@ def pf_setup(seq, cfg: dict, folder=None):
         from jaxmocap.trackers.stereo_pf.params import SeedParams
 
         opts["seed_params"] = SeedParams(replace=tuple(bool(x) for x in opts.pop("seed_replace")))
+    observer = opts.pop("observer", None)
+    if observer is not None and skin != "learned":
+        raise InputError(f"configuration {cfg['name']!r}: observer = {observer!r} is read with "
+                         f"skin = \"learned\" only (skin = {skin!r})")
     kw = tracker_settings("pf", opts, base)
-    segment, colors = None, None
+    segment, colors, parts = None, None, None
     if skin == "synth":
         segment = SegmentParams(skin=HSVInterval(*(jnp.asarray(v) for v in sp.SYNTH_SKIN_HSV)))
     elif skin == "scribbles":
@@ -334,7 +338,16 @@ def pf_setup(seq, cfg: dict, folder=None):
         from jaxmocap.pf.colors import calibrate_from_frames
 
         colors = calibrate_from_frames(seq.frames[:, 0])
-    images = dataclasses.replace(kw.pop("images", sp.Images()), segment=segment, colors=colors)
+    elif skin == "learned":  # the learned observation layer (issue 50)
+        from jaxmocap.camera import stack_cameras
+        from jaxmocap.observe import classes_of
+        from jaxmocap.trackers.stereo_pf.learned import learned_parts
+
+        garment = _garment(cfg, body, folder)
+        parts = learned_parts(_observer(observer or "learn", body, garment, "frame"),
+                              classes_of(body, garment), stack_cameras(list(seq.cameras)))
+    images = dataclasses.replace(kw.pop("images", sp.Images()), segment=segment, colors=colors,
+                                 observer=parts)
     params = sp.make_params(list(seq.cameras), model=body, images=images, **kw)
     return params, blob, lag, validity, search, heads
 

@@ -104,12 +104,12 @@ SHIRT_EXTRA = {"covariances": (str,), "db": (str,), "db_size": (int,), "colors":
                "tuned": (str,), "observer": (str,)}
 PF_EXTRA = {"particles": (int,), "azad": (bool,), "skin": (str,), "blob_params": (str,),
             "smooth_lag": (int,), "validity": (bool,), "search": (str,),
-            "start_from_head": (bool,), "tuned": (str,)}
+            "start_from_head": (bool,), "tuned": (str,), "observer": (str,)}
 PF_SEARCH = ("off", "head", "hands", "all")  # stereo_pf.search: the entities searched
 SHIRT_RESERVED = {"scene_colors", "dtype", "observer"}  # set by the experiment (scene_clusters,
 # observer: "learn" or a model file) / the cameras
-PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin)
-PF_SKINS = ("synth", "default", "scribbles", "auto")
+PF_RESERVED = {"segment", "colors"}  # set by the experiment (skin; "learned": observer)
+PF_SKINS = ("synth", "default", "scribbles", "auto", "learned")
 PATH_OPTIONS = ("covariances", "db", "colors", "white_balance", "tuned")
 
 

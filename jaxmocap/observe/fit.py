@@ -35,20 +35,26 @@ from .train import TrainConfig, optimiser, train
 
 CHECKPOINT_EVERY = 100
 # the model shipped for the bundled body and shirt (``jaxmocap learn`` with the defaults); other
-# bodies and shirts with as many colours start from it (:func:`learn`)
+# bodies and shirts with as many colours start from it (:func:`learn`). The stereo rig's
+# "frame" models (``jaxmocap learn --tracker pf``) are trained from scratch: none ships while
+# they measure worse than the filter's colour model (docs/results/learned_pf.md)
 BUNDLED = Path(__file__).parent / "data" / "bundled.eqx"
+SHIPPED = {"crop": BUNDLED}
 
 
 class Settings(NamedTuple):
     """What is trained: ``poses`` rendered crops of ``size`` px, then ``steps`` steps of
-    ``batch`` crops; ``seed`` fixes poses, cameras, lamps and every batch's light. The defaults
-    train in ~8 minutes on this project's 2-core machine (docs/results/learned.md)."""
+    ``batch`` crops; ``seed`` fixes poses, cameras, lamps and every batch's light; ``framing``
+    what the crops frame (:data:`~.scenes.FRAMINGS`: the shirt tracker's crop or a stereo
+    rig's frame). The defaults train in ~8 minutes on this project's 2-core machine
+    (docs/results/learned.md)."""
 
     poses: int = 600
     size: int = 128
     steps: int = 1200
     batch: int = 6
     seed: int = 0
+    framing: str = "crop"
 
 
 # a body or shirt of its own, starting from the bundled model: fewer renders and steps (the
@@ -131,28 +137,30 @@ def start_model(path: str | Path, classes) -> tuple[Observer, dict]:
 
 def learn(model: BodyModel, garment: Garment, settings: Settings | None = None,
           out: str | Path | None = None, cache: str | Path | None = None,
-          progress: bool = True, log=print) -> tuple[Observer, dict, Path]:
-    """What ``jaxmocap learn`` trains by default: for the bundled body and shirt the bundled
-    model's settings from scratch (a cache hit where the shipped file's key matches); for a
-    body or shirt of their own with as many colours, :data:`FINE_TUNE` from the bundled model;
-    else the default :class:`Settings` from scratch. ``settings`` overrides the choice of
-    settings (not of the start)."""
+          progress: bool = True, log=print, framing: str = "crop"
+          ) -> tuple[Observer, dict, Path]:
+    """What ``jaxmocap learn`` trains by default: for the bundled body and shirt the shipped
+    model of ``framing`` (:data:`SHIPPED`); for a body or shirt of their own with as many
+    colours, :data:`FINE_TUNE` from that model; else (and for a framing with no shipped model)
+    the default :class:`Settings` from scratch. ``settings`` overrides the choice of settings
+    (not of the start)."""
     classes = classes_of(model, garment)
     start = None
-    if BUNDLED.exists():
-        head = obs_io.read_header(BUNDLED)
+    shipped = SHIPPED.get(framing)
+    if shipped is not None and shipped.exists():
+        head = obs_io.read_header(shipped)
         own = (head.get("body_digest"), head.get("garment_digest")) == (
             body_digest(model), garment_digest(garment))
         if own:
-            obs, head = obs_io.load(BUNDLED, model, garment)
+            obs, head = obs_io.load(shipped, model, garment)
             if settings is None or Settings(**head["settings"]) == settings:
                 if out is not None:
                     obs_io.save(out, obs, _header_of(head))
-                return obs, head, BUNDLED
+                return obs, head, shipped
         elif head["hyper"]["n_classes"] == classes.n:
-            start = BUNDLED
+            start = shipped
     if settings is None:
-        settings = FINE_TUNE if start is not None else Settings()
+        settings = (FINE_TUNE if start is not None else Settings())._replace(framing=framing)
     return fit(model, garment, settings, out, cache, progress, log, start=start)
 
 
@@ -189,7 +197,7 @@ def fit(model: BodyModel, garment: Garment, settings: Settings | None = None,
                unit="crop")
     geo: Geometry = render_geometry(model, garment, classes, poses,
                                     jax.random.key(settings.seed), settings.size,
-                                    progress=bar.update)
+                                    progress=bar.update, framing=settings.framing)
     bar.close()
     t_geo = time.perf_counter() - t0
     config = TrainConfig(steps=settings.steps, batch=settings.batch, seed=settings.seed)

@@ -44,7 +44,14 @@ from .classes import Classes, labels_of
 
 MAX_LAMPS = 3
 IMAGE_SIZE = (640, 480)  # a webcam (Wang et al. §3); only the crop is rendered
-CROP_SCALE = (1.1, 2.4)  # crop side / shirt bounding box (the tracker: 2.6 x the search scale)
+# crop side / the shirt's bounding box, by what the model is for: "crop" the shirt tracker's
+# crop (2.6 x its search scale); "frame" a stereo rig's whole frame read at the model's scale
+# (jaxmocap.trackers.stereo_pf.learned: a person ~2 m from a 320 x 240 camera at half
+# resolution spans 1.1-3.5 x the shirt's box, more of the room than a crop holds). Tried for
+# "frame" and measured no better (docs/results/learned_pf.md): 60% of the crops centred on a
+# hand, and crops at the full resolution's scale (0.5-1.6 x the box).
+FRAMINGS = {"crop": (1.1, 2.4), "frame": (1.1, 3.5)}
+CROP_SCALE = FRAMINGS["crop"]
 CROP_SHIFT = 0.15  # crop centre jitter, fraction of its side
 CAMERA_DISTANCE = (1.6, 4.0)  # m, horizontal
 CAMERA_RISE = (-0.5, 0.9)  # m, camera height above the shirt's centre
@@ -74,7 +81,8 @@ def _uniform(key, lo_hi, shape=(), dtype=jnp.float32):
     return jax.random.uniform(key, shape, dtype, minval=lo_hi[0], maxval=lo_hi[1])
 
 
-def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, q, key):
+def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, q, key,
+                  crop_scale: tuple[float, float] = CROP_SCALE):
     dt = q.dtype
     ks = jax.random.split(key, 10)
     pts, valid = shirt_points(model, garment, q)
@@ -97,7 +105,7 @@ def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, 
     big = jnp.asarray(1e6, dt)
     lo = jnp.min(jnp.where(front[:, None], uv, big), 0)
     hi = jnp.max(jnp.where(front[:, None], uv, -big), 0)
-    side = jnp.max(hi - lo) * _uniform(ks[5], CROP_SCALE, (), dt)
+    side = jnp.max(hi - lo) * _uniform(ks[5], crop_scale, (), dt)
     mid = (lo + hi) / 2 + CROP_SHIFT * side * jax.random.uniform(ks[6], (2,), dt, -1, 1)
     window = jnp.concatenate([mid - side / 2, jnp.stack([side, side])])
     o = camera_center(cam)
@@ -128,11 +136,12 @@ def _geometry_one(model: BodyModel, garment: Garment, classes: Classes, n: int, 
 
 def render_geometry(model: BodyModel, garment: Garment, classes: Classes,
                     poses: Float[np.ndarray, "m n_dof"], key: PRNGKeyArray, n: int,
-                    batch: int = 8, progress=None) -> Geometry:
+                    batch: int = 8, progress=None, framing: str = "crop") -> Geometry:
     """Pass 1 (module docstring) for every pose, ``batch`` at a time under one ``vmap``; float16
     albedo / normal / point (they only feed the light of pass 2). ``progress(k)`` is called after
-    each batch with the number of samples done."""
-    fn = jax.jit(jax.vmap(lambda q, k: _geometry_one(model, garment, classes, n, q, k)))
+    each batch with the number of samples done. ``framing``: a key of :data:`FRAMINGS`."""
+    spec = FRAMINGS[framing]
+    fn = jax.jit(jax.vmap(lambda q, k: _geometry_one(model, garment, classes, n, q, k, spec)))
     keys = jax.random.split(key, len(poses))
     out = []
     m = len(poses)

@@ -81,6 +81,13 @@ def observe(
             f"stereo_pf: frame_pair: expected uint8 (2, {cams.height}, {cams.width}, 3) RGB, "
             f"got {frame_pair.dtype} {frame_pair.shape}"
         )
+    if params.observer is not None and segmentation is None:  # the learned parts, named
+        from jaxmocap.trackers.stereo_pf import learned
+
+        probs = learned.part_probabilities(params.observer, frame_pair)
+        segmentation = learned.segmentation(params.segment, frame_pair, probs)
+        if blob_obs is None:
+            blob_obs = learned.part_points(cams, probs, params.reach)
     seg = segmentation or [_segment(params, frame_pair[i]) for i in range(2)]
     if blob_obs is None:
         blob_state, points, valid = bloblib.update(

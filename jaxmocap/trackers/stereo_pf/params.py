@@ -32,6 +32,7 @@ from jaxmocap.segment import SegmentParams
 from jaxmocap.trackers.stereo_pf.checks import (
     hand_reach,
 )
+from jaxmocap.trackers.stereo_pf.learned import LearnedParts
 from jaxmocap.trackers.stereo_pf.swivel import SwivelProposal, swivel_arms
 
 N_PARTICLES = 1000  # Azad §V
@@ -277,6 +278,10 @@ class Images(eqx.Module):
       candidates too) and a hand that passes no gate is missing
       (:mod:`jaxmocap.trackers.stereo_pf.hands`; ``hand_motion``: the motion map adds
       candidates; ``hand_params``: its :class:`~.hands.HandParams`);
+    * ``observer`` (not in the paper): the learned observation layer
+      (:class:`~jaxmocap.trackers.stereo_pf.learned.LearnedParts`): skin, shirt and the named
+      head and hands from a model trained on the project's own renders instead of ``segment``
+      / ``colors`` and the blob tracker (:mod:`jaxmocap.trackers.stereo_pf.learned`).
     """
 
     segment: SegmentParams | None = None
@@ -293,6 +298,7 @@ class Images(eqx.Module):
     hand_search: bool = eqx.field(static=True, default=HAND_SEARCH)
     hand_motion: bool = eqx.field(static=True, default=False)
     hand_params: HandParams | None = eqx.field(static=True, default=None)
+    observer: LearnedParts | None = None
 
 
 # make_params(cams, **AZAD_FILTER): the paper's filter, without this library's extensions
@@ -337,6 +343,8 @@ class StereoPFParams(eqx.Module):
     # the gated hand search (jaxmocap.trackers.stereo_pf.hands): its HandParams; None: the blob
     # line's hands
     hand_search: HandParams | None = eqx.field(static=True, default=None)
+    # the learned observation layer (jaxmocap.trackers.stereo_pf.learned); None: Azad's line
+    observer: LearnedParts | None = None
 
     @property
     def dofs(self) -> np.ndarray:
@@ -403,6 +411,11 @@ def make_params(
     if (skin_grow != 0 and colors is None) or not isinstance(skin_grow, int) or skin_grow < 0:
         raise InputError(f"stereo_pf.make_params: skin_grow: expected an int >= 0 with the "
                          f"capture's colours (Images(colors=...)), got {skin_grow!r}")
+    if images.observer is not None and (colors is not None or part_colours or adapt_colors
+                                        or images.hand_search or skin_grow):
+        raise InputError("stereo_pf.make_params: observer: the learned parts replace the "
+                         "capture's colours and the colour options built on them (colors, "
+                         "skin_grow, adapt_colors, part_colours, hand_search); give one")
     if part_colours and colors is None:
         raise InputError("stereo_pf.make_params: part_colours: needs the capture's colour model "
                          "(Images(colors=...)) for the parts' calibrated start")
@@ -509,6 +522,7 @@ def make_params(
         part_colours=_seed_params(images.seed_params) if part_colours else None,
         head_sphere=_head_sphere(model) if images.head_sphere else None,
         hand_search=_hand_params(images, model, adapt_colors or part_colours),
+        observer=images.observer,
     )
 
 
