@@ -60,7 +60,7 @@ def main() -> int:
             mean, spread = history[-1]
             pred = mean + hp.velocity_damping * (mean - history[-2][0])
             t0 = time.perf_counter()
-            motion = [HS.motion_map(np.asarray(seq.frames[t - 2:t + 1, v]),
+            _motion = [HS.motion_map(np.asarray(seq.frames[t - 2:t + 1, v]),
                                     np.asarray(seg[v].foreground, bool), hp.motion_threshold)
                       for v in range(2)]
             t_mot = time.perf_counter() - t0

@@ -6,8 +6,8 @@ cached by the inputs' digests. ``track --observer FILE`` reads the file it write
 By default the bundled body and shirt get the shipped model; a body or shirt of your own with
 as many colours is fine-tuned from it (``observe.FINE_TUNE``: fewer renders and steps), any
 other from scratch (``observe.Settings``). ``--start``, ``--poses``, ``--steps`` choose
-otherwise. ``--tracker pf`` trains for the stereo filter's learned parts (research, not yet a ``track``
-option: docs/results/learned_pf.md): crops framed like a rig's whole frames
+otherwise. ``--tracker pf`` trains for the stereo filter's learned parts (research, not yet a
+``track`` option: docs/results/learned_pf.md): crops framed like a rig's whole frames
 (``observe.scenes.FRAMINGS``), Azad's one-colour shirt (``--garment`` a one-colour
 garment.json; without it Azad's blue shirt on the body), from scratch."""
 

@@ -40,7 +40,7 @@ from jaxmocap import blobs as bloblib
 from jaxmocap.camera import Camera
 from jaxmocap.observe import Classes, Observer, part_maps
 from jaxmocap.observe.model import log_probs
-from jaxmocap.segment import SegmentParams, Segmentation, segment_cv
+from jaxmocap.segment import Segmentation, SegmentParams, segment_cv
 
 # The focal length (px) at which the model reads a frame: the "frame" training crops (128 px,
 # 1.1-3.5 x the shirt's box, jaxmocap.observe.scenes.FRAMINGS) show the shirt 37-116 px across,
