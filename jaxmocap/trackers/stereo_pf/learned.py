@@ -13,14 +13,18 @@ Per frame pair (host, around one jitted call of the model on both views):
 2. **segmentation** (:func:`segmentation`): the skin map is the pixels whose most probable
    class is a skin part, the shirt (Azad's foreground, its edges the edge cue's) those whose
    most probable class is the shirt;
-3. **named points** (:func:`part_points`): for each part its candidates in each view -- the
-   connected components of the pixels where that part is the most probable class, at least
+3. **named points** (:func:`part_points`): the head's candidates in each view -- the connected
+   components of the pixels where the head is the most probable class, at least
    :data:`MIN_AREA_PX`, weighed by the probability they hold -- paired across the views by the
    symmetric epipolar distance (at most :data:`MAX_EPIPOLAR_PX`, in front of both cameras),
-   the pair of most probability triangulated. The name is the model's: no tracking decides
-   it. A part with no pair is **missing** (``valid`` False): a hand the model does not see is
-   never a wrong point. With ``reach`` (the blob line's plausibility), a hand farther than the
-   arms reach from the head, or nearer than the neck, is missing too.
+   the pair of most probability triangulated; the hands the same on the pixels where either
+   hand is most probable, up to two disjoint pairs, each named by the model's left / right
+   probability summed over its components in both views (the two never the same hand: on its
+   own renders the model mixes left and right on a quarter of the hand pixels, and either
+   hand's skin is what it finds best). A part with no pair is **missing** (``valid`` False): a
+   hand the model does not see is never a wrong point. With ``reach`` (the blob line's
+   plausibility), a hand farther than the arms reach from the head, or nearer than the neck,
+   is missing too.
 
 Where the model cannot tell the hands apart (a back view) the filter's hand-swap cue
 (``Cues(hand_swap=True)``) pairs each particle's hands with the measured ones in the nearer
@@ -116,22 +120,46 @@ def segmentation(segment: SegmentParams, frame_pair: UInt8[np.ndarray, "v h w 3"
     return out
 
 
-def _candidates(label: np.ndarray, p: np.ndarray, part: int):
-    """Centroids (probability-weighted) and probability mass of the <= :data:`CANDIDATES`
-    components of ``label == part`` of most mass."""
-    n, lab, stats, _ = cv2.connectedComponentsWithStats((label == part).astype(np.uint8),
-                                                        connectivity=8)
+def _candidates(mask: np.ndarray, weight: np.ndarray, names: np.ndarray):
+    """The <= :data:`CANDIDATES` components of ``mask`` of most probability mass (``weight``
+    summed over the component): their weighted centroids (k, 2), masses (k,) and the sums of
+    each plane of ``names`` (h, w, e) over them (k, e)."""
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    e = names.shape[-1]
     if n <= 1:
-        return np.zeros((0, 2)), np.zeros(0)
-    w = p[..., part].astype(np.float64)
-    mass = np.bincount(lab.ravel(), weights=w.ravel(), minlength=n)
+        return np.zeros((0, 2)), np.zeros(0), np.zeros((0, e))
+    flat, w = lab.ravel(), weight.astype(np.float64).ravel()
+    mass = np.bincount(flat, weights=w, minlength=n)
     ys, xs = np.indices(lab.shape)
-    cu = np.bincount(lab.ravel(), weights=(w * xs).ravel(), minlength=n)
-    cv = np.bincount(lab.ravel(), weights=(w * ys).ravel(), minlength=n)
+    cu = np.bincount(flat, weights=w * xs.ravel(), minlength=n)
+    cv = np.bincount(flat, weights=w * ys.ravel(), minlength=n)
+    by = np.stack([np.bincount(flat, weights=names[..., i].astype(np.float64).ravel(),
+                               minlength=n) for i in range(e)], -1)
     keep = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= MIN_AREA_PX and mass[i] > 0]
     keep = sorted(keep, key=lambda i: -mass[i])[:CANDIDATES]
     uv = np.array([[cu[i] / mass[i], cv[i] / mass[i]] for i in keep]).reshape(-1, 2)
-    return uv, mass[keep]
+    return uv, mass[keep], by[keep]
+
+
+def _pairs(cams: Camera, left, right, count: int):
+    """Up to ``count`` disjoint (left, right) candidate pairs passing the epipolar and
+    in-front tests, most mass first: a list of (point (3,), i, j)."""
+    (ul, ml, _), (ur, mr, _) = left, right
+    if len(ul) == 0 or len(ur) == 0:
+        return []
+    m = CANDIDATES
+    a, b = np.zeros((m, 2)), np.zeros((m, 2))
+    a[:len(ul)], b[:len(ur)] = ul, ur
+    epi, X, dep, _ = bloblib._frame_geometry(cams, a, b, np.zeros((3, 3)), False)
+    epi, X, dep = epi[:len(ul), :len(ur)], X[:len(ul), :len(ur)], dep[:, :len(ul), :len(ur)]
+    ok = (epi <= MAX_EPIPOLAR_PX) & np.all(dep > 0, 0) & np.all(np.isfinite(X), -1)
+    score = np.where(ok, np.minimum(ml[:, None], mr[None, :]), -1.0)
+    out = []
+    while len(out) < count and score.max() > 0:
+        i, j = np.unravel_index(np.argmax(score), score.shape)
+        out.append((X[i, j], int(i), int(j)))
+        score[i, :], score[:, j] = -1.0, -1.0
+    return out
 
 
 def part_points(cams: Camera, probs: Float[np.ndarray, "2 h w 5"],
@@ -142,21 +170,25 @@ def part_points(cams: Camera, probs: Float[np.ndarray, "2 h w 5"],
     (:data:`jaxmocap.blobs.HEAD`, ``LEFT_HAND``, ``RIGHT_HAND``)."""
     label = np.argmax(probs, -1)
     points, valid = np.zeros((3, 3)), np.zeros(3, bool)
-    m = CANDIDATES
-    for k, part in enumerate((2, 3, 4)):
-        (ul, ml), (ur, mr) = (_candidates(label[v], probs[v], part) for v in range(2))
-        if len(ul) == 0 or len(ur) == 0:
-            continue
-        a, b = np.zeros((m, 2)), np.zeros((m, 2))
-        a[:len(ul)], b[:len(ur)] = ul, ur
-        epi, X, dep, _ = bloblib._frame_geometry(cams, a, b, np.zeros((3, 3)), False)
-        epi, X, dep = epi[:len(ul), :len(ur)], X[:len(ul), :len(ur)], dep[:, :len(ul), :len(ur)]
-        ok = (epi <= MAX_EPIPOLAR_PX) & np.all(dep > 0, 0) & np.all(np.isfinite(X), -1)
-        if not ok.any():
-            continue
-        score = np.where(ok, np.minimum(ml[:, None], mr[None, :]), -1.0)
-        i, j = np.unravel_index(np.argmax(score), score.shape)
-        points[k], valid[k] = X[i, j], True
+    head = [_candidates(label[v] == 2, probs[v, ..., 2], probs[v, ..., 2:3]) for v in range(2)]
+    found = _pairs(cams, *head, 1)
+    if found:
+        points[0], valid[0] = found[0][0], True
+    # the hands: skin of either hand, up to two pairs; each named by the model's left / right
+    # probability over both views' components, the two never the same hand
+    hands = [_candidates((label[v] == 3) | (label[v] == 4), probs[v, ..., 3] + probs[v, ..., 4],
+                         probs[v, ..., 3:5]) for v in range(2)]
+    found = _pairs(cams, *hands, 2)
+    left = [float((hands[0][2][i, 0] + hands[1][2][j, 0])
+                  / max(hands[0][2][i].sum() + hands[1][2][j].sum(), 1e-12))
+            for _, i, j in found]
+    if len(found) == 2:
+        order = (0, 1) if left[0] >= left[1] else (1, 0)
+        for k, f in zip((1, 2), order, strict=True):
+            points[k], valid[k] = found[f][0], True
+    elif len(found) == 1:
+        k = 1 if left[0] >= 0.5 else 2
+        points[k], valid[k] = found[0][0], True
     if reach is not None and valid[bloblib.HEAD]:
         near, far = reach
         d = np.linalg.norm(points[1:] - points[bloblib.HEAD], axis=-1)
