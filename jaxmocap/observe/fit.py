@@ -55,7 +55,6 @@ class Settings(NamedTuple):
     batch: int = 6
     seed: int = 0
     framing: str = "crop"
-    weight_power: float = 0.5  # class weights 1 / share ** weight_power (observe.train)
 
 
 # a body or shirt of its own, starting from the bundled model: fewer renders and steps (the
@@ -201,8 +200,7 @@ def fit(model: BodyModel, garment: Garment, settings: Settings | None = None,
                                     progress=bar.update, framing=settings.framing)
     bar.close()
     t_geo = time.perf_counter() - t0
-    config = TrainConfig(steps=settings.steps, batch=settings.batch, seed=settings.seed,
-                         weight_power=settings.weight_power)
+    config = TrainConfig(steps=settings.steps, batch=settings.batch, seed=settings.seed)
     obs = Observer(classes.n, jax.random.fold_in(jax.random.key(settings.seed), 1))
     if start_obs is not None:
         obs = start_obs

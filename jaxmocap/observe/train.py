@@ -32,15 +32,14 @@ class TrainConfig(NamedTuple):
     batch: int = BATCH
     learning_rate: float = LEARNING_RATE
     seed: int = 0
-    weight_power: float = 0.5  # class weight 1 / share ** weight_power (class_weights)
 
 
-def class_weights(labels: np.ndarray, n_classes: int, power: float = 0.5) -> np.ndarray:
-    """``1 / share ** power`` per class (``power`` 0.5: ``1 / sqrt(share)``), normalised to a
-    pixel-weighted mean of 1 (absent classes get the largest weight of the present ones)."""
+def class_weights(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """``1 / sqrt(share)`` per class, normalised to a pixel-weighted mean of 1 (absent classes
+    get the largest weight of the present ones)."""
     count = np.bincount(labels.reshape(-1).astype(np.int64), minlength=n_classes)[:n_classes]
     share = count / max(count.sum(), 1)
-    w = np.where(count > 0, 1 / np.maximum(share, 1e-12) ** power, 0)
+    w = np.where(count > 0, 1 / np.sqrt(np.maximum(share, 1e-12)), 0)
     w = np.where(count > 0, w, w.max() if w.max() > 0 else 1.0)
     return (w / max(np.sum(w * share), 1e-12)).astype(np.float32)
 
@@ -89,8 +88,7 @@ def train(model: Observer, geometry: Geometry, palette: Array, config: TrainConf
     optim = optimiser(config)
     if opt_state is None:
         opt_state = optim.init(eqx.filter(model, eqx.is_array))
-    weights = jnp.asarray(class_weights(np.asarray(geometry.label), model.n_classes,
-                                        config.weight_power))
+    weights = jnp.asarray(class_weights(np.asarray(geometry.label), model.n_classes))
     geometry = jax.tree.map(jnp.asarray, geometry)
     step = make_step(optim, config.batch)
     base = jax.random.key(config.seed)
