@@ -355,6 +355,38 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
                    "--validity", "footage", "--out", tmp_path / "o")
 
 
+def test_learned_path_reports_the_calibrated_rule(monkeypatch):
+    """`track` on the learned observation (no --colors) runs the rule the experiment measured
+    (world_shirt_learned.toml's `learned`: the footage gate and the reported flag calibrated on
+    the dev split), VALIDITY["learned"], unless --validity says otherwise."""
+    import tomllib
+    from pathlib import Path
+
+    from jaxmocap.cli import build_parser
+    from jaxmocap.garment import default_garment
+    from jaxmocap.posedb import SamplingConfig, build_database
+
+    body = default_body()
+    db = build_database(SamplingConfig(size=20), body, default_garment(body), progress=False)
+    monkeypatch.setattr("jaxmocap.posedb.load_or_build", lambda **kw: db)
+    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-0.3, 0.3)]
+
+    def rule(*extra):
+        args = build_parser().parse_args(["track", "--cameras", "c.json", "0", "1", "--quiet",
+                                          *extra])
+        return track_cmd._make_tracker(args, cams, ["cam0", "cam1"]).params.validity
+
+    toml = Path(__file__).parents[1] / "benchmarks" / "experiments" / "world_shirt_learned.toml"
+    measured = next(c for c in tomllib.loads(toml.read_text())["config"]
+                    if c["name"] == "learned")["options"]
+    got = rule()
+    for k, v in track_cmd.VALIDITY["learned"].items():
+        g = getattr(got, k)
+        assert (g if isinstance(g, bool) else float(g)) == pytest.approx(v) and v == measured[k], k
+    assert got.report and got.check_residual and got.check_recall
+    assert not rule("--validity", "paper").report
+
+
 def test_observer_refusals(tmp_path, capsys):
     """``--observer`` (issue 49): with Wang's colour model, with the particle filter, a file
     trained for another shirt, and a file that is not a model: one line each, before any work."""

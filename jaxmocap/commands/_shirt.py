@@ -81,6 +81,6 @@ def learned_shirt_tracker(args, body, cams, names, tuned):
                        jnp.tile(jnp.eye(3) * 100.0, (garment.n_colours, 1, 1)),
                        names=garment.colour_names)
     cov, db, search = shirt_inputs(args, body, garment, tuned)
-    params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
-                          colours=Colours(observer=observer))
+    params = shirt_params(color, body, garment, cams, db, cov, args.validity or "learned",
+                          search=search, colours=Colours(observer=observer))
     return ShirtFrameTracker(params, None, cams, names, color, None)

@@ -283,8 +283,8 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     cov, db, search = shirt_inputs(args, body, garment, tuned)
     from jaxmocap.trackers.shirt import Colours
 
-    params = shirt_params(color, body, garment, cams, db, cov, args.validity, search=search,
-                          colours=Colours(shading=color.shading, scene_colors=room))
+    params = shirt_params(color, body, garment, cams, db, cov, args.validity or "paper",
+                          search=search, colours=Colours(shading=color.shading, scene_colors=room))
     return ShirtFrameTracker(params, W0, cams, names, color, room)
 
 
@@ -367,11 +367,13 @@ def add_parser(sub) -> None:
     g.add_argument("--work-size", type=int_range(16, 1024, "pixels"), metavar="PX",
                    help="side of the resampled crop the shirt is classified in (default: "
                    "the tracker's, 128)")
-    g.add_argument("--validity", choices=tuple(VALIDITY), default="paper",
-                   help="per-frame validity rule: paper (Wang §5.2) or footage (calibrated on "
+    g.add_argument("--validity", choices=tuple(VALIDITY), default=None,
+                   help="per-frame validity rule (default: learned on the learned observation, "
+                   "paper with --colors): learned (calibrated for the learned observation on "
+                   "the test world's dev split: its centroid residual, recall under the model's "
+                   "labels and 30 centroids), paper (Wang §5.2) or footage (calibrated on "
                    "footage under spot lamps with clutter: the final pose's centroid residual "
-                   "and recall, 26 patch centroids; see docs/USER_GUIDE.md) (default: "
-                   "%(default)s)")
+                   "and recall, 26 patch centroids; see docs/USER_GUIDE.md)")
     g = p.add_argument_group("particle filter (--method pf)")
     g.add_argument("--particles", type=int_range(10, MAX_PARTICLES, "compile time grows with "
                                                  "the count"), default=1000,
@@ -460,7 +462,7 @@ def run(args: argparse.Namespace) -> int:
     if args.method == "pf" and args.observer:
         raise InputError("--observer is read by the shirt tracker (--method shirt); the particle "
                          "filter does not read it yet")
-    if args.method == "pf" and args.validity != "paper":
+    if args.method == "pf" and args.validity is not None:
         raise InputError(f"--validity {args.validity} is the shirt tracker's rule; the particle "
                          "filter (--method pf) has its own (stereo_pf.frame_validity)")
     out = check_output_folder(args.out)

@@ -61,6 +61,14 @@ VALIDITY = {
     "footage": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
                 "hold_invalid": False, "report_patches": 26, "max_residual": 0.053,
                 "min_recall": 0.31},
+    # the learned observation's (issue 49): the footage rule's gate, the reported flag
+    # calibrated on the test world's DEV cells (benchmarks/experiments/learned_validity.py:
+    # 30 centroids, residual <= 4.5% of the crop side, recall under the model's labels >= 60%);
+    # test split: 94% of the > 15 cm frames flagged (the gate alone 47%), 74% of the < 5 cm
+    # frames valid, 43% of all frames (docs/results/learned.md)
+    "learned": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
+                "hold_invalid": False, "report_patches": 30, "max_residual": 0.045,
+                "min_recall": 0.6},
 }
 
 
