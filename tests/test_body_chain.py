@@ -366,21 +366,22 @@ def test_fk_closed_form_jacobian(models, which, rng, tmp_path):
     jac = jax.jit(jax.jacfwd(lambda x: body.fk(chain, x)))
     np.testing.assert_allclose(np.asarray(jac(q)), fd(fk, q), atol=1e-8)
     # second order (the IK's Jacobian is itself linearised by the solver)
-    hess = jax.jacfwd(jax.jacfwd(lambda x: body.fk(chain, x)))(q)
+    hess = jax.jit(jax.jacfwd(jax.jacfwd(lambda x: body.fk(chain, x))))(q)  # one program
     np.testing.assert_allclose(np.asarray(hess), fd(jac, q), atol=1e-6)
     # reverse mode and vmap agree with forward mode
     w = jnp.asarray(rng.normal(size=(chain.n_links, 4, 4)))
-    g = jax.grad(lambda x: jnp.sum(w * body.fk(chain, x)))(q)
+    g = jax.jit(jax.grad(lambda x: jnp.sum(w * body.fk(chain, x))))(q)
     np.testing.assert_allclose(np.asarray(g), np.einsum("lij,lijk->k", w, jac(q)), atol=1e-12)
     qs = jnp.stack([q, q[::-1]])
-    jv = jax.vmap(jax.jacfwd(lambda x: body.fk(chain, x)))(qs)
+    jv = jax.jit(jax.vmap(jax.jacfwd(lambda x: body.fk(chain, x))))(qs)
     np.testing.assert_allclose(np.asarray(jv[1]), np.asarray(jac(qs[1])), atol=1e-12)
     # the chain's joint offsets (e.g. fitting proportions) are differentiated by autodiff
+    @jax.jit
     def loss(origin):
         return jnp.sum(w * body.fk(eqx.tree_at(lambda c: c.joint_origin, chain, origin), q))
 
     o = chain.joint_origin
     k = (min(2, chain.n_links - 1), 1, 3)  # one translation entry of a joint offset
     e = jnp.zeros_like(o).at[k].set(eps)
-    np.testing.assert_allclose(float(jax.grad(loss)(o)[k]),
+    np.testing.assert_allclose(float(jax.jit(jax.grad(loss))(o)[k]),
                                float((loss(o + e) - loss(o - e)) / (2 * eps)), atol=1e-7)
