@@ -297,7 +297,8 @@ def test_stereo_pf_end_to_end(tmp_path, capsys):
 def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
     """The shirt tracker of `jaxmocap track` takes the shading-invariant distance from a
     colors.json fitted with --shading, the room colours from white_balance.json, and the
-    validity rule from --validity; said in one line each; the paper's set-up otherwise."""
+    validity rule from --validity; said in one line each; the paper's set-up otherwise; the
+    learned observation's calibrated rule without --colors."""
     from jaxmocap.cli import build_parser
     from jaxmocap.color import ColorModel, save_color_model
     from jaxmocap.commands.colors import save_white_balance
@@ -349,42 +350,21 @@ def test_shirt_options_from_files(tmp_path, capsys, monkeypatch):
         got = got if isinstance(got, bool) else float(got)
         assert got == pytest.approx(v) and v == validated[k], k
     assert "brightness 0.5..4" in err and "2 room colours of" in err
+    # the learned observation (no --colors) runs the rule its experiment measured
+    # (world_shirt_learned.toml's "learned": the footage gate, the flag calibrated on dev)
+    toml = Path(__file__).parents[1] / "benchmarks" / "experiments" / "world_shirt_learned.toml"
+    measured = next(c for c in tomllib.loads(toml.read_text())["config"]
+                    if c["name"] == "learned")["options"]
+    p, _ = tracker("--quiet")
+    for k, v in track_cmd.VALIDITY["learned"].items():
+        got = getattr(p.validity, k)
+        assert (got if isinstance(got, bool) else float(got)) == pytest.approx(v), k
+        assert v == measured[k], k
+    assert p.validity.report and p.validity.check_residual and p.validity.check_recall
     save_cameras(tmp_path / "cameras.json", cams)
     assert_refused(capsys, "--validity footage is the shirt tracker's rule", "track",
                    "--method", "pf", "--cameras", tmp_path / "cameras.json", "0", "1",
                    "--validity", "footage", "--out", tmp_path / "o")
-
-
-def test_learned_path_reports_the_calibrated_rule(monkeypatch):
-    """`track` on the learned observation (no --colors) runs the rule the experiment measured
-    (world_shirt_learned.toml's `learned`: the footage gate and the reported flag calibrated on
-    the dev split), VALIDITY["learned"], unless --validity says otherwise."""
-    import tomllib
-    from pathlib import Path
-
-    from jaxmocap.cli import build_parser
-    from jaxmocap.garment import default_garment
-    from jaxmocap.posedb import SamplingConfig, build_database
-
-    body = default_body()
-    db = build_database(SamplingConfig(size=20), body, default_garment(body), progress=False)
-    monkeypatch.setattr("jaxmocap.posedb.load_or_build", lambda **kw: db)
-    cams = [look_at([2.5, y, 1.2], [0, 0, 1.1], width=W, height=H, fx=40.0) for y in (-0.3, 0.3)]
-
-    def rule(*extra):
-        args = build_parser().parse_args(["track", "--cameras", "c.json", "0", "1", "--quiet",
-                                          *extra])
-        return track_cmd._make_tracker(args, cams, ["cam0", "cam1"]).params.validity
-
-    toml = Path(__file__).parents[1] / "benchmarks" / "experiments" / "world_shirt_learned.toml"
-    measured = next(c for c in tomllib.loads(toml.read_text())["config"]
-                    if c["name"] == "learned")["options"]
-    got = rule()
-    for k, v in track_cmd.VALIDITY["learned"].items():
-        g = getattr(got, k)
-        assert (g if isinstance(g, bool) else float(g)) == pytest.approx(v) and v == measured[k], k
-    assert got.report and got.check_residual and got.check_recall
-    assert not rule("--validity", "paper").report
 
 
 def test_observer_refusals(tmp_path, capsys):

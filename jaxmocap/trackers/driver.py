@@ -48,27 +48,19 @@ SHIRT_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_
                 "neck", "chest")
 PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand")
 
-# The shirt tracker's per-frame validity rule (``shirt.validity_rule`` keywords): the paper's
-# (§5.2: the agreement gate engages once step 1 classifies 20% of a crop), or the one
-# calibrated on the dev split of the independent test world (spot lamps, clutter;
-# docs/results/shirt.md; = config "validated" of benchmarks/experiments/world_shirt.toml): the
-# tracker's own gate (temporal prior, W re-fit) at agreement 0.2 always and 20 measured patch
-# centroids, and the reported flag 26 centroids, in every camera a centroid residual <= 5.3%
-# of the crop side and >= 31% of the final pose's rendered shirt pixels classified as their
-# colour, judged on the frame's own estimate (hold_invalid off: the one the signals describe).
+# The shirt tracker's per-frame validity rules (``shirt.validity_rule`` keywords): "paper"
+# (§5.2: the agreement gate engages once step 1 classifies 20% of a crop); "footage" and
+# "learned", calibrated on the dev split of the independent test world: the tracker's own gate
+# at agreement 0.2 always and 20 measured patch centroids (no hold: the frame's own estimate),
+# and the reported flag's centroids, per-camera centroid residual (crop sides) and recall (the
+# final pose's rendered shirt pixels classified as their colour) -- "footage" for the colour
+# model (docs/results/shirt.md; world_shirt.toml's "validated"), "learned" for the learned
+# observation (docs/results/learned.md: 94% of the test split's > 15 cm frames flagged).
+_GATE = {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20, "hold_invalid": False}
 VALIDITY = {
     "paper": {},
-    "footage": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
-                "hold_invalid": False, "report_patches": 26, "max_residual": 0.053,
-                "min_recall": 0.31},
-    # the learned observation's (issue 49): the footage rule's gate, the reported flag
-    # calibrated on the test world's DEV cells (benchmarks/experiments/learned_validity.py:
-    # 30 centroids, residual <= 4.5% of the crop side, recall under the model's labels >= 60%);
-    # test split: 94% of the > 15 cm frames flagged (the gate alone 47%), 74% of the < 5 cm
-    # frames valid, 43% of all frames (docs/results/learned.md)
-    "learned": {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20,
-                "hold_invalid": False, "report_patches": 30, "max_residual": 0.045,
-                "min_recall": 0.6},
+    "footage": {**_GATE, "report_patches": 26, "max_residual": 0.053, "min_recall": 0.31},
+    "learned": {**_GATE, "report_patches": 30, "max_residual": 0.045, "min_recall": 0.6},
 }
 
 
