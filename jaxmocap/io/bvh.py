@@ -31,11 +31,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxmocap.body import FIXED, PRISMATIC, BodyModel, default_body, fk, require_roles
+from jaxmocap.body.chain import over_frames
 from jaxmocap.rotations import Y_UP_TO_Z_UP
 from jaxmocap.synth.retarget import (
     Retargeted,
@@ -406,7 +406,7 @@ def body_to_bvh(model: BodyModel, q, fps: float) -> BVH:
     rest = np.asarray(fk(chain, jnp.zeros(chain.n_dof)), np.float64)
     n = q.shape[0]
     if n:
-        tr = np.asarray(jax.vmap(fk, in_axes=(None, 0))(chain, jnp.asarray(q)), np.float64)
+        tr = over_frames(fk, chain, q)
     else:
         tr = np.zeros((0,) + rest.shape)
     links = list(lay.links)

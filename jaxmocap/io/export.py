@@ -56,12 +56,11 @@ import os
 from pathlib import Path
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxmocap.body import PRISMATIC, ROOT_DOFS, BodyModel
 from jaxmocap.body import keypoints as body_keypoints
+from jaxmocap.body.chain import over_frames
 from jaxmocap.body.model import ROOT_DOF_NAMES
 from jaxmocap.errors import InputError
 from jaxmocap.io.atomic import AtomicFiles, atomic_path, write_text
@@ -119,9 +118,6 @@ class PoseTrack(NamedTuple):
         return np.arange(self.n_frames) / self.fps
 
 
-_keypoints_batch = jax.jit(jax.vmap(body_keypoints, in_axes=(None, 0)))
-
-
 def pose_track(model: BodyModel, q: np.ndarray, valid: np.ndarray | None, fps: float,
                diagnostics: np.ndarray | None = None,
                diagnostic_names: tuple[str, ...] = ()) -> PoseTrack:
@@ -149,7 +145,7 @@ def pose_track(model: BodyModel, q: np.ndarray, valid: np.ndarray | None, fps: f
     q[~finite] = np.nan
     if q.shape[0]:
         filled = np.where(finite[:, None], q, 0.0)
-        kp = np.array(_keypoints_batch(model, jnp.asarray(filled)), np.float64)
+        kp = over_frames(body_keypoints, model, filled)
     else:
         kp = np.zeros((0, len(model.keypoint_names), 3))
     kp[~finite] = np.nan

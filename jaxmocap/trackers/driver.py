@@ -26,6 +26,7 @@ filter as one scan), with its cold and warm timings.
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -132,22 +133,21 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
     return {k: d[k] for k in shirt_diagnostic_names(names, patch_colours)}  # in column order
 
 
-def shirt_diagnostic_names(names: list[str], patch_colours: bool = False) -> tuple[str, ...]:
+def shirt_diagnostic_names(names: Sequence[str], patch_colours: bool = False) -> tuple[str, ...]:
     """The keys of :func:`shirt_diagnostics`, in column order; with ``patch_colours`` per
     camera also the patches whose colour state was updated, whether the relight was applied
-    (a rejected one is 0) and its RMS log residual."""
-    extra = []
-    if patch_colours:
-        extra = ([f"colour_updated_{n}" for n in names] + [f"relight_ok_{n}" for n in names]
-                 + [f"relight_rms_{n}" for n in names])
-    return tuple(
-        [f"fraction_{n}" for n in names]
-        + [f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")]
-        + [f"reference_used_{n}" for n in names]
-        + [f"reference_added_{n}" for n in names]
-        + [f"residual_{n}" for n in names] + [f"recall_{n}" for n in names]
-        + [f"coverage_{n}" for n in names]
-        + ["agreement", "patches", "blend_distance", "db_spread", "root_jump"] + extra)
+    (a rejected one is 0) and its RMS log residual. Cached: every frame's row shares these
+    strings (a long capture's rows grew by ~1 KB a frame of new key strings, issue 52)."""
+    return _diagnostic_names(tuple(names), bool(patch_colours))
+
+
+@functools.cache
+def _diagnostic_names(names: tuple[str, ...], patch_colours: bool) -> tuple[str, ...]:
+    cam = lambda *ks: [f"{k}_{n}" for k in ks for n in names]  # noqa: E731
+    return (*cam("fraction"), *[f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")],
+            *cam("reference_used", "reference_added", "residual", "recall", "coverage"),
+            "agreement", "patches", "blend_distance", "db_spread", "root_jump",
+            *(cam("colour_updated", "relight_ok", "relight_rms") if patch_colours else ()))
 
 
 def shirt_params(color, body: BodyModel, garment, cams: list[Camera], db, cov=None,
