@@ -331,6 +331,9 @@ def stereo():
     return model, make, params, seq, kp[:, joints]
 
 
+pf_loss_jit = eqx.filter_jit(tune.pf_loss)  # shared by the tests below: one compile per shape
+
+
 def test_pf_loss_is_the_real_filter_run_with_the_widths(stereo):
     """The loss at widths (0.3, 6 cm) equals the mean per-joint error of the tracker's own
     programs (``init_top_level`` + ``run_top_level``, the same key) run with parameters that
@@ -345,7 +348,7 @@ def test_pf_loss_is_the_real_filter_run_with_the_widths(stereo):
     _, est = sp.run_top_level(real, state, seq.obs)
     kp = np.asarray(jax.vmap(lambda q: keypoints(model, q))(est.q))[:, np.asarray(seq.joints)]
     want = np.linalg.norm(kp - gt, axis=-1).mean()
-    got = float(jax.jit(tune.pf_loss)(tune.pf_theta(0.3, 0.06), params, seq))
+    got = float(pf_loss_jit(tune.pf_theta(0.3, 0.06), params, seq))
     assert got == pytest.approx(want, rel=1e-9)
 
 
@@ -393,7 +396,7 @@ def test_pf_loss_over_a_batch_of_keys_is_the_mean_of_their_runs(stereo):
     _, _, params, seq, _ = stereo
     theta = tune.pf_theta(0.25, 0.05)
     keys = jax.random.split(jax.random.key(7), 2)
-    f = eqx.filter_jit(tune.pf_loss)
+    f = pf_loss_jit  # the single key's program is the one compiled above
     each = [float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, k))) for k in keys]
     both = float(f(theta, params, eqx.tree_at(lambda q: q.key, seq, keys)))
     assert each[0] != each[1]
