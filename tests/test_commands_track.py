@@ -72,7 +72,8 @@ def test_outputs(rig, capsys):
     root, inputs, tracker = rig
     out = root / "out"
     rc, stdout, err = run_cli(capsys, "track", "--cameras", root / "cameras.json", *inputs,
-                              "--out", out, "--overlay", "--quiet", "--fps", "10")
+                              "--out", out, "--overlay", "--quiet", "--fps", "10",
+                              "--no-smooth")  # the estimates as tracked (test_smooth smooths)
     assert rc == 0 and err == [], err
     assert tracker.started == 1 and tracker.steps == T
     assert sorted(os.listdir(out)) == ["diagnostics.csv", "overlay.mp4", "poses.bvh",
@@ -128,8 +129,10 @@ def test_outputs(rig, capsys):
 def test_smooth(rig, monkeypatch, capsys):
     """--smooth: the rejected frame (an outlier 5 m off) is a missing observation, bridged by
     the constant-velocity model between its neighbours (x = 0 and 0.2: 0.1); the per-frame
-    estimates stay in poses.npz (q_raw) and the valid flags are unchanged. Bad settings are
-    refused in one line before any frame is read."""
+    estimates stay in poses.npz (q_raw) and the valid flags are unchanged. Where the tracker
+    reports its own gate (the shirt's diagnostics column ``gate``) that is the weight, not the
+    reported flag; smoothing is the default of the shirt's learned path (no --colors), off with
+    --no-smooth. Bad settings are refused in one line before any frame is read."""
     root, inputs, tracker = rig
 
     class Outlier(LinearTracker):
@@ -139,22 +142,36 @@ def test_smooth(rig, monkeypatch, capsys):
                 res.q[0] = 5.0
             return res
 
-    outlier = Outlier()
-    monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names: outlier)
-    out = root / "out"
+    class Gated(Outlier):  # the outlier reported valid; only its gate says it was not kept
+        diagnostic_names = ("steps", "mean_red", "gate")
+
+        def step(self, frames):
+            res = super().step(frames)
+            res.diagnostics["gate"] = float(res.valid)
+            return res._replace(valid=True)
+
     cams = root / "cameras.json"
-    rc, _, err = run_cli(capsys, "track", "--cameras", cams, *inputs, "--out", out, "--quiet",
-                         "--fps", "10", "--smooth", "--formats", "npz,trc")
-    assert rc == 0 and err == [], err
+    for name, make, extra, valid in (("flag", Outlier, ["--smooth"], [True, False, True]),
+                                     ("gate", Gated, [], [True, True, True])):
+        monkeypatch.setattr(track_cmd, "_make_tracker", lambda args, cams, names, m=make: m())
+        out = root / f"out_{name}"
+        rc, _, err = run_cli(capsys, "track", "--cameras", cams, *inputs, "--out", out,
+                             "--quiet", "--fps", "10", "--formats", "npz,trc", *extra)
+        assert rc == 0 and err == [], err
+        with np.load(out / "poses.npz") as z:
+            np.testing.assert_array_equal(z["valid"], valid)
+            np.testing.assert_allclose(z["q"][:, 0], [0.0, 0.1, 0.2], atol=1e-3)
+            np.testing.assert_allclose(z["q"][:, 2], 0.9, atol=1e-6)
+            assert z["q_raw"][1, 0] == 5.0 and z["q_raw"][2, 0] == pytest.approx(0.2)
+        assert json.loads((out / "run.json").read_text())["smooth_hz"] == 4.0
+    out = root / "out_raw"
+    assert run_cli(capsys, "track", "--cameras", cams, *inputs, "--out", out, "--quiet",
+                   "--fps", "10", "--formats", "npz", "--no-smooth")[0] == 0
     with np.load(out / "poses.npz") as z:
-        np.testing.assert_array_equal(z["valid"], [True, False, True])
-        np.testing.assert_allclose(z["q"][:, 0], [0.0, 0.1, 0.2], atol=1e-3)
-        np.testing.assert_allclose(z["q"][:, 2], 0.9, atol=1e-6)
-        assert z["q_raw"][1, 0] == 5.0 and z["q_raw"][2, 0] == pytest.approx(0.2)
-    assert json.loads((out / "run.json").read_text())["smooth_hz"] == 4.0
+        assert z["q"][1, 0] == 5.0 and "q_raw" not in z.files
     common = ["track", "--cameras", cams, *inputs, "--quiet", "--fps", "10"]
     assert_refused(capsys, "--smooth-hz 2 sets the smoother of --smooth", *common,
-                   "--smooth-hz", "2", "--out", root / "o1", leaves=[root / "o1"])
+                   "--no-smooth", "--smooth-hz", "2", "--out", root / "o1", leaves=[root / "o1"])
     assert_refused(capsys, "--smooth-hz 6: must be below half the frame rate (10 fps", *common,
                    "--smooth", "--smooth-hz", "6", "--out", root / "o2", leaves=[root / "o2"])
     assert_refused(capsys, "--smooth-hz", *common, "--smooth", "--smooth-hz", "-1",

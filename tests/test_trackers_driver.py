@@ -104,12 +104,12 @@ def test_shirt_diagnostics_match_their_column_list():
                                                   db_spread=np.float32(0.25),
                                                   root_jump=np.float32(0.5)))
     W = np.stack([np.diag([1.0, 2.0, 3.0]), np.diag([4.0, 5.0, 6.0])])
-    d = driver.shirt_diagnostics(out, W, names)
+    d = driver.shirt_diagnostics(out, W, names, np.bool_(False))
     assert tuple(d) == driver.shirt_diagnostic_names(names)
     assert d["W_right_gg"] == 5.0 and d["fraction_right"] == 0.25 and d["patches"] == 7.0
     assert d["recall_left"] == pytest.approx(0.9) and d["agreement"] == 0.75
     assert d["coverage_right"] == pytest.approx(0.6) and d["root_jump"] == 0.5
-    assert (d["blend_distance"], d["db_spread"]) == (0.125, 0.25)
+    assert (d["blend_distance"], d["db_spread"]) == (0.125, 0.25) and d["gate"] == 0.0
 
 
 def test_diagnostics_table():

@@ -53,10 +53,9 @@ PF_JOINTS = ("l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand
 # (§5.2: the agreement gate engages once step 1 classifies 20% of a crop); "footage" and
 # "learned", calibrated on the dev split of the independent test world: the tracker's own gate
 # at agreement 0.2 always and 20 measured patch centroids (no hold: the frame's own estimate),
-# and the reported flag's centroids, per-camera centroid residual (crop sides) and recall (the
-# final pose's rendered shirt pixels classified as their colour) -- "footage" for the colour
-# model (docs/results/shirt.md; world_shirt.toml's "validated"), "learned" for the learned
-# observation (docs/results/learned.md: 94% of the test split's > 15 cm frames flagged).
+# and the reported flag's centroids, per-camera centroid residual (crop sides) and recall --
+# "footage" for the colour model (docs/results/shirt.md; world_shirt.toml's "validated"),
+# "learned" for the learned observation (learned.md: 94% of test's > 15 cm frames flagged).
 _GATE = {"min_agreement": 0.2, "gate_min_fraction": 0.0, "min_patches": 20, "hold_invalid": False}
 VALIDITY = {
     "paper": {},
@@ -101,15 +100,16 @@ def _skeleton_views(body: BodyModel, cams: list[Camera], images, result: FrameRe
 # ----------------------------------------------------------------------------- shirt
 
 
-def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
+def shirt_diagnostics(out, W: np.ndarray, names: list[str], gate) -> dict[str, float]:
     """The colour-shirt tracker's per-frame diagnostics (host arrays of a
-    :class:`~jaxmocap.trackers.shirt.ShirtOutput`): per camera ``c`` the classified fraction
-    of step 1 ``fraction_c``, the diagonal of the white balance ``W_c_rr/gg/bb``,
-    ``reference_used_c``, ``reference_added_c``, and how well the final pose explains the
-    crop, ``residual_c``, ``recall_c`` and ``coverage_c``
-    (:class:`~jaxmocap.trackers.shirt.FrameSignals`); ``agreement`` (render vs step-1
-    classification), ``patches`` (measured patch centroids, all cameras), and the frame's
-    ``blend_distance`` (rad), ``db_spread`` (rad) and ``root_jump`` (m) (FrameSignals)."""
+    :class:`~jaxmocap.trackers.shirt.ShirtOutput`): per camera ``c`` step 1's classified
+    fraction ``fraction_c``, the white balance's diagonal ``W_c_rr/gg/bb``, ``reference_used_c``,
+    ``reference_added_c``, and how well the final pose explains the crop, ``residual_c``,
+    ``recall_c``, ``coverage_c`` (:class:`~jaxmocap.trackers.shirt.FrameSignals`); ``agreement``
+    (render vs step-1 classification), ``patches`` (centroids measured, all cameras), the
+    frame's ``blend_distance``, ``db_spread`` (rad), ``root_jump`` (m) (FrameSignals); ``gate``,
+    the tracker's own validity (what its state kept: the smoother's weights, issue 49; the
+    reported ``valid`` may follow a stricter rule)."""
     d = {}
     for c, n in enumerate(names):
         d[f"fraction_{n}"] = float(out.fraction[c])
@@ -122,8 +122,8 @@ def shirt_diagnostics(out, W: np.ndarray, names: list[str]) -> dict[str, float]:
         d[f"coverage_{n}"] = float(out.signals.coverage[c])
     d["agreement"] = float(out.agreement)
     d["patches"] = float(np.sum(out.visible))
-    for k in ("blend_distance", "db_spread", "root_jump"):
-        d[k] = float(getattr(out.signals, k))
+    d.update({k: float(getattr(out.signals, k)) for k in ("blend_distance", "db_spread",
+                                                           "root_jump")}, gate=float(gate))
     patch_colours = getattr(out, "relight_ok", None) is not None
     if patch_colours:
         for c, n in enumerate(names):
@@ -146,7 +146,7 @@ def _diagnostic_names(names: tuple[str, ...], patch_colours: bool) -> tuple[str,
     cam = lambda *ks: [f"{k}_{n}" for k in ks for n in names]  # noqa: E731
     return (*cam("fraction"), *[f"W_{n}_{c}" for n in names for c in ("rr", "gg", "bb")],
             *cam("reference_used", "reference_added", "residual", "recall", "coverage"),
-            "agreement", "patches", "blend_distance", "db_spread", "root_jump",
+            "agreement", "patches", "blend_distance", "db_spread", "root_jump", "gate",
             *(cam("colour_updated", "relight_ok", "relight_rms") if patch_colours else ()))
 
 
@@ -226,9 +226,9 @@ class ShirtFrameTracker:
         else:
             masks = np.stack([s.apply(frames[i]) for i, s in enumerate(self._subs)])
             self.state, out = self._step(self.state, frames, masks)
-        out, W = jax.device_get((out, self.state.W))
+        out, W, gate = jax.device_get((out, self.state.W, self.state.valid))
         return FrameResult(np.asarray(out.q_frame, np.float64), bool(out.valid),
-                           shirt_diagnostics(out, W, self.names), out)
+                           shirt_diagnostics(out, W, self.names, gate), out)
 
     def checkpoint(self) -> dict:
         """What carries over to the next frame, on the host (for ``track``'s journal)."""
