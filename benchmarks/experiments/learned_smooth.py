@@ -8,6 +8,9 @@ before that column existed and run without a reporting rule report it as ``valid
 reported flag, or every frame. Errors: issue 17's 10 keypoints against the world's ground
 truth, as the experiment computes them (checked against each cell's own ``error_cm``).
 
+The stereo filter's cells (method "pf") are read the same way with its own joints (PF_JOINTS)
+and no ``gate`` column (its weights: the reported flag or every frame).
+
 Run: python -m benchmarks.experiments.learned_smooth OUT --config learned --hz 4 --json x.json
 """
 
@@ -34,7 +37,9 @@ JOINTS = ["head", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_w
 def cell_rows(cell: Path, world: Path, hz: list[float]) -> dict:
     doc = json.loads((cell / "result.json").read_text())
     folder = world / doc["sequence"]
-    cfg = {"body": "sequence", "method": "shirt", "joints": JOINTS, "options": {}}
+    shirt = doc.get("method", "shirt") == "shirt"  # the stereo filter: its own joints
+    cfg = {"body": "sequence", "method": "shirt" if shirt else "pf",
+           "joints": JOINTS if shirt else None, "options": {}}
     body = _body(cfg, str(folder))
     gt = load_track(folder / "groundtruth.npz")
     names, gnames = list(body.keypoint_names), list(gt.keypoint_names)
