@@ -6,7 +6,7 @@ over each cell's per-frame estimates (``poses.npz`` ``q_raw``), with as weights 
 own gate (the frames its state kept: the cell's ``gate`` diagnostics column; cells recorded
 before that column existed and run without a reporting rule report it as ``valid``), the
 reported flag, or every frame. Errors: issue 17's 10 keypoints against the world's ground
-truth, as the experiment computes them (checked against each cell's own ``error_cm``).
+truth by the experiment's own ``joint_errors_cm`` (checked against each cell's ``error_cm``).
 
 The stereo filter's cells (method "pf") are read the same way with its own joints (PF_JOINTS)
 and no ``gate`` column (its weights: the reported flag or every frame).
@@ -21,13 +21,9 @@ import csv
 import json
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxmocap.body import keypoints
-from jaxmocap.experiment.cell import _body, eval_joints
-from jaxmocap.io.export import load_track
+from jaxmocap.experiment.cell import _body, eval_joints, joint_errors_cm
 from jaxmocap.kalman import smooth_poses
 
 JOINTS = ["head", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist",
@@ -40,18 +36,10 @@ def cell_rows(cell: Path, world: Path, hz: list[float]) -> dict:
     shirt = doc.get("method", "shirt") == "shirt"  # the stereo filter: its own joints
     cfg = {"body": "sequence", "method": "shirt" if shirt else "pf",
            "joints": JOINTS if shirt else None, "options": {}}
-    body = _body(cfg, str(folder))
-    gt = load_track(folder / "groundtruth.npz")
-    names, gnames = list(body.keypoint_names), list(gt.keypoint_names)
-    ji = [names.index(j) for j in eval_joints(cfg)]
-    gi = [gnames.index(j) for j in eval_joints(cfg)]
-    fk = jax.jit(jax.vmap(lambda q: keypoints(body, q)))
+    body, joints = _body(cfg, str(folder)), eval_joints(cfg)
 
-    def err(q):
-        kp = np.asarray(fk(jnp.asarray(np.where(np.isfinite(q), q, 0.0))), np.float64)
-        e = np.linalg.norm(kp[:, ji] - gt.keypoints[:, gi], axis=-1).mean(1) * 100
-        e[~np.isfinite(q).all(1)] = np.nan
-        return e
+    def err(q):  # the experiment's own per-frame error (cell_metrics)
+        return joint_errors_cm(body, q, str(folder), joints)[0].mean(axis=1)
 
     with np.load(cell / "poses.npz") as z:
         q, fps, recorded = z["q_raw"], float(z["fps"]), z["error_cm"]

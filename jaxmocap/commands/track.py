@@ -230,6 +230,12 @@ def track_frames(tracker: FrameTracker, reader: SyncReader, files: AtomicFiles, 
     return tracked
 
 
+def _learned_path(args) -> bool:
+    """The shirt tracker on the learned observation: its default (issue 49); ``--colors`` is
+    the paper's set-up."""
+    return args.method == "shirt" and bool(args.observer or not args.colors)
+
+
 def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
     from jaxmocap.commands._body import body_from_args, garment_from_args
     from jaxmocap.commands._shirt import learned_shirt_tracker, shirt_inputs
@@ -257,7 +263,7 @@ def _make_tracker(args, cams: list[Camera], names: list[str]) -> FrameTracker:
                                     cue_widths=None if tuned is None else tuned.cue_widths())
     from jaxmocap.color import load_color_model
 
-    if args.observer or not args.colors:  # the learned observation: the default (issue 49)
+    if _learned_path(args):
         return learned_shirt_tracker(args, body, cams, names, tuned)
     color = load_color_model(args.colors)
     garment = garment_from_args(args, body, color if args.garment else None)
@@ -460,7 +466,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give the inputs (one video, frame folder or camera index per "
                          "camera) and --cameras CAMERAS_JSON, or --resume OUT")
     if args.smooth is None:  # the learned path's default (docs/results/learned.md)
-        args.smooth = args.method == "shirt" and bool(args.observer or not args.colors)
+        args.smooth = _learned_path(args)
     if args.smooth_hz is not None and not args.smooth:
         raise InputError(f"--smooth-hz {args.smooth_hz:g} sets the smoother of --smooth; add "
                          "--smooth")

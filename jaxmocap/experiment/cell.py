@@ -457,16 +457,16 @@ def _share(num: np.ndarray, den: np.ndarray) -> float | None:
     return None if n == 0 else float((num & den).sum() / n)
 
 
-def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
-                 good_cm: float, bad_cm: float) -> tuple[dict, np.ndarray]:
-    """Metrics of a computed cell whose poses were written to ``poses_path`` (module
-    docstring). Returns (metrics, per-frame error (T,) cm of the raw estimate)."""
+def joint_errors_cm(body, q: np.ndarray, gt_folder: str, joints):
+    """``(err, kp, gt_kp)`` of the estimates ``q`` (T, n_dof) against ``gt_folder``'s
+    ground truth: the per-joint error (T, J) cm of ``joints`` (NaN rows where ``q`` has no
+    estimate), their keypoints (T, J, 3) and the truth's (T, J, 3) -- the error every cell's
+    metrics are made of."""
     import jax
     import jax.numpy as jnp
 
     from jaxmocap.body import keypoints
     from jaxmocap.io.export import load_track
-    from jaxmocap.metrics import evaluate
 
     gt = load_track(Path(gt_folder) / "groundtruth.npz")
     names = list(body.keypoint_names)
@@ -474,15 +474,25 @@ def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
     if missing:
         raise InputError(f"joints {missing}: not keypoints of both the tracker's body and "
                          f"{gt_folder}/groundtruth.npz")
-    q, valid = result["q"], result["valid"]
-    ev = evaluate(poses_path, gt_folder) if valid.any() else None
     q_fill = np.where(np.isfinite(q), q, 0.0)
     kp = np.asarray(jax.jit(jax.vmap(lambda x: keypoints(body, x)))(jnp.asarray(q_fill)))
     ip = [names.index(j) for j in joints]
     ig = [list(gt.keypoint_names).index(j) for j in joints]
     err = np.linalg.norm(kp[:, ip] - gt.keypoints[:, ig], axis=-1) * 100.0  # (T, J) cm
     err[~np.isfinite(q).all(axis=1)] = np.nan
-    depth_cm, lateral_cm = _depth_lateral_cm(kp[:, ip], gt.keypoints[:, ig], gt_folder, err)
+    return err, kp[:, ip], gt.keypoints[:, ig]
+
+
+def cell_metrics(body, result: dict, poses_path: Path, gt_folder: str, joints,
+                 good_cm: float, bad_cm: float) -> tuple[dict, np.ndarray]:
+    """Metrics of a computed cell whose poses were written to ``poses_path`` (module
+    docstring). Returns (metrics, per-frame error (T,) cm of the raw estimate)."""
+    from jaxmocap.metrics import evaluate
+
+    q, valid = result["q"], result["valid"]
+    err, kp, gt_kp = joint_errors_cm(body, q, gt_folder, joints)
+    ev = evaluate(poses_path, gt_folder) if valid.any() else None
+    depth_cm, lateral_cm = _depth_lateral_cm(kp, gt_kp, gt_folder, err)
     frame_err = err.mean(axis=1)
     known = np.isfinite(frame_err)
     bad = known & (frame_err > bad_cm)
