@@ -8,6 +8,7 @@ a 96-pixel working crop. The step is compiled once for the whole module.
 import dataclasses
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -175,10 +176,16 @@ def test_orientation_hypotheses_start_only_after_a_loss(setup):
     st_h, first = shirt.step(ph, state0, setup["frames"])
     assert bool(first.valid)
     assert np.linalg.norm(np.asarray(kp(first.q)) - truth, axis=-1).mean() < 0.08
-    views = shirt_frame.locate_and_classify(ph, state0, jnp.asarray(setup["frames"]), None)
-    ctx_hyps = shirt_frame.orientation_starts(
-        ph, views, shirt_frame.database_pose(ph, views, p.cams.K.dtype), p.cams.K.dtype)
-    assert 1 <= int(ctx_hyps[1]) <= 2 * p.n_cams  # real hypotheses, from both cameras
+    dt = p.cams.K.dtype
+
+    @eqx.filter_jit  # one program (op by op, these calls compiled ~1,100 small ones)
+    def n_hypotheses(ph, state, frames):
+        views = shirt_frame.locate_and_classify(ph, state, frames, None)
+        return shirt_frame.orientation_starts(ph, views, shirt_frame.database_pose(ph, views, dt),
+                                              dt)[1]
+
+    n = int(n_hypotheses(ph, state0, jnp.asarray(setup["frames"])))
+    assert 1 <= n <= 2 * p.n_cams  # real hypotheses, from both cameras
     tracked, _ = shirt.step(p, state0, setup["frames"])
     _, a = shirt.step(p, tracked, setup["frames"])
     _, b = shirt.step(ph, tracked, setup["frames"])
@@ -474,12 +481,18 @@ def skin_setup(setup):
     state = shirt.init(ps, setup["W0"], jnp.zeros(model.n_dof))
     state = dataclasses.replace(state, valid=jnp.array(True))  # a tracked frame
     q = setup["q_true"]
-    views = shirt_frame.locate_and_classify(ps, state, jnp.asarray(setup["frames"]), None)
-    ctx = shirt_frame.round_context(ps, state, views, views.found, q)
-    hits = shirt_frame.render_views(ps, ctx, q)
+
+    @eqx.filter_jit  # one program instead of hundreds of ops dispatched one by one
+    def round_inputs(ps, state, frames, q):
+        views = shirt_frame.locate_and_classify(ps, state, frames, None)
+        ctx = shirt_frame.round_context(ps, state, views, views.found, q)
+        return ctx, shirt_frame.render_views(ps, ctx, q)
+
+    ctx, hits = round_inputs(ps, state, jnp.asarray(setup["frames"]), q)
     return dict(ps=ps, state=state, ctx=ctx, hits=hits, q=q)
 
 
+@eqx.filter_jit
 def _observe(ps, ctx, hits, q, observed=None):
     from jaxmocap.trackers.shirt.skin import observe_skin
 
@@ -501,6 +514,7 @@ def test_skin_centroids_observed_at_the_rendered_skin(setup, skin_setup):
     ob = _observe(ps, ctx, hits, q)
     assert np.asarray(ob.valid).all()
     model = setup["model"]
+    geom_ids = jax.jit(lambda q, cam: render_ids(model, ps.garment, q, cam).geom)
     roles, chain = model.roles, model.chain
     parents = np.asarray(chain.parents)
     for k, role in enumerate(SKIN_PARTS):
@@ -511,8 +525,7 @@ def test_skin_centroids_observed_at_the_rendered_skin(setup, skin_setup):
         geoms = np.flatnonzero(np.asarray(ps.garment.skin)
                                & np.isin(np.asarray(model.geometry.link), sorted(below)))
         for c in range(ps.n_cams):
-            cam = jax.tree.map(lambda a, c=c: a[c], ps.cams)
-            g = np.asarray(render_ids(model, ps.garment, q, cam).geom)
+            g = geom_ids(q, jax.tree.map(lambda a, c=c: a[c], ps.cams))
             yy, xx = np.nonzero(np.isin(g, geoms))
             truth = np.array([xx.mean(), yy.mean()])
             np.testing.assert_allclose(np.asarray(ob.xy[c, k]), truth, atol=1.5)
@@ -534,14 +547,15 @@ def test_skin_gate_drops_a_hidden_hand_and_no_skin_leaves_the_ik_unchanged(skin_
     np.testing.assert_array_equal(np.asarray(hidden.valid),
                                   np.array([[True, False, True]] * ps.n_cams))
     q0 = q + 0.05 * jnp.ones_like(q).at[:6].set(0.0)  # a round started off the truth
-    hits0 = shirt_frame.render_views(ps, ctx, q0)
+    hits0 = eqx.filter_jit(shirt_frame.render_views)(ps, ctx, q0)
     none = ctx._replace(skin=jnp.zeros_like(ctx.skin))
     off = dc.replace(ps, skin=None, rounds=dc.replace(ps.rounds, skin_terms=False))
-    with_terms = shirt_frame.ik_round(ps, none, q0, hits0)[0]
-    without = shirt_frame.ik_round(off, ctx._replace(skin=None), q0, hits0)[0]
+    ik_round = eqx.filter_jit(lambda p, c, q, h: shirt_frame.ik_round(p, c, q, h)[0])
+    with_terms = ik_round(ps, none, q0, hits0)
+    without = ik_round(off, ctx._replace(skin=None), q0, hits0)
     np.testing.assert_allclose(np.asarray(with_terms), np.asarray(without), atol=1e-9)
     # and with the skin seen, the terms move the result (they are in the IK)
-    seen = shirt_frame.ik_round(ps, ctx, q0, hits0)[0]
+    seen = ik_round(ps, ctx, q0, hits0)
     assert float(jnp.max(jnp.abs(seen - without))) > 1e-4
     # after a loss (the previous frame invalid) no skin is observed: no terms
     lost = dc.replace(skin_setup["state"], valid=jnp.array(False))
@@ -572,7 +586,8 @@ def test_skin_terms_residual_jit_vmap_grad(skin_setup):
     x = q + 0.02 * jnp.arange(q.shape[0]) / q.shape[0]
     g = jax.jit(jax.grad(energy))(x)
     eps = 1e-6
-    fd = np.array([(energy(x.at[i].add(eps)) - energy(x.at[i].add(-eps))) / (2 * eps)
+    e = jax.jit(energy)  # the finite differences' 2 n_dof evaluations: one program
+    fd = np.array([(e(x.at[i].add(eps)) - e(x.at[i].add(-eps))) / (2 * eps)
                    for i in range(x.shape[0])])
     np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-5)
     assert float(jnp.linalg.norm(g[6:])) > 0
