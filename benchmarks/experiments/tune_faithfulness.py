@@ -218,23 +218,21 @@ def real_errors(c: dict, seqs, data, sigma_g: float, sigma_d: float, seeds) -> d
 
 
 def seed_variance(real: dict) -> dict:
-    """How much of the real error's spread over the draws the widths explain: a one-way
-    analysis of variance with the draws as groups and the seeds as replicates (cm^2).
-    ``icc`` is the intraclass correlation (MS_between - MS_within) / (MS_between + (k - 1)
-    MS_within): the share of one run's variance due to the widths; ``f``, ``p`` scipy's F test
-    that the widths change the mean error at all."""
-    from scipy.stats import f as f_dist
+    """How much of the real error's spread over the draws the widths explain: SciPy's one-way
+    analysis of variance (``f_oneway``) with the draws as groups and the seeds as replicates
+    (cm^2). ``icc`` is the intraclass correlation (F - 1) / (F + k - 1) = (MS_between -
+    MS_within) / (MS_between + (k - 1) MS_within): the share of one run's variance due to the
+    widths; ``f``, ``p`` the F test that the widths change the mean error at all."""
+    from scipy.stats import f_oneway
 
     y = np.array([real[s] for s in sorted(real)]).T  # (draws, seeds)
-    n, k = y.shape
+    k = y.shape[1]
     if k < 2:
         return {}
-    ms_between = k * np.var(y.mean(1), ddof=1)
-    ms_within = np.mean(np.var(y, axis=1, ddof=1))
-    f = ms_between / ms_within
-    return {"seeds": k, "ms_between_cm2": float(ms_between), "ms_within_cm2": float(ms_within),
-            "icc": float((ms_between - ms_within) / (ms_between + (k - 1) * ms_within)),
-            "f": float(f), "p": float(f_dist.sf(f, n - 1, n * (k - 1))),
+    test = f_oneway(*y)
+    f, ms_within = float(test.statistic), float(np.mean(np.var(y, axis=1, ddof=1)))
+    return {"seeds": k, "ms_between_cm2": f * ms_within, "ms_within_cm2": ms_within,
+            "icc": (f - 1.0) / (f + k - 1.0), "f": f, "p": float(test.pvalue),
             "seed_sd_cm": float(np.sqrt(ms_within)),
             "draw_mean_range_cm": [float(y.mean(1).min()), float(y.mean(1).max())]}
 
